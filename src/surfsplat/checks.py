@@ -1,0 +1,57 @@
+"""Input validation at public boundaries: one clear error naming the argument."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+
+class SurfSplatInputError(ValueError):
+    """Raised when a public function or file receives malformed input."""
+
+
+def check_tensor(name: str, value: object, shape: Sequence[int | str | None], *, finite: bool = True) -> Tensor:
+    """Check that `value` is a floating tensor with the given shape pattern.
+
+    `shape` entries: an int (exact size), a str (a named size: it must agree wherever the same
+    name appears in one call) or None (any size). Returns the tensor unchanged.
+    """
+    if not isinstance(value, Tensor):
+        raise SurfSplatInputError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
+    if value.ndim != len(shape):
+        raise SurfSplatInputError(
+            f"{name}: expected shape {_pattern(shape)}, got {tuple(value.shape)} ({value.ndim} dims)"
+        )
+    named: dict[str, int] = {}
+    for axis, (want, got) in enumerate(zip(shape, value.shape)):
+        if isinstance(want, int) and want != got:
+            raise SurfSplatInputError(
+                f"{name}: expected shape {_pattern(shape)}, got {tuple(value.shape)} (axis {axis})"
+            )
+        if isinstance(want, str):
+            if named.setdefault(want, got) != got:
+                raise SurfSplatInputError(
+                    f"{name}: expected shape {_pattern(shape)}, got {tuple(value.shape)} ({want} differs)"
+                )
+    if not value.is_floating_point():
+        raise SurfSplatInputError(f"{name}: expected a floating-point tensor, got {value.dtype}")
+    if finite and not bool(torch.isfinite(value).all()):
+        bad = (~torch.isfinite(value)).nonzero()[0].tolist()
+        raise SurfSplatInputError(f"{name}: contains NaN or inf (first at index {tuple(bad)})")
+    return value
+
+
+def check_same_leading(names: Sequence[str], tensors: Sequence[Tensor], dims: int) -> None:
+    """Check that tensors agree on their first `dims` sizes."""
+    ref = tuple(tensors[0].shape[:dims])
+    for name, t in zip(names[1:], tensors[1:]):
+        if tuple(t.shape[:dims]) != ref:
+            raise SurfSplatInputError(
+                f"{name}: leading shape {tuple(t.shape[:dims])} does not match {names[0]}'s {ref}"
+            )
+
+
+def _pattern(shape: Sequence[int | str | None]) -> str:
+    return "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"

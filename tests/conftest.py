@@ -1,0 +1,36 @@
+"""Shared fixtures: the read-only sample data and golden fixtures live beside the repository."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED = REPO_ROOT.parent / "shared"
+
+torch.set_num_threads(2)
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip(f"sample data folder {SHARED} is absent (golden fixtures and captures live there)")
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def golden_dir(shared_dir: Path) -> Path:
+    path = shared_dir / "golden"
+    if not path.is_dir():
+        pytest.skip(f"golden fixtures {path} are absent")
+    return path
+
+
+@pytest.fixture(scope="session")
+def data_dir(shared_dir: Path) -> Path:
+    path = shared_dir / "data"
+    if not path.is_dir():
+        pytest.skip(f"sample captures {path} are absent")
+    return path
