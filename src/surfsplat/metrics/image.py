@@ -1,0 +1,104 @@
+"""Full-reference image metrics: PSNR and SSIM exactly as the published tables compute them.
+
+Every feed-forward splatting paper of this family (pixelSplat, MVSplat, DepthSplat, SurfSplat)
+reports SSIM from one call,
+`skimage.metrics.structural_similarity(gt, pred, win_size=11, gaussian_weights=True,
+channel_axis=0, data_range=1.0)`, which differs from Wang et al. (2004) in two ways: the
+covariances are sample covariances (scaled by N / (N - 1), N = 11 * 11), and the mean is taken
+over the map without a 5-pixel border. `ssim` below is that call in batched, differentiable
+torch, so it runs on the GPU and inside a loss.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import Tensor
+
+from ..checks import SurfSplatInputError, check_tensor
+
+SSIM_WIN_SIZE = 11  # the published call's win_size: the crop and N of the sample covariance
+SSIM_SIGMA = 1.5  # scikit-image's Gaussian width when gaussian_weights=True
+SSIM_TRUNCATE = 3.5  # scikit-image's truncation: radius = int(3.5 * 1.5 + 0.5) = 5, 11 taps
+SSIM_K1 = 0.01  # stabilisers of Wang et al., C1 = (K1 L)^2, C2 = (K2 L)^2
+SSIM_K2 = 0.03
+
+
+def _check_pair(prediction: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    check_tensor("prediction", prediction, ("B", "C", "H", "W"))
+    check_tensor("target", target, tuple(prediction.shape))
+    return prediction, target
+
+
+def psnr(prediction: Tensor, target: Tensor) -> Tensor:
+    """Peak signal-to-noise ratio in dB per image, both images clipped to [0, 1] first.
+
+    prediction, target: [B, C, H, W]. Returns [B]; identical images give +inf, as the release's
+    `compute_psnr` does. The reported number is the mean of these values over images.
+    """
+    prediction, target = _check_pair(prediction, target)
+    # Clip like the release: renders may overshoot 1 (SH colours are only clamped at 0).
+    diff = prediction.clamp(0.0, 1.0) - target.clamp(0.0, 1.0)
+    mse = diff.square().mean(dim=(1, 2, 3))
+    return -10.0 * torch.log10(mse)
+
+
+def gaussian_taps(sigma: float = SSIM_SIGMA, truncate: float = SSIM_TRUNCATE, *, dtype=torch.float64) -> Tensor:
+    """scipy.ndimage's normalised 1-D Gaussian: 2r + 1 taps, r = int(truncate * sigma + 0.5)."""
+    radius = int(truncate * sigma + 0.5)
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    taps = torch.exp(-0.5 * (x / sigma) ** 2)
+    return (taps / taps.sum()).to(dtype)
+
+
+def _gaussian_filter_valid(maps: Tensor, taps: Tensor) -> Tensor:
+    """Separable Gaussian filter of [N, 1, H, W] maps where the window fits: [N, 1, H-2r, W-2r].
+
+    scikit-image filters with padding and then crops r = (win_size - 1) / 2 pixels off the SSIM
+    map; with win_size 11 and sigma 1.5 the filter radius is also 5, so no kept pixel ever sees
+    the padding and an unpadded ("valid") convolution gives the same numbers for less work.
+    """
+    vertical = F.conv2d(maps, taps.view(1, 1, -1, 1))
+    return F.conv2d(vertical, taps.view(1, 1, 1, -1))
+
+
+def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tensor:
+    """Mean SSIM per image, identical to scikit-image's Gaussian-window call (module docstring).
+
+    prediction, target: [B, C, H, W] with H, W >= 11; no clipping (the published call has none).
+    Computed in the inputs' dtype (at least float32); pass float64 for bit-level agreement with
+    scikit-image on float64 arrays. Returns [B]: per channel the mean of the SSIM map without a
+    5-pixel border, then the mean over channels. Differentiable.
+    """
+    prediction, target = _check_pair(prediction, target)
+    height, width = prediction.shape[-2:]
+    if min(height, width) < SSIM_WIN_SIZE:
+        raise SurfSplatInputError(
+            f"prediction: SSIM needs images of at least {SSIM_WIN_SIZE}x{SSIM_WIN_SIZE} pixels, got {height}x{width}"
+        )
+    if not data_range > 0:
+        raise SurfSplatInputError(f"data_range: expected a positive number, got {data_range}")
+    dtype = torch.promote_types(prediction.dtype, torch.float32)
+    x, y = prediction.to(dtype), target.to(dtype)
+    batch = x.shape[0]
+
+    # All five local moments in one depthwise pass: E[x], E[y], E[x^2], E[y^2], E[xy].
+    moments = torch.stack([x, y, x * x, y * y, x * y], dim=1)  # [B, 5, C, H, W]
+    flat = rearrange(moments, "b m c h w -> (b m c) 1 h w")
+    taps = gaussian_taps(dtype=dtype).to(x.device)
+    filtered = rearrange(_gaussian_filter_valid(flat, taps), "(b m c) 1 h w -> m b c h w", b=batch, m=5)
+    mu_x, mu_y, mu_xx, mu_yy, mu_xy = filtered.unbind(0)
+
+    n = SSIM_WIN_SIZE**2
+    cov_norm = n / (n - 1)  # scikit-image's use_sample_covariance=True
+    var_x = cov_norm * (mu_xx - mu_x * mu_x)
+    var_y = cov_norm * (mu_yy - mu_y * mu_y)
+    cov_xy = cov_norm * (mu_xy - mu_x * mu_y)
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    numerator = (2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)
+    denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    ssim_map = numerator / denominator  # [B, C, H - 10, W - 10]: scikit-image's cropped map
+    return ssim_map.mean(dim=(1, 2, 3))
+
