@@ -1,0 +1,184 @@
+"""LPIPS-VGG v0.1: the reference package's outputs from both weight-file layouts, lookup, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from surfsplat.checks import SurfSplatInputError
+from surfsplat.metrics import Lpips, LpipsUnavailable, find_lpips_weights, load_lpips, try_load_lpips
+from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
+
+# Tiny stand-ins for torchvision's classifier keys: a real file carries them and they are ignored.
+CLASSIFIER = {"classifier.0.weight": torch.zeros(4, 3), "classifier.0.bias": torch.zeros(4)}
+
+
+def formula_tensor(key: str, shape: list[int], mean: float, std: float) -> torch.Tensor:
+    """The fixture's weight formula (golden/lpips/README.md), vectorised in uint64."""
+    n = math.prod(shape)
+    mask = np.uint64(0xFFFFFFFF)
+    h = (np.arange(n, dtype=np.uint64) + np.uint64(zlib.crc32(key.encode("utf-8")))) & mask
+    h = (h * np.uint64(2654435761)) & mask
+    h ^= h >> np.uint64(16)
+    h = (h * np.uint64(0x85EBCA6B)) & mask
+    h ^= h >> np.uint64(13)
+    h = (h * np.uint64(0xC2B2AE35)) & mask
+    h ^= h >> np.uint64(16)
+    z = (h.astype(np.float64) / 2.0**32 - 0.5) * math.sqrt(12.0)
+    w = float(np.float32(mean)) + float(np.float32(std)) * z
+    return torch.from_numpy(w.astype(np.float32).reshape(shape))
+
+
+@pytest.fixture(scope="module")
+def formula_states(golden_dir: Path) -> tuple[dict, dict]:
+    spec = json.loads((golden_dir / "lpips" / "formula_weights.json").read_text())
+    state = {t["key"]: formula_tensor(t["key"], t["shape"], t["mean"], t["std"]) for t in spec["tensors"]}
+    vgg = {k: v for k, v in state.items() if k.startswith("features.")}
+    lin = {k: v for k, v in state.items() if k.startswith("lin")}
+    assert set(vgg) == set(vgg_shapes()) and set(lin) == set(lin_shapes())
+    return vgg, lin
+
+
+def random_states(seed: int = 0) -> tuple[dict, dict]:
+    """Random weights, for tests of structure only (never reported as LPIPS)."""
+    g = torch.Generator().manual_seed(seed)
+    vgg = {k: 0.1 * torch.randn(s, generator=g) for k, s in vgg_shapes().items()}
+    lin = {k: torch.rand(s, generator=g) for k, s in lin_shapes().items()}
+    return vgg, lin
+
+
+@pytest.fixture(scope="module")
+def random_model() -> Lpips:
+    return Lpips(*random_states(5))
+
+
+def write_files(folder: Path, vgg: dict, lin: dict, *, legacy: bool, classifier: bool) -> tuple[Path, Path]:
+    """Write the trunk in torchvision's layout and the heads in the lpips package's layout."""
+    folder.mkdir(parents=True, exist_ok=True)
+    vgg_path, lin_path = folder / VGG16_FILENAME, folder / "vgg.pth"
+    torch.save({**vgg, **(CLASSIFIER if classifier else {})}, vgg_path, _use_new_zipfile_serialization=not legacy)
+    torch.save(lin, lin_path, _use_new_zipfile_serialization=not legacy)
+    return vgg_path, lin_path
+
+
+def test_lpips_matches_reference_package_from_written_files(tmp_path, formula_states, golden_dir):
+    vgg_path, lin_path = write_files(tmp_path, *formula_states, legacy=True, classifier=True)
+    model = load_lpips(vgg_path, lin_path)
+    cases = load_file(str(golden_dir / "lpips" / "cases.safetensors"))
+    with torch.no_grad():
+        d64 = model(cases["a64"], cases["b64"])
+        d256 = model(cases["a256"], cases["b256"])
+        same = model(cases["a64"], cases["a64"])
+    assert ((d64 - cases["lpips64"]) / cases["lpips64"]).abs().max().item() <= 1e-5
+    assert ((d256 - cases["lpips256"]) / cases["lpips256"]).abs().max().item() <= 1e-5
+    assert same.abs().max().item() <= 1e-7 and cases["lpips_same"].abs().max().item() == 0.0
+
+
+@pytest.mark.parametrize("legacy", [True, False])
+@pytest.mark.parametrize("classifier", [True, False])
+def test_both_serialisations_with_and_without_classifier_load_the_same_weights(tmp_path, legacy, classifier):
+    vgg, lin = random_states(1)
+    model = load_lpips(*write_files(tmp_path, vgg, lin, legacy=legacy, classifier=classifier))
+    for key, value in {**vgg, **lin}.items():
+        assert torch.equal(getattr(model, key.replace(".", "_")), value), key
+
+
+def test_weights_are_found_in_the_standard_locations(tmp_path, monkeypatch):
+    vgg, lin = random_states(2)
+    # torchvision's cache: $TORCH_HOME/hub/checkpoints; the heads: an installed lpips package.
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    hub = tmp_path / "torch_home" / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    torch.save({**vgg, **CLASSIFIER}, hub / VGG16_FILENAME)
+    package = tmp_path / "site" / "lpips"
+    (package / "weights" / "v0.1").mkdir(parents=True)
+    (package / "__init__.py").write_text("raise ImportError('finding the weights must not import lpips')\n")
+    torch.save(lin, package / "weights" / "v0.1" / "vgg.pth")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+
+    paths = find_lpips_weights()
+    assert paths.vgg == hub / VGG16_FILENAME
+    assert paths.lin == package / "weights" / "v0.1" / "vgg.pth"
+    model = load_lpips()
+    assert torch.equal(model.features_0_weight, vgg["features.0.weight"])
+
+    # Without TORCH_HOME, XDG_CACHE_HOME/torch/hub is torch's cache.
+    monkeypatch.delenv("TORCH_HOME")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    xdg_hub = tmp_path / "xdg" / "torch" / "hub" / "checkpoints"
+    xdg_hub.mkdir(parents=True)
+    torch.save(vgg, xdg_hub / VGG16_FILENAME)
+    assert find_lpips_weights().vgg == xdg_hub / VGG16_FILENAME
+
+
+def test_missing_weights_say_lpips_unavailable(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
+    with pytest.raises(LpipsUnavailable, match=r"^LPIPS unavailable: VGG16 weights vgg16-397923af.pth not found"):
+        load_lpips()
+    result = try_load_lpips()
+    assert isinstance(result, LpipsUnavailable)
+    assert str(result).startswith("LPIPS unavailable: ") and str(tmp_path / "empty") in str(result)
+    assert isinstance(result, SurfSplatInputError)  # the CLI prints it as one line
+
+    vgg, lin = random_states(3)
+    vgg_path, _ = write_files(tmp_path / "files", vgg, lin, legacy=False, classifier=False)
+    with pytest.raises(LpipsUnavailable, match="does not exist"):
+        load_lpips(vgg_path, tmp_path / "nowhere.pth")
+
+
+def test_unreadable_or_wrong_files_are_named(tmp_path):
+    vgg, lin = random_states(4)
+    vgg_path, lin_path = write_files(tmp_path, vgg, lin, legacy=False, classifier=False)
+
+    corrupt = tmp_path / "corrupt.pth"
+    corrupt.write_bytes(vgg_path.read_bytes()[:1000])
+    with pytest.raises(LpipsUnavailable, match=r"cannot read VGG16 weights file .*corrupt\.pth"):
+        load_lpips(corrupt, lin_path)
+
+    # A file in the wrong layout (the heads given as the trunk) names the missing key.
+    with pytest.raises(LpipsUnavailable, match=r"missing \['features\.0\.weight'.*unexpected \['lin0\.model\.1\.weight'"):
+        load_lpips(lin_path, lin_path)
+
+    bad = dict(lin)
+    bad["lin2.model.1.weight"] = torch.zeros(1, 128, 1, 1)
+    torch.save(bad, tmp_path / "bad_lin.pth")
+    with pytest.raises(LpipsUnavailable, match=r"lin2\.model\.1\.weight has shape \(1, 128, 1, 1\), expected \(1, 256, 1, 1\)"):
+        load_lpips(vgg_path, tmp_path / "bad_lin.pth")
+
+    # Unexpected extra keys other than torchvision's classifier are an error, not ignored.
+    torch.save({**vgg, "features.30.weight": torch.zeros(1)}, tmp_path / "extra.pth")
+    with pytest.raises(LpipsUnavailable, match=r"unexpected \['features\.30\.weight'\]"):
+        load_lpips(tmp_path / "extra.pth", lin_path)
+
+
+def test_lpips_is_a_fixed_differentiable_function_of_its_inputs(random_model):
+    model = random_model
+    assert list(model.parameters()) == [] and model.state_dict() == {}  # never trained, never saved
+    g = torch.Generator().manual_seed(6)
+    a = torch.rand(2, 3, 16, 24, generator=g)
+    b = torch.rand(2, 3, 16, 24, generator=g, requires_grad=True)
+    d = model(a, b)
+    d.sum().backward()
+    assert b.grad is not None and bool(torch.isfinite(b.grad).all()) and b.grad.abs().sum() > 0
+    with torch.no_grad():
+        torch.testing.assert_close(model(b, a), d, rtol=1e-6, atol=0)  # symmetric by construction
+        single = torch.cat([model(a[i : i + 1], b[i : i + 1]) for i in range(2)])
+        torch.testing.assert_close(single, d, rtol=1e-5, atol=0)  # batch items are independent
+        assert (d > 0).all()
+
+
+def test_lpips_rejects_bad_inputs(random_model):
+    model = random_model
+    with pytest.raises(SurfSplatInputError, match="at least 16x16"):
+        model(torch.rand(1, 3, 15, 32), torch.rand(1, 3, 15, 32))
+    with pytest.raises(SurfSplatInputError, match="prediction"):
+        model(torch.rand(1, 4, 32, 32), torch.rand(1, 4, 32, 32))
+    with pytest.raises(SurfSplatInputError, match="target"):
+        model(torch.rand(1, 3, 32, 32), torch.rand(2, 3, 32, 32))
