@@ -1,0 +1,144 @@
+"""`surfsplat.render`: Gaussians + cameras -> colour, alpha, depth and normal maps."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from ..checks import SurfSplatInputError, check_tensor
+from ..gaussians import Gaussians
+from ..geometry.cameras import Cameras
+from .torch_backend import TorchRenderSettings, render_torch
+from .types import Backend, RenderMode, RenderOutput
+
+__all__ = ["render", "RenderOutput", "TorchRenderSettings", "normalize_by_alpha", "gsplat_available"]
+
+DEFAULT_ALPHA_THRESHOLD = 0.001  # SurfSplat's evaluation tau_alpha (paper Sec. 3.4); training uses 0.1
+
+
+def gsplat_available(device: torch.device) -> bool:
+    """True when the gsplat CUDA backend can run on `device`."""
+    if device.type != "cuda":
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def render(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    *,
+    mode: RenderMode = "surfel",
+    backend: Backend = "auto",
+    background: Tensor | Sequence[float] | None = None,
+    alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD,
+    settings: TorchRenderSettings | None = None,
+) -> RenderOutput:
+    """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
+
+    mode:            "surfel" - exact ray-splat intersection of 2DGS with its screen-space low-pass
+                     fallback; "ewa" - 3DGS's affine projection of the 3D covariance plus 0.3 px^2
+                     (a surfel becomes a thin 3D Gaussian; explicit covariances are used when given).
+    background:      RGB added where the image is not fully covered (default black, as the release).
+    alpha_threshold: forced alpha blending (paper Sec. 3.4): colour, depth and normal are divided by
+                     alpha wherever alpha >= threshold, and such pixels count as opaque for the
+                     background. None disables it (plain 2DGS/3DGS compositing, the "w/o FAB" ablation).
+    Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
+    """
+    _validate(gaussians, cameras, width, height, mode, alpha_threshold)
+    device = gaussians.means.device
+    dtype = gaussians.means.dtype
+    bg = _background(background, dtype, device)
+    if backend == "auto":
+        backend = "gsplat" if gsplat_available(device) else "torch"
+    if backend == "gsplat":
+        if not gsplat_available(device):
+            raise SurfSplatInputError(
+                "backend: 'gsplat' needs a CUDA device and the gsplat package (pip install 'surfsplat[gsplat]'); "
+                f"Gaussians are on {device}"
+            )
+        from .gsplat_backend import render_gsplat
+
+        color, alpha, depth, normal = render_gsplat(gaussians, cameras, width, height, mode)
+    elif backend == "torch":
+        color, alpha, depth, normal = _render_torch_all(gaussians, cameras, width, height, mode, settings)
+    else:
+        raise SurfSplatInputError(f"backend: expected 'auto', 'torch' or 'gsplat', got {backend!r}")
+    color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
+    color = color + (1 - coverage) * bg[None, :, None, None]
+    return RenderOutput(color=color, alpha=alpha, depth=depth, normal=normal)
+
+
+def normalize_by_alpha(
+    color: Tensor, alpha: Tensor, depth: Tensor, normal: Tensor, threshold: float | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Forced-alpha normalization C / alpha where alpha >= threshold (paper Sec. 3.4, Eq. 9).
+
+    Returns the normalized (color, depth, normal) and the coverage used for the background:
+    1 where normalized, alpha elsewhere.
+    """
+    if threshold is None:
+        return color, depth, normal, alpha
+    mask = alpha >= threshold
+    safe = torch.where(mask, alpha, torch.ones_like(alpha))
+    coverage = torch.where(mask, torch.ones_like(alpha), alpha)
+    return color / safe, depth / safe, normal / safe, coverage
+
+
+def _render_torch_all(
+    g: Gaussians, cameras: Cameras, width: int, height: int, mode: RenderMode, settings: TorchRenderSettings | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    settings = settings or TorchRenderSettings()
+    rotations = g.rotations
+    covariances = g.covariances if mode == "ewa" else None
+    w2c = cameras.w2c.to(g.means)
+    K = cameras.K.to(g.means)
+    centers = cameras.centers.to(g.means)
+    outs = [
+        render_torch(
+            g.means, rotations, g.scales, covariances, g.opacities, g.sh,
+            w2c[c], K[c], centers[c], width, height, mode, settings,
+        )
+        for c in range(len(cameras))
+    ]
+    color = torch.stack([o[0] for o in outs]).permute(0, 3, 1, 2)
+    alpha = torch.stack([o[1] for o in outs])[:, None]
+    depth = torch.stack([o[2] for o in outs])[:, None]
+    normal = torch.stack([o[3] for o in outs]).permute(0, 3, 1, 2)
+    return color, alpha, depth, normal
+
+
+def _background(background: Tensor | Sequence[float] | None, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if background is None:
+        return torch.zeros(3, dtype=dtype, device=device)
+    bg = torch.as_tensor(background, dtype=dtype, device=device)
+    check_tensor("background", bg, (3,))
+    return bg
+
+
+def _validate(
+    g: Gaussians, cameras: Cameras, width: int, height: int, mode: str, alpha_threshold: float | None
+) -> None:
+    if not isinstance(g, Gaussians):
+        raise SurfSplatInputError(f"gaussians: expected surfsplat.Gaussians, got {type(g).__name__}")
+    if not isinstance(cameras, Cameras):
+        raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cameras).__name__}")
+    if g.means.ndim != 2:
+        raise SurfSplatInputError(
+            f"gaussians: expected unbatched Gaussians with means [N, 3], got {tuple(g.means.shape)}; "
+            "render one scene at a time (Gaussians.select(b))"
+        )
+    for name, value in (("width", width), ("height", height)):
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise SurfSplatInputError(f"{name}: expected a positive int, got {value!r}")
+    if mode not in ("surfel", "ewa"):
+        raise SurfSplatInputError(f"mode: expected 'surfel' or 'ewa', got {mode!r}")
+    if alpha_threshold is not None and not 0 < alpha_threshold <= 1:
+        raise SurfSplatInputError(f"alpha_threshold: expected a value in (0, 1] or None, got {alpha_threshold!r}")

@@ -1,0 +1,466 @@
+"""Pure-PyTorch tile renderer for 2D Gaussian surfels and EWA-splatted 3D Gaussians.
+
+The reference backend: runs on any device, differentiable through autograd, and memory-bounded.
+
+Pipeline for one camera:
+1. `project_*`: per-Gaussian screen-space quantities (float64 for the geometry, so large images
+   keep sub-pixel precision) and the opacity-aware bounding box of every pixel where the
+   Gaussian's alpha can reach ALPHA_MIN.
+2. Binning: each Gaussian is listed in every tile its box touches; one stable sort by tile id
+   of the depth-sorted list gives, per tile, its Gaussians front to back.
+3. Compositing in work blocks of (group of tiles) x (block of depth slots) x (tile pixels): a
+   Gaussian's response at a pixel is one small matrix product in tile-local coordinates, then
+   front-to-back alpha compositing with the early-termination rule of 3DGS/2DGS, carried across
+   depth blocks. Each block's backward pass is written out by hand and recomputes the block from
+   its small inputs, so peak memory is bounded by one block at any resolution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..geometry.sh import sh_to_color
+from .types import ALPHA_MAX, ALPHA_MIN, LOG_ALPHA_MIN, EWA_DILATION, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN, RenderMode
+
+
+@dataclass
+class TorchRenderSettings:
+    tile_size: int = 4  # tile edge in pixels (small tiles waste fewer pair-pixel slots)
+    block_elements: int = 1 << 22  # pair-pixel slots evaluated per work block (bounds peak memory)
+    max_block_depth: int = 128  # at most this many Gaussians per tile in one block
+    near_plane: float = 0.01  # Gaussians closer than this (camera z) are culled
+    far_plane: float = 1e10  # Gaussians farther than this are culled
+
+
+# ---------------------------------------------------------------------------------------------
+# Projection
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen quantities for the Gaussians kept after culling, sorted front to back."""
+
+    index: Tensor  # [M] index into the input Gaussians
+    center: Tensor  # [M, 2] projected centre (pixels, float64)
+    geometry: Tensor  # [M, G] mode-specific coefficients (float64), see `_pair_coefficients`
+    opacity: Tensor  # [M]
+    features: Tensor  # [M, 6 or 7] colour (3), normal (3) [, centre depth (1) for ewa]
+    pixel_box: Tensor  # [M, 4] int64 inclusive pixel ranges: col0, col1, row0, row1
+
+
+def _opacity_extent(opacity: Tensor) -> Tensor:
+    """k^2 such that alpha = o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
+    return 2.0 * torch.log((opacity.to(torch.float64) / ALPHA_MIN).clamp_min(1.0))
+
+
+def _pixel_box(xmin: Tensor, xmax: Tensor, ymin: Tensor, ymax: Tensor, width: int, height: int) -> Tensor:
+    """Inclusive ranges of pixels whose centres (j + 0.5, i + 0.5) lie in the continuous box."""
+    col0 = torch.ceil(xmin - 0.5).clamp(0, width).long()
+    col1 = torch.floor(xmax - 0.5).clamp(-1, width - 1).long()
+    row0 = torch.ceil(ymin - 0.5).clamp(0, height).long()
+    row1 = torch.floor(ymax - 0.5).clamp(-1, height - 1).long()
+    return torch.stack((col0, col1, row0, row1), dim=-1)
+
+
+def _cull_and_sort(depth: Tensor, box: Tensor, opacity: Tensor, settings: TorchRenderSettings) -> Tensor:
+    keep = (depth > settings.near_plane) & (depth < settings.far_plane) & (opacity >= ALPHA_MIN)
+    keep &= (box[:, 0] <= box[:, 1]) & (box[:, 2] <= box[:, 3])
+    index = keep.nonzero().squeeze(1)
+    order = torch.sort(depth[index].detach(), stable=True).indices
+    return index[order]
+
+
+def _camera_facing(normals: Tensor, means_cam: Tensor, R_cw: Tensor) -> Tensor:
+    """World normals flipped to face the camera (n . view direction <= 0)."""
+    n_cam = normals @ R_cw.T
+    flip = (n_cam * means_cam).sum(-1, keepdim=True) > 0
+    return torch.where(flip, -normals, normals)
+
+
+def _colors(sh: Tensor, means: Tensor, center: Tensor) -> Tensor:
+    dirs = F.normalize(means - center, dim=-1)
+    return sh_to_color(sh, dirs)
+
+
+def project_surfels(
+    means: Tensor, rotations: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
+    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, settings: TorchRenderSettings,
+) -> Projected:
+    """2DGS projection (Huang et al. 2024): T = K [R S e1, R S e2, mu_cam] maps surfel (u, v, 1) to pixels.
+
+    For pixel p, with T's rows T_x, T_y, T_w, the ray-splat intersection is (u, v) = (h_u x h_v).xy /
+    (h_u x h_v).z with h_u = p_x T_w - T_x, h_v = p_y T_w - T_y. The cross product is affine in p:
+    h_u x h_v = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x, so every pixel of
+    a tile costs one 3x3 matrix product. The intersection's camera z is det(T) / (h_u x h_v).z.
+    """
+    dt = torch.float64
+    R_cw, t_cw = w2c[:3, :3].to(dt), w2c[:3, 3].to(dt)
+    mu = means.to(dt) @ R_cw.T + t_cw  # [N, 3] camera frame
+    Rc = R_cw @ rotations.to(dt)  # [N, 3, 3]
+    s = scales.to(dt)
+    M = torch.stack((Rc[:, :, 0] * s[:, :1], Rc[:, :, 1] * s[:, 1:], mu), dim=-1)  # columns tu, tv, mu
+    T = K.to(dt) @ M  # [N, 3, 3]
+    Tx, Ty, Tw = T[:, 0], T[:, 1], T[:, 2]
+
+    # Opacity-aware bounding box: the k-sigma ellipse u^2 + v^2 = k^2 is the conic diag(1, 1, -k^2);
+    # its image under T has the dual conic T diag(1, 1, -1/k^2) T^T, whose vertical and horizontal
+    # tangent lines give the exact axis-aligned box (valid while the conic is an ellipse, C22 < 0).
+    k2 = _opacity_extent(opacities)
+    D = torch.stack((torch.ones_like(k2), torch.ones_like(k2), -1.0 / k2.clamp_min(1e-12)), dim=-1)
+    c00 = (Tx * D * Tx).sum(-1)
+    c11 = (Ty * D * Ty).sum(-1)
+    c02 = (Tx * D * Tw).sum(-1)
+    c12 = (Ty * D * Tw).sum(-1)
+    c22 = (Tw * D * Tw).sum(-1)
+    bounded = c22 < -1e-12
+    safe22 = torch.where(bounded, c22, -torch.ones_like(c22))
+    cx_e, cy_e = c02 / safe22, c12 / safe22
+    hx = (c02 * c02 - c00 * safe22).clamp_min(0).sqrt() / safe22.abs()
+    hy = (c12 * c12 - c11 * safe22).clamp_min(0).sqrt() / safe22.abs()
+    z = mu[:, 2]
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    center = torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
+    r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
+    inf = torch.full_like(hx, math.inf)
+    xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), center[:, 0] - r_lp)
+    xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), center[:, 0] + r_lp)
+    ymin = torch.minimum(torch.where(bounded, cy_e - hy, -inf), center[:, 1] - r_lp)
+    ymax = torch.maximum(torch.where(bounded, cy_e + hy, inf), center[:, 1] + r_lp)
+    box = _pixel_box(xmin.detach(), xmax.detach(), ymin.detach(), ymax.detach(), width, height)
+
+    idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
+    Tx, Ty, Tw, center = Tx[idx], Ty[idx], Tw[idx], center[idx]
+    B = torch.linalg.cross(Ty, Tw)
+    C = torch.linalg.cross(Tw, Tx)
+    # Cross product at the projected centre, so that tiles expand it over small offsets only.
+    A_c = torch.linalg.cross(Tx, Ty) + center[:, :1] * B + center[:, 1:] * C
+    det = (Tw * torch.linalg.cross(Tx, Ty)).sum(-1)
+    geometry = torch.cat((A_c, B, C, det[:, None], Tw[:, 2:3]), dim=-1)  # [M, 11]
+
+    normals = _camera_facing(rotations[idx, :, 2], mu[idx].to(means.dtype), w2c[:3, :3])
+    colors = _colors(sh[idx], means[idx], cam_center)
+    features = torch.cat((colors, normals), dim=-1)
+    return Projected(idx, center, geometry, opacities[idx], features, box[idx])
+
+
+def project_ewa(
+    means: Tensor, covariances: Tensor, normals: Tensor, opacities: Tensor, sh: Tensor,
+    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, settings: TorchRenderSettings,
+) -> Projected:
+    """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean."""
+    dt = torch.float64
+    R_cw, t_cw = w2c[:3, :3].to(dt), w2c[:3, 3].to(dt)
+    mu = means.to(dt) @ R_cw.T + t_cw
+    z = mu[:, 2]
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    fx, fy, cx, cy, skew = K[0, 0].to(dt), K[1, 1].to(dt), K[0, 2].to(dt), K[1, 2].to(dt), K[0, 1].to(dt)
+    x, y = mu[:, 0] / safe_z, mu[:, 1] / safe_z
+    center = torch.stack((fx * x + skew * y + cx, fy * y + cy), dim=-1)
+    zero = torch.zeros_like(z)
+    # d(pixel)/d(camera point) at the mean.
+    J = torch.stack(
+        (
+            torch.stack((fx / safe_z, skew / safe_z, -(fx * x + skew * y) / safe_z), dim=-1),
+            torch.stack((zero, fy / safe_z, -fy * y / safe_z), dim=-1),
+        ),
+        dim=-2,
+    )  # [N, 2, 3]
+    JW = J @ R_cw
+    cov2d = JW @ covariances.to(dt) @ JW.transpose(1, 2)
+    a = cov2d[:, 0, 0] + EWA_DILATION
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + EWA_DILATION
+    det = (a * c - b * b).clamp_min(1e-20)
+    conic = torch.stack((c / det, -b / det, a / det), dim=-1)  # inverse of [[a, b], [b, c]]
+
+    k2 = _opacity_extent(opacities)
+    hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
+    box = _pixel_box(
+        (center[:, 0] - hx).detach(), (center[:, 0] + hx).detach(),
+        (center[:, 1] - hy).detach(), (center[:, 1] + hy).detach(), width, height,
+    )
+    idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
+
+    n = _camera_facing(normals[idx], mu[idx].to(means.dtype), w2c[:3, :3])
+    colors = _colors(sh[idx], means[idx], cam_center)
+    features = torch.cat((colors, n, z[idx, None].to(means.dtype)), dim=-1)
+    return Projected(idx, center[idx], conic[idx], opacities[idx], features, box[idx])
+
+
+# ---------------------------------------------------------------------------------------------
+# Binning
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Bins:
+    gaussian: Tensor  # [P] projected-Gaussian index per (tile, Gaussian) pair, sorted by tile then depth
+    start: Tensor  # [T] first pair of each tile
+    count: Tensor  # [T] pairs per tile
+    tiles_x: int
+    tiles_y: int
+
+
+def bin_tiles(box: Tensor, width: int, height: int, tile: int) -> Bins:
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    tx0, tx1 = box[:, 0] // tile, box[:, 1] // tile
+    ty0, ty1 = box[:, 2] // tile, box[:, 3] // tile
+    nx, ny = tx1 - tx0 + 1, ty1 - ty0 + 1
+    per_gaussian = nx * ny
+    gid = torch.repeat_interleave(torch.arange(box.shape[0], device=box.device), per_gaussian)
+    first = torch.cumsum(per_gaussian, 0) - per_gaussian
+    local = torch.arange(gid.shape[0], device=box.device) - first[gid]
+    tile_id = (ty0[gid] + local // nx[gid]) * tiles_x + tx0[gid] + local % nx[gid]
+    # Gaussians are already front to back, so a stable sort by tile keeps depth order within a tile.
+    tile_sorted, order = torch.sort(tile_id, stable=True)
+    count = torch.bincount(tile_sorted, minlength=tiles_x * tiles_y)
+    start = torch.cumsum(count, 0) - count
+    return Bins(gid[order], start, count, tiles_x, tiles_y)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compositing
+# ---------------------------------------------------------------------------------------------
+
+
+def _tile_basis(mode: RenderMode, tile: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Polynomial terms of the pixel-centre offsets (dx, dy) inside a tile, pixels row-major.
+
+    surfel: [5, P] rows 1, dx, dy, dx^2 + dy^2, 0;  ewa: [6, P] rows 1, dx, dy, dx^2, dx dy, dy^2.
+    """
+    r = torch.arange(tile, dtype=dtype, device=device) + 0.5
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(r, r, indexing="ij"))
+    one = torch.ones_like(dx)
+    if mode == "surfel":
+        return torch.stack((one, dx, dy, dx * dx + dy * dy, torch.zeros_like(dx)))
+    return torch.stack((one, dx, dy, dx * dx, dx * dy, dy * dy))
+
+
+def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tuple[Tensor, Tensor | None]:
+    """Per-pair polynomial coefficients in the tile-local pixel offsets (autograd-tracked, [n, k]-sized).
+
+    geometry: [n, k, G]; offset: [n, k, 2] = tile origin - projected centre.
+    surfel: [4, n, k, 5] coefficients of the planes hx, hy, hz (h = A + dx B + dy C, the cross
+            product at the tile origin expanded over the pixel offsets) and rho2d = 2 |p - c|^2,
+            plus depth parameters [n, k, 2] = (det T, centre depth).
+    ewa:    [n, k, 6] coefficients of rho = d^T conic d with d = offset + (dx, dy).
+    """
+    ex, ey = offset[..., 0], offset[..., 1]
+    if mode == "surfel":
+        A_c, B, C = geometry[..., 0:3], geometry[..., 3:6], geometry[..., 6:9]
+        A = A_c + ex[..., None] * B + ey[..., None] * C
+        zero = torch.zeros_like(ex)
+        coef = torch.stack(
+            (
+                torch.stack((A[..., 0], B[..., 0], C[..., 0], zero, zero), -1),
+                torch.stack((A[..., 1], B[..., 1], C[..., 1], zero, zero), -1),
+                torch.stack((A[..., 2], B[..., 2], C[..., 2], zero, zero), -1),
+                LOWPASS_RHO_SCALE * torch.stack((ex * ex + ey * ey, 2 * ex, 2 * ey, zero + 1, zero), -1),
+            )
+        )
+        return coef, geometry[..., 9:11]
+    ca, cb, cc = geometry[..., 0], geometry[..., 1], geometry[..., 2]
+    coef = torch.stack(
+        (ca * ex * ex + 2 * cb * ex * ey + cc * ey * ey, 2 * (ca * ex + cb * ey), 2 * (cb * ex + cc * ey), ca, 2 * cb, cc),
+        dim=-1,
+    )
+    return coef, None
+
+
+def _block_state(coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor, transmittance: Tensor, basis: Tensor):
+    """Everything [n, k, P]-sized for one block, computed with in-place ops (no autograd).
+
+    Returns a dict with alpha, one_minus, trans_excl, weight, keep, saturated (alpha clamped),
+    depth (surfel), use3d/inv_hz (surfel), rho, and the block's transmittance after.
+    """
+    n, k = log_opacity.shape
+    st: dict[str, Tensor] = {}
+    if depth_params is not None:  # surfel
+        hx, hy, hz, rho2d = (coef.reshape(4, n * k, -1) @ basis).reshape(4, n, k, -1).unbind(0)
+        a = hx * hx
+        a.addcmul_(hy, hy)
+        hz2 = hz * hz
+        # min(rho3d, rho2d) without dividing where the ray grazes the splat (hz -> 0): the 3D
+        # branch is taken only where a < rho2d hz^2, which implies hz != 0.
+        use3d = a < rho2d * hz2
+        inv_hz = torch.where(use3d, hz, 1.0).reciprocal_().mul_(use3d)  # 1 / hz on the 3D branch, else 0
+        rho = a.mul_(inv_hz).mul_(inv_hz)
+        rho.add_(rho2d.mul_(~use3d))
+        # 2DGS: the depth of the ray-splat intersection, det(T) / hz; the centre depth where the filter wins.
+        det, mu_z = depth_params[..., 0:1], depth_params[..., 1:2]
+        depth = (det * inv_hz).add_(mu_z * ~use3d)
+        st.update(hx=hx, hy=hy, hz=hz, use3d=use3d, inv_hz=inv_hz, depth=depth)
+    else:
+        rho = (coef.reshape(n * k, -1) @ basis).reshape(n, k, -1)
+    st["rho"] = rho
+    log_alpha = torch.add(log_opacity[..., None], rho, alpha=-0.5)  # log(o exp(-rho / 2))
+    alpha = torch.exp(log_alpha)
+    saturated = alpha > ALPHA_MAX
+    alpha.clamp_max_(ALPHA_MAX).mul_(log_alpha >= LOG_ALPHA_MIN)  # [n, k, P]
+    one_minus = 1 - alpha
+    trans_incl = torch.cumprod(one_minus, dim=1).mul_(transmittance[:, None, :])
+    # 3DGS/2DGS rule: a Gaussian that would push transmittance below the floor ends the pixel and
+    # is itself not blended; transmittance only falls, so `keep` is a prefix along the depth axis.
+    keep = trans_incl >= TRANSMITTANCE_MIN
+    trans_excl = trans_incl.div_(one_minus)  # transmittance in front of each Gaussian
+    weight = alpha * trans_excl
+    weight.mul_(keep)
+    st.update(alpha=alpha, saturated=saturated, one_minus=one_minus, trans_excl=trans_excl, keep=keep, weight=weight)
+    st["trans_out"] = transmittance - weight.sum(1)
+    return st
+
+
+class _CompositeBlock(torch.autograd.Function):
+    """Front-to-back compositing of one block, with a hand-derived backward pass.
+
+    The backward recomputes the block from its small inputs instead of storing [n, k, P]
+    intermediates, so memory stays bounded by one block whatever the image size (as the CUDA
+    rasterizers do), and it uses the closed-form gradient of alpha compositing:
+      w_i = a_i T_i,  T_i = T_in prod_{j<i} (1 - a_j),  out = sum_i w_i v_i,  T_out = T_in prod_i (1 - a_i)
+      d out / d a_i = T_i v_i - (sum_{j>i} w_j v_j) / (1 - a_i),   d T_out / d a_i = -T_out / (1 - a_i).
+    """
+
+    @staticmethod
+    def forward(ctx, coef, depth_params, log_opacity, features, transmittance, basis):
+        st = _block_state(coef, depth_params, log_opacity, transmittance, basis)
+        feats = st["weight"].transpose(1, 2) @ features  # [n, P, F]
+        depth = (st["weight"] * st["depth"]).sum(1) if depth_params is not None else torch.zeros_like(transmittance)
+        ctx.save_for_backward(coef, depth_params, log_opacity, features, transmittance, basis, st["trans_out"])
+        return st["trans_out"], feats, depth
+
+    @staticmethod
+    def backward(ctx, g_trans, g_feats, g_depth):
+        coef, depth_params, log_opacity, features, transmittance, basis, trans_out = ctx.saved_tensors
+        surfel = depth_params is not None
+        st = _block_state(coef, depth_params, log_opacity, transmittance, basis)
+        w, alpha = st["weight"], st["alpha"]
+        # Gradient of the loss with respect to each blending weight w_i.
+        g_w = features @ g_feats.transpose(1, 2)  # [n, k, P]
+        if surfel:
+            g_w.addcmul_(st["depth"], g_depth[:, None, :])
+        g_features = w @ g_feats  # [n, k, F]
+        contrib = g_w * w  # w_j (dL/dw_j)
+        total = contrib.sum(1)  # [n, P]
+        behind = total[:, None, :] - contrib.cumsum(1)  # sum over j > i
+        behind.add_((g_trans * trans_out)[:, None, :])
+        g_alpha = (g_w * st["trans_excl"]).sub_(behind.div_(st["one_minus"])).mul_(st["keep"])
+        g_transmittance = (total + g_trans * trans_out) / transmittance
+        # alpha = min(exp(log_alpha), 0.99) where log_alpha >= log(1/255), else 0.
+        g_log_alpha = g_alpha.mul_(alpha).mul_(~st["saturated"])
+        g_log_opacity = g_log_alpha.sum(-1)
+        g_rho = g_log_alpha.mul_(-0.5)
+        n, k = log_opacity.shape
+        if not surfel:
+            g_coef = (g_rho.reshape(n * k, -1) @ basis.T).reshape(coef.shape)
+            return g_coef, None, g_log_opacity, g_features, g_transmittance, None
+        use3d, inv_hz, hx, hy, hz = st["use3d"], st["inv_hz"], st["hx"], st["hy"], st["hz"]
+        # rho = (hx^2 + hy^2) / hz^2 on the 3D branch, rho2d elsewhere; depth = det / hz or mu_z.
+        g_depth_pair = w.mul_(g_depth[:, None, :])
+        g_det = (g_depth_pair * inv_hz).sum(-1)
+        g_mu_z = (g_depth_pair * ~use3d).sum(-1)
+        g_r = g_rho * inv_hz * inv_hz  # d rho / d hx = 2 hx / hz^2
+        g_hx = 2 * g_r * hx
+        g_hy = 2 * g_r * hy
+        g_hz = (-2 * g_rho * st["rho"]).mul_(inv_hz).sub_(g_depth_pair * st["depth"] * inv_hz)
+        g_rho2d = g_rho.mul_(~use3d)
+        g_planes = torch.stack((g_hx, g_hy, g_hz, g_rho2d)).reshape(4, n * k, -1)
+        g_coef = (g_planes @ basis.T).reshape(coef.shape)
+        g_depth_params = torch.stack((g_det, g_mu_z), dim=-1)
+        return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None
+
+
+def composite(
+    mode: RenderMode, proj: Projected, bins: Bins, width: int, height: int, settings: TorchRenderSettings,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Returns per-pixel (features [H, W, F], alpha [H, W], surfel depth sum [H, W]) before normalization."""
+    tile = settings.tile_size
+    P = tile * tile
+    dtype = proj.features.dtype
+    device = proj.features.device
+    F_ = proj.features.shape[1]
+    n_tiles = bins.tiles_x * bins.tiles_y
+    basis = _tile_basis(mode, tile, dtype, device)
+    log_opacity = torch.log(proj.opacity)
+    geometry = proj.geometry.to(dtype)
+    center = proj.center
+
+    tile_feats = torch.zeros(n_tiles, P, F_, dtype=dtype, device=device)
+    tile_depth = torch.zeros(n_tiles, P, dtype=dtype, device=device)
+    tile_trans = torch.ones(n_tiles, P, dtype=dtype, device=device)
+
+    counts = bins.count
+    order = torch.argsort(counts, descending=True, stable=True)
+    order = order[counts[order] > 0]
+    counts_sorted = counts[order].tolist()
+    block_k_cap = max(1, min(settings.max_block_depth, settings.block_elements // P))
+    i = 0
+    results: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []
+    while i < len(order):
+        k_max = counts_sorted[i]
+        kb = min(k_max, block_k_cap)
+        n_group = max(1, settings.block_elements // (kb * P))
+        group = order[i : i + n_group]
+        i += group.shape[0]
+        g_start, g_count = bins.start[group], bins.count[group]
+        tiles_x = group % bins.tiles_x
+        tiles_y = group // bins.tiles_x
+        origin = torch.stack((tiles_x * tile, tiles_y * tile), dim=-1).to(torch.float64)  # [n, 2]
+        trans = torch.ones(group.shape[0], P, dtype=dtype, device=device)
+        feats = torch.zeros(group.shape[0], P, F_, dtype=dtype, device=device)
+        depth = torch.zeros(group.shape[0], P, dtype=dtype, device=device)
+        for k0 in range(0, k_max, kb):
+            slot = k0 + torch.arange(kb, device=device)
+            valid = slot[None, :] < g_count[:, None]  # [n, kb]
+            if not bool(valid.any()):
+                break
+            pair = (g_start[:, None] + slot[None, :]).clamp_max(max(bins.gaussian.shape[0] - 1, 0))
+            gi = torch.where(valid, bins.gaussian[pair], torch.zeros_like(pair))
+            offset = (origin[:, None, :] - center[gi]).to(dtype)
+            log_opac = torch.where(valid, log_opacity[gi], -math.inf)
+            coef, depth_params = _pair_coefficients(mode, geometry[gi], offset)
+            trans, f_blk, d_blk = _CompositeBlock.apply(coef, depth_params, log_opac, proj.features[gi], trans, basis)
+            feats = feats + f_blk
+            depth = depth + d_blk
+            if bool((trans < TRANSMITTANCE_MIN).all()):
+                break  # every pixel of the group is saturated: later blocks get zero weight (and gradient)
+        results.append((group, feats, depth, trans))
+
+    if results:
+        groups = torch.cat([r[0] for r in results])
+        tile_feats = tile_feats.index_copy(0, groups, torch.cat([r[1] for r in results]))
+        tile_depth = tile_depth.index_copy(0, groups, torch.cat([r[2] for r in results]))
+        tile_trans = tile_trans.index_copy(0, groups, torch.cat([r[3] for r in results]))
+
+    def untile(x: Tensor) -> Tensor:  # [tiles, P, ...] -> [H, W, ...]
+        extra = x.shape[2:]
+        x = x.reshape(bins.tiles_y, bins.tiles_x, tile, tile, *extra)
+        x = x.transpose(1, 2).reshape(bins.tiles_y * tile, bins.tiles_x * tile, *extra)
+        return x[:height, :width]
+
+    return untile(tile_feats), 1 - untile(tile_trans), untile(tile_depth)
+
+
+def render_torch(
+    means: Tensor, rotations: Tensor, scales: Tensor, covariances: Tensor | None, opacities: Tensor, sh: Tensor,
+    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, mode: RenderMode,
+    settings: TorchRenderSettings,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])."""
+    if mode == "surfel":
+        proj = project_surfels(means, rotations, scales, opacities, sh, w2c, K, cam_center, width, height, settings)
+    else:
+        assert covariances is not None
+        proj = project_ewa(
+            means, covariances, rotations[:, :, 2], opacities, sh, w2c, K, cam_center, width, height, settings
+        )
+    bins = bin_tiles(proj.pixel_box, width, height, settings.tile_size)
+    feats, alpha, depth_sum = composite(mode, proj, bins, width, height, settings)
+    color, normal = feats[..., 0:3], feats[..., 3:6]
+    depth = feats[..., 6] if mode == "ewa" else depth_sum
+    return color, alpha, depth, normal
