@@ -82,6 +82,7 @@ class HrrcConfig:
 
     factors: tuple[int, ...] = (1, 2, 4)  # 1 = standard metrics; 2 and 4 = the paper's HRRC
     upsample: UpsampleMode = "bicubic"  # the paper; "bilinear" = the release's code
+    max_batch_pixels: int = 1024 * 1024  # views scored together per call: bounds x4 SSIM/LPIPS memory
 
 
 @dataclass
@@ -143,6 +144,8 @@ class HrrcEvaluator:
             raise SurfSplatInputError(f"config.upsample: expected one of {UPSAMPLE_MODES}, got {config.upsample!r}")
         if not config.factors or any(not isinstance(s, int) or s < 1 for s in config.factors):
             raise SurfSplatInputError(f"config.factors: expected positive integers, got {config.factors!r}")
+        if config.max_batch_pixels < 1:
+            raise SurfSplatInputError(f"config.max_batch_pixels: expected a positive integer, got {config.max_batch_pixels}")
         self.config = config
         self.lpips = lpips
         self._all = _Accumulator()
@@ -166,9 +169,10 @@ class HrrcEvaluator:
         scene = _Accumulator()
         for s in self.config.factors:
             pred = check_tensor(f"renders[{s}]", renders[s], (views, 3, h * s, w * s))
-            for i in range(views):  # one image at a time keeps x4 SSIM/LPIPS memory bounded
-                gt = upsample_ground_truth(target[i : i + 1].to(pred.device), s, self.config.upsample)
-                p = pred[i : i + 1]
+            chunk = max(1, self.config.max_batch_pixels // (h * s * w * s))
+            for start in range(0, views, chunk):
+                gt = upsample_ground_truth(target[start : start + chunk].to(pred.device), s, self.config.upsample)
+                p = pred[start : start + chunk]
                 # SSIM in float64 so the value equals scikit-image's to rounding.
                 scores = {"psnr": psnr(p, gt), "ssim": ssim(p.double(), gt.double())}
                 if isinstance(self.lpips, Lpips):
