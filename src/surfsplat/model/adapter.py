@@ -43,10 +43,6 @@ from ..geometry.rotations import matrix_to_quat, quat_to_matrix, skew
 from ..geometry.sh import SH_C0, num_sh_bases
 from ..geometry.sh_rotation import sh_rotation_matrix
 
-# 3x3 Sobel kernels divided by 8, so that on a linear ramp they return the per-pixel step exactly.
-_SOBEL_RIGHT = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8
-_SOBEL_DOWN = _SOBEL_RIGHT.T.contiguous()
-
 # A cross product counts as degenerate (normal undefined) below this sine of the tangent angle.
 _DEGENERATE_SINE = 1e-6
 
@@ -146,23 +142,27 @@ def unproject_depth(depths: Tensor, K: Tensor, offsets: Tensor | None = None) ->
 def sobel_tangents(points: Tensor) -> tuple[Tensor, Tensor]:
     """Rightward and downward 3x3 Sobel derivatives (kernels / 8) of a point map.
 
-    The filters run on the valid interior; the one-pixel border takes its nearest interior value
-    (replicate padding of the result, as the release does), so a plane gets its exact per-pixel step
-    everywhere, the border included.
+    t1 = ([-1 0 1; -2 0 2; -1 0 1] / 8) * P and t2 = its transpose * P, i.e. central differences
+    averaged over the three neighbouring rows (columns) with weights 1, 2, 1. The filters run on
+    the valid interior; the one-pixel border takes its nearest interior value (replicate padding of
+    the result, as the release does), so a plane gets its exact per-pixel step everywhere.
     points: [..., H, W, 3] with H, W >= 3 -> (t1, t2), each [..., H, W, 3]
     """
-    *lead, H, W, _ = points.shape
+    H, W = points.shape[-3:-1]
     if H < 3 or W < 3:
         raise SurfSplatInputError(f"points: the 3x3 Sobel filter needs maps of at least 3 x 3 pixels, got {H} x {W}")
-    x = rearrange(points.reshape(-1, H, W, 3), "m h w c -> m c h w")
-    kernels = torch.stack((_SOBEL_RIGHT, _SOBEL_DOWN)).to(device=x.device, dtype=x.dtype)
-    out = []
-    for kernel in kernels:
-        # One kernel per xyz channel (groups=3), no padding: [M, 3, H-2, W-2].
-        d = F.conv2d(x, kernel.expand(3, 1, 3, 3), groups=3)
-        d = F.pad(d, (1, 1, 1, 1), mode="replicate")
-        out.append(rearrange(d, "m c h w -> m h w c").reshape(*lead, H, W, 3))
-    return out[0], out[1]
+    p = points
+    dx = p[..., :, 2:, :] - p[..., :, :-2, :]  # [..., H, W-2, 3] central differences along a row
+    dy = p[..., 2:, :, :] - p[..., :-2, :, :]  # [..., H-2, W, 3] along a column
+    t1 = (dx[..., :-2, :, :] + 2 * dx[..., 1:-1, :, :] + dx[..., 2:, :, :]) / 8  # [..., H-2, W-2, 3]
+    t2 = (dy[..., :, :-2, :] + 2 * dy[..., :, 1:-1, :] + dy[..., :, 2:, :]) / 8
+    rows = (torch.arange(H, device=p.device) - 1).clamp(0, H - 3)
+    cols = (torch.arange(W, device=p.device) - 1).clamp(0, W - 3)
+
+    def replicate(t: Tensor) -> Tensor:
+        return t.index_select(-3, rows).index_select(-2, cols)
+
+    return replicate(t1), replicate(t2)
 
 
 def _safe_sqrt(x: Tensor) -> Tensor:
@@ -229,6 +229,26 @@ def surface_frames(points: Tensor, tangent_clamp: float | None = None) -> Surfac
 
 
 # ---------------------------------------------------------------------------------------------- official
+def release_sobel_tangents(points: Tensor) -> tuple[Tensor, Tensor]:
+    """`sobel_tangents` computed the release's way: a grouped conv2d, then replicate padding.
+
+    Same values as `sobel_tangents` in exact arithmetic. The filters subtract nearby points of
+    similar size, so in float32 the result carries rounding of relative size ~1e-6 that depends on
+    the summation order; only the same operation reproduces the release's rounding (on the golden
+    case this keeps normals and covariances at ~1e-7 relative error instead of ~2e-6).
+    points: [B, V, H, W, 3] -> (t1, t2), each [B, V, H, W, 3]
+    """
+    B, V, H, W, _ = points.shape
+    x = rearrange(points, "b v h w c -> (b v) c h w")
+    right = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=x.dtype, device=x.device) / 8
+    out = []
+    for kernel in (right, right.T):
+        d = F.conv2d(x, kernel.expand(3, 1, 3, 3), groups=3)  # valid: [(B V), 3, H-2, W-2]
+        d = F.pad(d, (1, 1, 1, 1), mode="replicate")
+        out.append(rearrange(d, "(b v) c h w -> b v h w c", b=B))
+    return out[0], out[1]
+
+
 def release_rotation_from_normal(normals: Tensor) -> Tensor:
     """The release's rotation from a unit normal (NOT Rodrigues; exact only at 0 and 90 degrees).
 
@@ -267,11 +287,9 @@ class GaussianAdapter(torch.nn.Module):
         super().__init__()
         self.cfg = cfg if cfg is not None else AdapterConfig()
         # Per-degree SH damping 0.1 * 0.25^l for l >= 1 (the release's), so at initialisation colour
-        # is dominated by the DC term: [1, 0.025 x3, 0.00625 x5, ...].
-        mask = torch.ones(num_sh_bases(self.cfg.sh_degree))
-        for degree in range(1, self.cfg.sh_degree + 1):
-            mask[degree**2 : (degree + 1) ** 2] = 0.1 * 0.25**degree
-        self.register_buffer("sh_mask", mask, persistent=False)
+        # is dominated by the DC term: [1, 0.025 x3, 0.00625 x5, ...]. Kept as Python floats and
+        # made in the working dtype, so float64 runs get float64 constants.
+        self.sh_mask_values = [1.0] + [0.1 * 0.25**l for l in range(1, self.cfg.sh_degree + 1) for _ in range(2 * l + 1)]
 
     # ------------------------------------------------------------------ channel layout
     @property
@@ -333,7 +351,8 @@ class GaussianAdapter(torch.nn.Module):
 
     def _colour(self, raw_sh: Tensor, images: Tensor, R_c2w: Tensor, convention: str) -> Tensor:
         """SH in the world frame: raw [B, V, 3*K, H, W] -> [B, V, H, W, 3, K]."""
-        sh = rearrange(raw_sh, "b v (c k) h w -> b v h w c k", c=3) * self.sh_mask.to(raw_sh.dtype)
+        mask = torch.tensor(self.sh_mask_values, dtype=raw_sh.dtype, device=raw_sh.device)
+        sh = rearrange(raw_sh, "b v (c k) h w -> b v h w c k", c=3) * mask
         if self.cfg.init_sh_from_image:
             # Sec. 3.4: the input colour goes into the DC term, so SH(d) + 0.5 = rgb at initialisation.
             dc = rearrange(images, "b v c h w -> b v h w c") - 0.5
@@ -431,7 +450,7 @@ class GaussianAdapter(torch.nn.Module):
         means = c2w[:, :, None, None, :3, 3] + dirs * depths[..., None]  # [B, V, H, W, 3] world
 
         # Sobel on WORLD-frame means (the paper uses the camera frame; identical when R_c2w = I).
-        gx, gy = sobel_tangents(means)
+        gx, gy = release_sobel_tangents(means)
         normals = F.normalize(torch.linalg.cross(gx, gy, dim=-1), dim=-1)
         rot = release_rotation_from_normal(normals)
         g = cfg.tangent_clamp
