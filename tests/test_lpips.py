@@ -172,6 +172,7 @@ def test_lpips_is_a_fixed_differentiable_function_of_its_inputs(random_model):
         single = torch.cat([model(a[i : i + 1], b[i : i + 1]) for i in range(2)])
         torch.testing.assert_close(single, d, rtol=1e-5, atol=0)  # batch items are independent
         assert (d > 0).all()
+        torch.testing.assert_close(model(a.double(), b.double()), d, rtol=1e-6, atol=0)  # float64 in: same
 
 
 def test_lpips_rejects_bad_inputs(random_model):

@@ -18,6 +18,7 @@ from surfsplat.metrics import (
     HrrcReport,
     Lpips,
     LpipsUnavailable,
+    evaluate_hrrc,
     format_hrrc_table,
     psnr,
     render_at_scales,
@@ -183,9 +184,8 @@ def test_evaluator_means_over_images_and_factors(random_lpips):
 def test_evaluator_without_lpips_reports_the_reason_and_no_number():
     g = torch.Generator().manual_seed(5)
     target = torch.rand(2, 3, 12, 12, generator=g)
-    evaluator = HrrcEvaluator(LpipsUnavailable("VGG16 weights vgg16-397923af.pth not found"))
-    evaluator.add_scene("only", target, noisy_renders(target, {1: 0.1, 2: 0.1, 4: 0.1}))
-    report = evaluator.report()
+    unavailable = LpipsUnavailable("VGG16 weights vgg16-397923af.pth not found")
+    report = evaluate_hrrc([("only", target, noisy_renders(target, {1: 0.1, 2: 0.1, 4: 0.1}))], unavailable)
     assert report.mean[2]["lpips"] is None and report.average()["lpips"] is None
     data = report.to_json()
     assert data["lpips_unavailable"] == "LPIPS unavailable: VGG16 weights vgg16-397923af.pth not found"

@@ -1,4 +1,4 @@
-"""High-Resolution Rendering Consistency (paper Sec. 3.5, Eq. 10) and the paper's table layout.
+"""High-Resolution Rendering Consistency (paper Sec. 3.6, Eq. 13) and the paper's table layout.
 
 HRRC renders each scene at s times the input resolution (K' = diag(s, s, 1) K, s = 2, 4) and
 scores the render against the ground truth upsampled by s:
@@ -17,7 +17,7 @@ evaluation index) that equals the mean over images used here.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -199,6 +199,18 @@ class HrrcEvaluator:
             num_images=self._num_images,
             lpips_unavailable=str(self.lpips) if isinstance(self.lpips, LpipsUnavailable) else None,
         )
+
+
+def evaluate_hrrc(
+    scenes: Iterable[tuple[str, Tensor, Mapping[int, Tensor]]],
+    lpips: Lpips | LpipsUnavailable,
+    config: HrrcConfig = HrrcConfig(),
+) -> HrrcReport:
+    """Standard / x2 / x4 metrics of (name, target [V, 3, H, W], {s: render [V, 3, sH, sW]}) scenes."""
+    evaluator = HrrcEvaluator(lpips, config)
+    for name, target, renders in scenes:
+        evaluator.add_scene(name, target, renders)
+    return evaluator.report()
 
 
 def _cell(value: float | None) -> str:

@@ -124,24 +124,30 @@ class Lpips(nn.Module):
             if stage_index > 0:
                 x = F.max_pool2d(x, kernel_size=2, stride=2)
             for index, _, _ in stage:
-                x = F.relu(F.conv2d(x, self._buffer(vgg_key(index, "weight")), self._buffer(vgg_key(index, "bias")), padding=1))
+                weight, bias = self._buffer(vgg_key(index, "weight")), self._buffer(vgg_key(index, "bias"))
+                x = F.relu(F.conv2d(x, weight, bias, padding=1))
             taps.append(x)
         return taps
 
     def forward(self, prediction: Tensor, target: Tensor) -> Tensor:
         """LPIPS distance per image pair; prediction, target: [B, 3, H, W] in [0, 1]. Returns [B]."""
-        check_tensor("prediction", prediction, ("B", 3, "H", "W"))
-        check_tensor("target", target, tuple(prediction.shape))
+        # Shapes only: as a training loss this runs every step, and a finiteness check would
+        # synchronise with the GPU; NaN inputs give a NaN distance.
+        check_tensor("prediction", prediction, ("B", 3, "H", "W"), finite=False)
+        check_tensor("target", target, tuple(prediction.shape), finite=False)
         height, width = prediction.shape[-2:]
         if min(height, width) < MIN_SIZE:
             raise SurfSplatInputError(
                 f"prediction: LPIPS needs images of at least {MIN_SIZE}x{MIN_SIZE} pixels, got {height}x{width}"
             )
         batch = prediction.shape[0]
-        both = torch.cat([prediction, target], dim=0)
+        both = torch.cat([prediction, target], dim=0).to(self.shift.dtype)  # the weights' float32
         both = (2 * both - 1 - self.shift) / self.scale  # [0,1] -> [-1,1] -> lpips scaling layer
-        distance = prediction.new_zeros(batch)
+        distance = prediction.new_zeros(batch, dtype=torch.float32)
         for layer, feats in enumerate(self.features(both)):
+            # Normalise in float32 even under fp16 autocast, where the 1e-10 guard would be 0
+            # and an all-zero ReLU pixel would divide 0 by 0.
+            feats = feats.float()
             feats = feats / (feats.square().sum(dim=1, keepdim=True).sqrt() + FEATURE_EPS)
             diff = (feats[:batch] - feats[batch:]).square()
             distance = distance + F.conv2d(diff, self._buffer(lin_key(layer))).mean(dim=(1, 2, 3))

@@ -1,9 +1,9 @@
-"""Training losses: MSE + lambda LPIPS (paper Sec. 3.4, Eq. 9) and the depth-cascade weighting.
+"""Training losses: MSE + lambda LPIPS (paper Sec. 3.5, Eq. 12) and the depth-cascade weighting.
 
 L = MSE(I_render, I_gt) + lambda LPIPS(I_render, I_gt), lambda = 0.05 (pixelSplat, MVSplat,
-DepthSplat, SurfSplat). As in the release both terms are means over the batch (Eq. 9 writes a sum
-over the M batch items; the mean only rescales the learning rate), and LPIPS takes images in
-[0, 1] (the lpips package's `normalize=True`).
+DepthSplat, SurfSplat). As in the release both terms are means over the batch (Eq. 12 writes a
+sum over the M batch items: a constant factor, which AdamW's gradient normalisation all but
+cancels), and LPIPS takes images in [0, 1] (the lpips package's `normalize=True`).
 
 Base and large models predict depth in a cascade (num_scales = 2) and the release renders the
 Gaussians of every intermediate depth too: with n intermediate renders ordered coarse to fine,
@@ -29,7 +29,7 @@ class LossConfig:
     """Image loss of the paper; the LPIPS term needs LPIPS-VGG v0.1 weights on disk."""
 
     mse_weight: float = 1.0  # weight of the per-pixel squared error
-    lpips_weight: float = 0.05  # lambda of Eq. 9; 0 trains with MSE only and needs no weights
+    lpips_weight: float = 0.05  # lambda of Eq. 12; 0 trains with MSE only and needs no weights
     lpips_vgg_path: str | None = None  # torchvision's vgg16-397923af.pth; None = torch hub cache
     lpips_lin_path: str | None = None  # the lpips package's v0.1 vgg.pth; None = installed packages
     intermediate_weight: float = 0.9  # base of the cascade weights 0.9^(n - i) (release default)
@@ -59,6 +59,8 @@ class ImageLoss(nn.Module):
                 raise SurfSplatInputError(f"config.{name}: expected a finite number >= 0, got {value!r}")
         self.config = config
         self.lpips: Lpips | None = None
+        if lpips is not None and not isinstance(lpips, Lpips):
+            raise SurfSplatInputError(f"lpips: expected an Lpips module or None, got {type(lpips).__name__}")
         if config.lpips_weight > 0:
             self.lpips = lpips if lpips is not None else _load_for_training(config)
 
@@ -68,8 +70,10 @@ class ImageLoss(nn.Module):
             raise SurfSplatInputError(
                 f"prediction: expected a [..., 3, H, W] tensor with a batch axis, got {getattr(prediction, 'shape', type(prediction).__name__)}"
             )
-        check_tensor("prediction", prediction, (None,) * (prediction.ndim - 3) + (3, None, None))
-        check_tensor("target", target, tuple(prediction.shape))
+        # Shapes only: a finiteness check would synchronise with the GPU every step, and a NaN
+        # render shows up in the loss anyway.
+        check_tensor("prediction", prediction, (None,) * (prediction.ndim - 3) + (3, None, None), finite=False)
+        check_tensor("target", target, tuple(prediction.shape), finite=False)
         mse = (prediction - target).square().mean()
         total = self.config.mse_weight * mse
         lpips = None
