@@ -10,9 +10,9 @@ with the mode swapped, then clamp to [0, 1]: torch's bicubic kernel (Keys, a = -
 at edges and ground truth outside [0, 1] is not an image. Clamping a bilinear result is a no-op,
 so the release's numbers are unchanged.
 
-Aggregation follows the release: per image PSNR (clipped), SSIM and LPIPS, then means. The
-release averages per-scene means; with the same number of target views per scene (as in every
-evaluation index) that equals the mean over images used here.
+Aggregation follows the release: per image PSNR (both images clipped to [0, 1]), SSIM and LPIPS
+(renders not clipped), then means. The release averages per-scene means; with the same number of
+target views per scene (as in every evaluation index) that equals the mean over images used here.
 """
 
 from __future__ import annotations
