@@ -1,0 +1,245 @@
+"""DepthSplat's dual-branch encoder as SurfSplat uses it (paper Sec. 3.2 and Appendix A).
+
+    images ─┬─ ViT (DINOv2 / Depth Anything V2) ── 4 taps ──────────────┬── DPT (depth) ── inverse depth
+            └─ CNN (stride 4) ── multi-view transformer ── cost volume ─┘     (full resolution)
+                    ...all of the above ── DPT (features) ── Gaussian head ── raw per-pixel parameters
+
+Depth is regressed as a softmax over inverse-depth candidates from a U-Net on the concatenated
+(cost volume, CNN, multi-view, monocular) features, refined by an optional second, finer cascade
+scale (base / large), and brought to full resolution by bilinear upsampling plus a DPT residual.
+The module computes exactly the release's function, so released weights load through
+`surfsplat.model.checkpoint` and reproduce its outputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import Tensor, nn
+
+from .cnn import CNNEncoder
+from .cost_volume import linear_inverse_depth_candidates, local_inverse_depth_candidates, plane_sweep_cost_volume
+from .dpt import DPTHead, DPTLayout, FeaturePyramid
+from .gaussian_head import GaussianHead
+from .mv_transformer import MultiViewTransformer, select_neighbours
+from .unet import UNet
+from .vit import ViTConfig, VisionTransformer, vit_patch_grid
+
+# ImageNet statistics: both the ViT and the CNN were pretrained on images normalised with them.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+# Stride of the cost volume and of the multi-view features (the release's lowest_feature_resolution).
+MATCHING_STRIDE = 4
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    vit: ViTConfig = field(default_factory=ViTConfig)  # monocular backbone
+    cnn_dims: tuple[int, int, int] = (64, 96, 128)  # CNN stage widths (1/2, 1/2, 1/4 resolution)
+    feature_channels: int = 128  # width of the matching features (CNN output, transformer)
+    transformer_layers: int = 6  # self + cross attention layers
+    ffn_expansion: int = 4  # transformer MLP width = 2 * feature_channels * ffn_expansion
+    attn_splits: int = 2  # the transformer attends within attn_splits^2 windows
+    num_depth_candidates: int = 128  # inverse-depth planes of the (first) cost volume
+    num_scales: int = 1  # 1: cost volume at 1/4 (small); 2: cascade 1/4 -> 1/2 (base, large)
+    unet_channels: int = 128  # U-Net width at the first scale (halved at the second)
+    unet_channel_mult: tuple[int, ...] = (1, 1, 1)  # per U-Net level; the second scale adds a level
+    unet_attention_levels: tuple[int, ...] = (4,)  # downsampling rates with cross-view attention
+    unet_head_channels: int = 32  # U-Net attention head width
+    depth_dpt_features: int = 32  # RefineNet width of the depth DPT head
+    feature_dpt_features: int = 64  # RefineNet width of the feature DPT head (= upsampled feature width)
+    dpt_out_channels: tuple[int, int, int, int] = (48, 96, 192, 384)  # ViT tap projections at 1/2..1/16
+    gaussian_hidden: int = 64  # width of the Gaussian regressor
+    max_neighbours: int = 2  # with more than 3 views, match each view with its nearest cameras only
+
+    @property
+    def upsample_factor(self) -> int:
+        """Resolution ratio between the finest cost volume and the image."""
+        return MATCHING_STRIDE // 2 ** (self.num_scales - 1)
+
+    @property
+    def size_multiple(self) -> int:
+        """Input height and width must be multiples of this (CNN, windows, U-Net levels, DPT)."""
+        return 16
+
+
+@dataclass
+class EncoderOutput:
+    depths: Tensor  # [B, V, H, W] camera z-depth
+    raw: Tensor  # [B, V, C, H, W] Gaussian head output (adapter input)
+    intermediates: dict[str, Tensor] | None = None  # golden-fixture names, [B*V, ...] tensors
+
+
+class DepthScale(nn.Module):
+    """One cascade scale: U-Net regressor (+ 1x1 shortcut) and the depth-candidate head."""
+
+    def __init__(self, in_channels: int, channels: int, candidates: int, unet: UNet) -> None:
+        super().__init__()
+        self.regressor = nn.Sequential(
+            nn.Conv2d(in_channels, channels, 3, padding=1),
+            nn.GroupNorm(8, channels),
+            nn.GELU(),
+            unet,
+            nn.Conv2d(channels, channels, 3, padding=1),
+        )
+        self.residual = nn.Conv2d(in_channels, channels, 1)
+        self.depth_head = nn.Sequential(
+            nn.Conv2d(channels, 2 * channels, 3, padding=1, padding_mode="replicate"),
+            nn.GELU(),
+            nn.Conv2d(2 * channels, candidates, 3, padding=1, padding_mode="replicate"),
+        )
+
+    def forward(self, x: Tensor, num_views: int) -> Tensor:
+        """x [(B V), C_in, h, w] -> depth-candidate logits [(B V), D, h, w]."""
+        conv_in, norm, act, unet, conv_out = self.regressor
+        hidden = conv_out(unet(act(norm(conv_in(x))), num_views)) + self.residual(x)
+        return self.depth_head(hidden)
+
+
+class SurfSplatEncoder(nn.Module):
+    def __init__(self, cfg: EncoderConfig, num_raw_channels: int) -> None:
+        super().__init__()
+        if cfg.num_scales not in (1, 2):
+            raise ValueError(f"EncoderConfig.num_scales must be 1 or 2, got {cfg.num_scales}")
+        self.cfg = cfg
+        self.num_raw_channels = num_raw_channels
+        vit_dim = cfg.vit.embed_dim
+        self.vit = VisionTransformer(cfg.vit)
+        self.cnn = CNNEncoder(cfg.cnn_dims, cfg.feature_channels)
+        self.transformer = MultiViewTransformer(
+            cfg.feature_channels, cfg.transformer_layers, cfg.ffn_expansion, cfg.attn_splits
+        )
+        if cfg.num_scales == 2:
+            self.mv_pyramid = FeaturePyramid(cfg.feature_channels)
+            self.mono_pyramid = FeaturePyramid(vit_dim)
+        scales = []
+        for i in range(cfg.num_scales):
+            candidates = cfg.num_depth_candidates // 4**i
+            in_channels = candidates + cfg.cnn_dims[-1 - i] + cfg.feature_channels // 2**i + vit_dim // 2**i
+            channels = cfg.unet_channels // 2**i
+            unet = UNet(
+                channels,
+                channel_mult=tuple(cfg.unet_channel_mult) + (1,) * i,
+                attention_levels=tuple(r * 2**i for r in cfg.unet_attention_levels),
+                head_channels=cfg.unet_head_channels,
+            )
+            scales.append(DepthScale(in_channels, channels, candidates, unet))
+        self.scales = nn.ModuleList(scales)
+        mv_channels = tuple(cfg.feature_channels // 2**i for i in reversed(range(cfg.num_scales)))
+        layout = dict(
+            vit_channels=vit_dim,
+            out_channels=tuple(cfg.dpt_out_channels),
+            cnn_channels=tuple(cfg.cnn_dims),
+            mv_channels=mv_channels,
+            upsample_factor=cfg.upsample_factor,
+        )
+        self.depth_upsampler = DPTHead(DPTLayout(features=cfg.depth_dpt_features, **layout), predict_depth=True)
+        self.feature_upsampler = DPTHead(DPTLayout(features=cfg.feature_dpt_features, **layout), predict_depth=False)
+        self.gaussian_head = GaussianHead(cfg.feature_dpt_features, cfg.gaussian_hidden, num_raw_channels)
+        self.register_buffer("image_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
+        self.register_buffer("image_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
+
+    def forward(
+        self,
+        images: Tensor,  # [B, V, 3, H, W] in [0, 1]
+        K: Tensor,  # [B, V, 3, 3] intrinsics in pixels of the H x W images
+        c2w: Tensor,  # [B, V, 4, 4] camera-to-world, OpenCV axes
+        near: Tensor,  # [B, V]
+        far: Tensor,  # [B, V]
+        return_intermediates: bool = False,
+    ) -> EncoderOutput:
+        cfg = self.cfg
+        b, v, _, height, width = images.shape
+        m = cfg.size_multiple
+        if height % m or width % m:
+            raise ValueError(f"image size {height}x{width} must be a multiple of {m} in both directions")
+        if v < 2:
+            raise ValueError(f"the encoder matches views against each other: got {v} view, need at least 2")
+        inter: dict[str, Tensor] | None = {} if return_intermediates else None
+        flat = ((images - self.image_mean) / self.image_std).flatten(0, 1)  # [(B V), 3, H, W]
+        inv_min = (1.0 / far).reshape(-1)  # the far plane is the smallest inverse depth
+        inv_max = (1.0 / near).reshape(-1)
+
+        # ---- multi-view branch: CNN, then windowed self/cross attention between views
+        cnn = self.cnn(flat)  # [1/2 (dims[0]), 1/2 (dims[1]), 1/4 (feature_channels)]
+        neighbours = select_neighbours(c2w[..., :3, 3], cfg.max_neighbours)  # [B, V, M]
+        features = rearrange(cnn[-1], "(b v) c h w -> b v c h w", b=b)
+        mv = self.transformer(features, neighbours).flatten(0, 1)  # [(B V), C, H/4, W/4]
+        mv_scales = self.mv_pyramid(mv) if cfg.num_scales == 2 else [mv]  # coarse to fine
+        cnn_scales = [cnn[2], cnn[1]][: cfg.num_scales]
+
+        # ---- monocular branch: ViT on the image resized to a multiple of the patch size
+        vit_h, vit_w = vit_patch_grid(height, width, cfg.vit.patch_size)
+        vit_in = F.interpolate(flat, (vit_h, vit_w), mode="bilinear", align_corners=True)
+        grid = (vit_h // cfg.vit.patch_size, vit_w // cfg.vit.patch_size)
+        taps = self.vit(vit_in)
+        mono_taps = [
+            F.interpolate(
+                rearrange(t, "n (h w) c -> n c h w", h=grid[0], w=grid[1]),
+                (height // 8, width // 8),
+                mode="bilinear",
+                align_corners=True,
+            )
+            for t in taps
+        ]
+        mono = F.interpolate(mono_taps[-1], scale_factor=2, mode="bilinear", align_corners=True)  # 1/4
+        mono_scales = self.mono_pyramid(mono) if cfg.num_scales == 2 else [mono]
+        if inter is not None:
+            inter["dinov2_input_resized_normalized"] = vit_in
+            inter.update({f"dinov2_intermediate_tokens.{i}": t for i, t in enumerate(taps)})
+            inter["features_cnn_all_scales.0"] = cnn[2]
+            inter.update({f"features_mv.{i}": f for i, f in enumerate(mv_scales)})
+
+        # ---- cost volumes and softmax depth, coarse to fine
+        neighbour_index = (neighbours + torch.arange(b, device=neighbours.device).view(b, 1, 1) * v).reshape(b * v, -1)
+        c2w_flat = c2w.flatten(0, 1)
+        inv_depth = prob = None
+        for i, scale in enumerate(self.scales):
+            stride = MATCHING_STRIDE // 2**i
+            K_scale = K.flatten(0, 1).clone()
+            K_scale[:, :2] = K_scale[:, :2] / stride
+            feats = mv_scales[i]
+            count = cfg.num_depth_candidates // 4**i
+            if i == 0:
+                candidates = linear_inverse_depth_candidates(inv_min, inv_max, count)  # [(B V), D]
+            else:
+                coarse = F.interpolate(inv_depth, scale_factor=2, mode="bilinear", align_corners=True).detach()
+                interval = (inv_max - inv_min) / (cfg.num_depth_candidates - 1) / 2**i
+                candidates = local_inverse_depth_candidates(coarse, inv_min, inv_max, count, interval)
+            cost = plane_sweep_cost_volume(
+                feats, feats[neighbour_index], K_scale, c2w_flat, c2w_flat[neighbour_index], candidates
+            )
+            logits = scale(torch.cat((cost, cnn_scales[i], feats, mono_scales[i]), dim=1), v)
+            prob = torch.softmax(logits, dim=1)
+            weights = candidates if candidates.dim() == 4 else candidates[:, :, None, None]
+            inv_depth = (prob * weights).sum(dim=1, keepdim=True)  # [(B V), 1, h, w]
+            if inter is not None:
+                suffix = "" if i == 0 else f".{i}"
+                inter[f"cost_volume{suffix}"] = cost
+                inter[f"depth_head_logits{suffix}"] = logits
+
+        # ---- full resolution: bilinear upsampling plus a learned DPT residual (inverse depth)
+        mv_fine_first = mv_scales[::-1]
+        residual = self.depth_upsampler(mono_taps, cnn, mv_fine_first, inv_depth)
+        upsampled = F.interpolate(inv_depth, scale_factor=cfg.upsample_factor, mode="bilinear", align_corners=True)
+        inv_full = (upsampled + residual).clamp(min=inv_min.view(-1, 1, 1, 1), max=inv_max.view(-1, 1, 1, 1))
+        depth = 1.0 / inv_full  # [(B V), 1, H, W]
+
+        # ---- per-pixel Gaussian parameters
+        features_full = self.feature_upsampler(mono_taps, cnn, mv_fine_first)
+        confidence = F.interpolate(prob.max(dim=1, keepdim=True).values, size=(height, width), mode="nearest")
+        images_flat = images.flatten(0, 1)
+        raw = self.gaussian_head(images_flat, depth, confidence, features_full)
+        if inter is not None:
+            inter["mv_upsampler_coarse_invdepth"] = inv_depth
+            inter["mv_upsampler_residual_invdepth"] = residual
+            inter["gaussian_head_out"] = raw
+        return EncoderOutput(
+            depths=depth.view(b, v, height, width),
+            raw=raw.view(b, v, -1, height, width),
+            intermediates=inter,
+        )
