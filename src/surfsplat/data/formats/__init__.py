@@ -1,0 +1,1 @@
+"""Readers of the camera/image layouts people capture and download, one module per format."""

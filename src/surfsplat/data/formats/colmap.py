@@ -1,0 +1,336 @@
+"""COLMAP sparse models (text and binary) for custom captures.
+
+Layout: `<root>/images/` and `<root>/sparse/0/{cameras,images,points3D}.{bin,txt}` (a model folder
+can also be passed directly). Image poses are world-to-camera (R(q) X + t, q = (w, x, y, z)) with
+OpenCV axes; COLMAP puts the centre of the top-left pixel at (0.5, 0.5), our convention, so K is
+used as is. PINHOLE and SIMPLE_PINHOLE cameras are read directly, as is any model whose
+distortion parameters are all zero; anything else is an error asking for undistorted images.
+Per-view near/far come from the depths of the view's own triangulated points (0.1 and 99.9
+percentiles, as LLFF's imgs2poses does) when points3D is present and every view sees at least
+one point in front of it; otherwise the scene has no near/far.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ...checks import SurfSplatInputError
+from ...geometry.cameras import rigid_inverse
+from ...geometry.rotations import quat_to_matrix
+from ..scene import Scene, downscale_from_folder, fit_intrinsics
+from .common import image_sizes, load_image_stack, make_cameras
+
+# model id -> (name, number of parameters, indices of the distortion parameters); COLMAP's table.
+CAMERA_MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
+    0: ("SIMPLE_PINHOLE", 3, ()),
+    1: ("PINHOLE", 4, ()),
+    2: ("SIMPLE_RADIAL", 4, (3,)),
+    3: ("RADIAL", 5, (3, 4)),
+    4: ("OPENCV", 8, (4, 5, 6, 7)),
+    5: ("OPENCV_FISHEYE", 8, (4, 5, 6, 7)),
+    6: ("FULL_OPENCV", 12, tuple(range(4, 12))),
+    7: ("FOV", 5, (4,)),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4, (3,)),
+    9: ("RADIAL_FISHEYE", 5, (3, 4)),
+    10: ("THIN_PRISM_FISHEYE", 12, tuple(range(4, 12))),
+    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16, tuple(range(4, 16))),
+}
+MODEL_IDS = {name: i for i, (name, _, _) in CAMERA_MODELS.items()}
+# Fisheye models are not pinhole even with zero distortion (equidistant projection).
+_FISHEYE = {"OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE", "FOV"}
+
+
+@dataclass
+class ColmapCamera:
+    model: str
+    width: int
+    height: int
+    params: list[float]
+
+
+@dataclass
+class ColmapImage:
+    qvec: list[float]  # (w, x, y, z), world-to-camera
+    tvec: list[float]
+    camera_id: int
+    name: str
+    point_ids: np.ndarray  # [P] int64, -1 where a 2D point has no 3D point
+
+
+def find_model(path: Path) -> Path | None:
+    """The folder holding cameras.{bin,txt}: the path itself, sparse/0, or sparse."""
+    for folder in (path, path / "sparse" / "0", path / "sparse"):
+        if folder.is_dir() and any((folder / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return folder
+    return None
+
+
+def is_colmap(path: Path) -> bool:
+    return find_model(path) is not None
+
+
+# ---------------------------------------------------------------------------------------- binary
+class _Reader:
+    """Little-endian reader that names the file and offset when the data runs out."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.data = path.read_bytes()
+        self.pos = 0
+
+    def read(self, fmt: str) -> tuple:
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise SurfSplatInputError(f"{self.path}: truncated file (needed {size} bytes at offset {self.pos}, have {len(self.data) - self.pos})")
+        out = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return out
+
+    def read_string(self) -> str:
+        end = self.data.find(b"\x00", self.pos)
+        if end < 0:
+            raise SurfSplatInputError(f"{self.path}: truncated file (unterminated image name at offset {self.pos})")
+        out = self.data[self.pos:end].decode("utf-8")
+        self.pos = end + 1
+        return out
+
+    def read_array(self, dtype: np.dtype, count: int) -> np.ndarray:
+        size = np.dtype(dtype).itemsize * count
+        if self.pos + size > len(self.data):
+            raise SurfSplatInputError(f"{self.path}: truncated file (needed {size} bytes at offset {self.pos})")
+        out = np.frombuffer(self.data, dtype=dtype, count=count, offset=self.pos)
+        self.pos += size
+        return out
+
+
+def read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
+    r = _Reader(path)
+    (count,) = r.read("Q")
+    cameras = {}
+    for _ in range(count):
+        camera_id, model_id, width, height = r.read("iiQQ")
+        if model_id not in CAMERA_MODELS:
+            raise SurfSplatInputError(f"{path}: camera {camera_id} has unknown model id {model_id}")
+        name, num_params, _ = CAMERA_MODELS[model_id]
+        cameras[camera_id] = ColmapCamera(name, width, height, list(r.read("d" * num_params)))
+    return cameras
+
+
+def read_images_binary(path: Path) -> dict[int, ColmapImage]:
+    r = _Reader(path)
+    (count,) = r.read("Q")
+    images = {}
+    for _ in range(count):
+        image_id, qw, qx, qy, qz, tx, ty, tz, camera_id = r.read("idddddddi")
+        name = r.read_string()
+        (num_points,) = r.read("Q")
+        # Each 2D point: x, y (double) and its 3D point id (int64).
+        pts = r.read_array(np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]), num_points)
+        images[image_id] = ColmapImage([qw, qx, qy, qz], [tx, ty, tz], camera_id, name, pts["id"].astype(np.int64))
+    return images
+
+
+def read_points_binary(path: Path) -> dict[int, np.ndarray]:
+    r = _Reader(path)
+    (count,) = r.read("Q")
+    points = {}
+    for _ in range(count):
+        point_id, x, y, z, _, _, _, _ = r.read("QdddBBBd")
+        (track_length,) = r.read("Q")
+        r.read_array(np.dtype("<i4"), 2 * track_length)
+        points[point_id] = np.array([x, y, z])
+    return points
+
+
+# ------------------------------------------------------------------------------------------ text
+def _data_lines(path: Path) -> list[tuple[int, str]]:
+    return [(i + 1, line.strip()) for i, line in enumerate(path.read_text().splitlines()) if not line.startswith("#")]
+
+
+def _parse(tokens: list[str], types: list[type], path: Path, line_no: int) -> list:
+    if len(tokens) < len(types):
+        raise SurfSplatInputError(f"{path}:{line_no}: expected at least {len(types)} fields, got {len(tokens)}")
+    try:
+        return [t(tok) for t, tok in zip(types, tokens)]
+    except ValueError as err:
+        raise SurfSplatInputError(f"{path}:{line_no}: {err}") from None
+
+
+def read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
+    cameras = {}
+    for line_no, line in _data_lines(path):
+        if not line:
+            continue
+        tokens = line.split()
+        camera_id, model, width, height = _parse(tokens, [int, str, int, int], path, line_no)
+        if model not in MODEL_IDS:
+            raise SurfSplatInputError(f"{path}:{line_no}: unknown camera model {model}")
+        num_params = CAMERA_MODELS[MODEL_IDS[model]][1]
+        params = _parse(tokens[4:], [float] * num_params, path, line_no)
+        cameras[camera_id] = ColmapCamera(model, width, height, params)
+    return cameras
+
+
+def read_images_text(path: Path) -> dict[int, ColmapImage]:
+    images = {}
+    lines = _data_lines(path)
+    i = 0
+    while i < len(lines):
+        line_no, line = lines[i]
+        if not line:  # blank lines may separate records; a header line is never blank
+            i += 1
+            continue
+        tokens = line.split(maxsplit=9)
+        fields = _parse(tokens, [int, float, float, float, float, float, float, float, int, str], path, line_no)
+        points_line = lines[i + 1][1] if i + 1 < len(lines) else ""
+        values = points_line.split()
+        if len(values) % 3:
+            raise SurfSplatInputError(f"{path}:{line_no + 1}: POINTS2D line must hold (X, Y, POINT3D_ID) triples")
+        point_ids = np.array([int(v) for v in values[2::3]], dtype=np.int64)
+        images[fields[0]] = ColmapImage(fields[1:5], fields[5:8], fields[8], fields[9], point_ids)
+        i += 2
+    return images
+
+
+def read_points_text(path: Path) -> dict[int, np.ndarray]:
+    points = {}
+    for line_no, line in _data_lines(path):
+        if not line:
+            continue
+        point_id, x, y, z = _parse(line.split(), [int, float, float, float], path, line_no)
+        points[point_id] = np.array([x, y, z])
+    return points
+
+
+def read_model(model_dir: Path) -> tuple[dict[int, ColmapCamera], dict[int, ColmapImage], dict[int, np.ndarray] | None]:
+    """(cameras, images, points or None) from a model folder, binary preferred over text."""
+    ext = "bin" if (model_dir / "cameras.bin").is_file() else "txt"
+    readers = {
+        "bin": (read_cameras_binary, read_images_binary, read_points_binary),
+        "txt": (read_cameras_text, read_images_text, read_points_text),
+    }[ext]
+    images_path = model_dir / f"images.{ext}"
+    if not images_path.is_file():
+        raise FileNotFoundError(f"{images_path}: COLMAP images file not found")
+    cameras = readers[0](model_dir / f"cameras.{ext}")
+    images = readers[1](images_path)
+    points_path = model_dir / f"points3D.{ext}"
+    points = readers[2](points_path) if points_path.is_file() else None
+    return cameras, images, points
+
+
+def pinhole_matrix(camera: ColmapCamera, source: str) -> torch.Tensor:
+    """K [3, 3] of a pinhole-compatible camera, or an error naming the model."""
+    if camera.model in _FISHEYE:
+        raise SurfSplatInputError(
+            f"{source}: camera model {camera.model} is not a pinhole model; undistort the images "
+            "first (colmap image_undistorter writes PINHOLE cameras)"
+        )
+    _, _, distortion = CAMERA_MODELS[MODEL_IDS[camera.model]]
+    if any(camera.params[i] != 0 for i in distortion):
+        raise SurfSplatInputError(
+            f"{source}: camera model {camera.model} has non-zero distortion "
+            f"{[camera.params[i] for i in distortion]}; undistort the images first "
+            "(colmap image_undistorter writes PINHOLE cameras)"
+        )
+    p = camera.params
+    if camera.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+    else:
+        fx, fy, cx, cy = p[0], p[1], p[2], p[3]
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def load_colmap(
+    path: Path,
+    images: str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Scene:
+    """Read a COLMAP capture (see module doc); `images` names the image folder under the root
+    (default `images`; `images_N` folders are accepted as uniform downscales)."""
+    model_dir = find_model(path)
+    if model_dir is None:
+        raise FileNotFoundError(f"{path}: no COLMAP model (cameras.bin or cameras.txt) in it, sparse/0 or sparse")
+    if model_dir.parent.name == "sparse":  # <root>/sparse/0
+        root = model_dir.parent.parent
+    elif model_dir.name == "sparse":  # <root>/sparse
+        root = model_dir.parent
+    else:  # model files directly in <root>
+        root = model_dir
+    folder = root / (images or "images")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: image folder not found (pass images=... to choose another)")
+
+    cameras, records, points = read_model(model_dir)
+    if not records:
+        raise SurfSplatInputError(f"{model_dir}: the model has no registered images")
+    ordered = sorted(records.values(), key=lambda r: r.name)
+    paths = [folder / r.name for r in ordered]
+    for p in paths:
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: image file not found (registered in {model_dir})")
+
+    q = torch.tensor([r.qvec for r in ordered], dtype=torch.float64)
+    t = torch.tensor([r.tvec for r in ordered], dtype=torch.float64)
+    src = f"{model_dir}/images"
+    bad = ~torch.isfinite(torch.cat([q, t], 1)).all(1)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        raise SurfSplatInputError(f"{src}: image '{ordered[i].name}' has a NaN or inf pose")
+    norms = q.norm(dim=1)
+    off = (norms - 1).abs() > 1e-3
+    if bool(off.any()):
+        i = int(off.nonzero()[0])
+        raise SurfSplatInputError(f"{src}: image '{ordered[i].name}' quaternion has norm {float(norms[i]):.6g}, expected a unit quaternion")
+    R = quat_to_matrix(q)
+    w2c = torch.eye(4, dtype=torch.float64).repeat(len(ordered), 1, 1)
+    w2c[:, :3, :3] = R
+    w2c[:, :3, 3] = t
+    c2w = rigid_inverse(w2c)
+
+    sizes = image_sizes(paths)
+    Ks = []
+    for r, p, size in zip(ordered, paths, sizes):
+        if r.camera_id not in cameras:
+            raise SurfSplatInputError(f"{src}: image '{r.name}' refers to missing camera {r.camera_id}")
+        cam = cameras[r.camera_id]
+        K = pinhole_matrix(cam, f"{model_dir}/cameras: camera {r.camera_id}")
+        Ks.append(fit_intrinsics(K, (cam.width, cam.height), size, str(p), allow_downscale=downscale_from_folder(folder)))
+    cams = make_cameras(c2w, torch.stack(Ks), src, dtype)
+
+    near = far = None
+    if points is not None:
+        bounds = []
+        for i, r in enumerate(ordered):
+            ids = [int(pid) for pid in r.point_ids if pid >= 0 and int(pid) in points]
+            if not ids:
+                bounds = []
+                break
+            xyz = torch.from_numpy(np.stack([points[pid] for pid in ids]))
+            z = (xyz @ R[i].T + t[i])[:, 2]
+            z = z[z > 0]
+            if z.numel() == 0:
+                bounds = []
+                break
+            bounds.append((float(torch.quantile(z, 0.001)), float(torch.quantile(z, 0.999))))
+        if bounds:
+            near = torch.tensor([b[0] for b in bounds], dtype=dtype)
+            far = torch.tensor([b[1] for b in bounds], dtype=dtype)
+            far = torch.where(far > near, far, near * 1.01)
+
+    rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
+    return Scene(
+        images=rgb,
+        cameras=cams,
+        names=[r.name for r in ordered],
+        near=near,
+        far=far,
+        masks=alpha,
+        source=str(root),
+    )

@@ -1,0 +1,55 @@
+"""Helpers shared by the format readers: validated cameras and same-size image stacks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ...checks import SurfSplatInputError
+from ...geometry.cameras import Cameras, validate_c2w, validate_intrinsics
+from ..images import read_image, read_image_size
+from ..scene import check_finite_rows
+
+
+def make_cameras(c2w: Tensor, K: Tensor, source: str, dtype: torch.dtype) -> Cameras:
+    """Validated cameras whose errors name the source file: c2w [N, 4, 4], K [N, 3, 3]."""
+    check_finite_rows(c2w, source, "camera")
+    check_finite_rows(K, source, "intrinsics of camera")
+    validate_c2w(f"{source}: camera", c2w.double())
+    validate_intrinsics(f"{source}: intrinsics of camera", K.double())
+    return Cameras(c2w.to(dtype), K.to(dtype), validate=False)
+
+
+def image_sizes(paths: list[Path]) -> list[tuple[int, int]]:
+    """(width, height) of every file, from headers only."""
+    return [read_image_size(p) for p in paths]
+
+
+def load_image_stack(
+    paths: list[Path],
+    background: tuple[float, float, float] | None,
+) -> tuple[Tensor, Tensor | None]:
+    """Read same-size images: (rgb [N, 3, H, W], alpha [N, 1, H, W] or None).
+
+    Alpha is returned only when every image has one; a mix of RGB and RGBA files is accepted
+    (RGB files count as opaque).
+    """
+    if not paths:
+        raise SurfSplatInputError("no image files to read")
+    rgbs: list[Tensor] = []
+    alphas: list[Tensor | None] = []
+    for p in paths:
+        rgb, alpha = read_image(p, background)
+        if rgbs and rgb.shape != rgbs[0].shape:
+            raise SurfSplatInputError(
+                f"{p}: image is {rgb.shape[2]}x{rgb.shape[1]} but {paths[0].name} is "
+                f"{rgbs[0].shape[2]}x{rgbs[0].shape[1]}; all views of a scene must share one size"
+            )
+        rgbs.append(rgb)
+        alphas.append(alpha)
+    alpha_stack = None
+    if any(a is not None for a in alphas):
+        alpha_stack = torch.stack([torch.ones_like(rgbs[0][:1]) if a is None else a for a in alphas])
+    return torch.stack(rgbs), alpha_stack

@@ -1,0 +1,105 @@
+"""LLFF captures: `poses_bounds.npy` plus an image folder (`images`, `images_4`, `images_8`, ...).
+
+poses_bounds.npy is [N, 17]: [:, :15] reshapes to [N, 3, 5] whose columns 0-3 are camera-to-world
+with axes (down, right, back) and column 4 is (H, W, focal) of the full-resolution photos;
+[:, 15:17] are near/far depth bounds. The axis change to OpenCV is `Cameras.from_llff`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ...checks import SurfSplatInputError
+from ...geometry.cameras import Cameras
+from ..images import list_images
+from ..scene import Scene, check_finite_rows, fit_intrinsics
+from .common import image_sizes, load_image_stack, make_cameras
+
+POSES_FILE = "poses_bounds.npy"
+
+
+def is_llff(path: Path) -> bool:
+    return path.is_dir() and (path / POSES_FILE).is_file()
+
+
+def _pick_image_folder(root: Path, images: str | None) -> Path:
+    if images is not None:
+        folder = root / images
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{folder}: image folder not found")
+        return folder
+    if (root / "images").is_dir():
+        return root / "images"
+    candidates = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("images_"))
+    if len(candidates) == 1:
+        return candidates[0]
+    if not candidates:
+        raise FileNotFoundError(f"{root}: no 'images' or 'images_N' folder beside {POSES_FILE}")
+    names = ", ".join(p.name for p in candidates)
+    raise SurfSplatInputError(f"{root}: several image folders ({names}); choose one with images=...")
+
+
+def read_poses_bounds(path: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """(poses [N, 3, 5], bounds [N, 2]) in float64, checked for shape and finite values."""
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise SurfSplatInputError(f"{path}: cannot read ({type(err).__name__}: {err})") from None
+    if array.ndim != 2 or array.shape[1] != 17:
+        raise SurfSplatInputError(f"{path}: expected an array [N, 17], got shape {list(array.shape)}")
+    if array.shape[0] == 0:
+        raise SurfSplatInputError(f"{path}: no cameras")
+    data = torch.from_numpy(array.astype(np.float64))
+    check_finite_rows(data, str(path), "row")
+    return data[:, :15].reshape(-1, 3, 5), data[:, 15:17]
+
+
+def load_llff(
+    root: Path,
+    images: str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Scene:
+    """Read an LLFF capture (see module doc); `images` picks the image folder by name."""
+    poses_path = root / POSES_FILE
+    poses, bounds = read_poses_bounds(poses_path)
+    folder = _pick_image_folder(root, images)
+    paths = list_images(folder)
+    if len(paths) != poses.shape[0]:
+        raise SurfSplatInputError(
+            f"{poses_path}: {poses.shape[0]} camera rows but {len(paths)} images in {folder}"
+        )
+    for i, (h, w, f) in enumerate(poses[:, :, 4].tolist()):
+        if not (h >= 1 and w >= 1):
+            raise SurfSplatInputError(f"{poses_path}: row {i} has image size H={h:g}, W={w:g}; expected positive")
+        if not f > 0:
+            raise SurfSplatInputError(f"{poses_path}: row {i}: focal length must be positive, got {f:g}")
+
+    # Conversion at full resolution (downscale 1); the image folder decides the factor below.
+    try:
+        full = Cameras.from_llff(poses)
+    except SurfSplatInputError as err:
+        raise SurfSplatInputError(f"{poses_path}: {err}") from None
+    c2w, K = full.c2w, full.K
+
+    sizes = image_sizes(paths)
+    Ks = []
+    for i, (p, size) in enumerate(zip(paths, sizes)):
+        calibrated = (round(float(poses[i, 1, 4])), round(float(poses[i, 0, 4])))
+        Ks.append(fit_intrinsics(K[i], calibrated, size, str(p), allow_downscale=True))
+    cameras = make_cameras(c2w, torch.stack(Ks), str(poses_path), dtype)
+
+    rgb, _ = load_image_stack(paths, background=None)
+    near, far = bounds[:, 0].to(dtype), bounds[:, 1].to(dtype)
+    if bool((near <= 0).any()) or bool((far <= near).any()):
+        raise SurfSplatInputError(f"{poses_path}: depth bounds must satisfy 0 < near < far in every row")
+    return Scene(
+        images=rgb,
+        cameras=cameras,
+        names=[p.name for p in paths],
+        near=near,
+        far=far,
+        source=str(root),
+    )
