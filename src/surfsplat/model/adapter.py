@@ -41,7 +41,7 @@ from ..gaussians import THIN_SCALE, Gaussians
 from ..geometry.cameras import validate_c2w, validate_intrinsics
 from ..geometry.rotations import matrix_to_quat, quat_to_matrix, skew
 from ..geometry.sh import SH_C0, num_sh_bases
-from ..geometry.sh_rotation import sh_rotation_matrix
+from ..geometry.sh_rotation import SHConvention, sh_rotation_matrix
 
 # A cross product counts as degenerate (normal undefined) below this sine of the tangent angle.
 _DEGENERATE_SINE = 1e-6
@@ -113,7 +113,9 @@ class SurfaceFrames:
 
 
 # ---------------------------------------------------------------------------------------------- geometry
-def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> Tensor:
+def pixel_centers(
+    height: int, width: int, device: torch.device | None = None, dtype: torch.dtype = torch.float32
+) -> Tensor:
     """[H, W, 2] pixel centres (x, y) = (column + 0.5, row + 0.5) in pixels (the package convention)."""
     ys = torch.arange(height, device=device, dtype=dtype) + 0.5
     xs = torch.arange(width, device=device, dtype=dtype) + 0.5
@@ -349,7 +351,7 @@ class GaussianAdapter(torch.nn.Module):
         if H < 3 or W < 3:
             raise SurfSplatInputError(f"depths: the surface prior needs maps of at least 3 x 3 pixels, got {H} x {W}")
 
-    def _colour(self, raw_sh: Tensor, images: Tensor, R_c2w: Tensor, convention: str) -> Tensor:
+    def _colour(self, raw_sh: Tensor, images: Tensor, R_c2w: Tensor, convention: SHConvention) -> Tensor:
         """SH in the world frame: raw [B, V, 3*K, H, W] -> [B, V, H, W, 3, K]."""
         mask = torch.tensor(self.sh_mask_values, dtype=raw_sh.dtype, device=raw_sh.device)
         sh = rearrange(raw_sh, "b v (c k) h w -> b v h w c k", c=3) * mask
@@ -439,8 +441,9 @@ class GaussianAdapter(torch.nn.Module):
         # offsets (sigmoid - 0.5) / (W, H), intrinsics divided by the image size.
         scale_xy = torch.tensor([W, H, 1], dtype=K.dtype, device=K.device)
         K_norm = K / scale_xy[:, None]
-        pixel_size = 1 / torch.tensor([W, H], dtype=depths.dtype, device=depths.device)
-        xy = pixel_centers(H, W, depths.device, depths.dtype) * pixel_size
+        size = torch.tensor([W, H], dtype=depths.dtype, device=depths.device)
+        xy = pixel_centers(H, W, depths.device, depths.dtype) / size
+        pixel_size = 1 / size
         offsets = rearrange(torch.sigmoid(raw[:, :, 1:3]), "b v c h w -> b v h w c")
         xy = xy + (offsets - 0.5) * pixel_size
         homogeneous = torch.cat((xy, torch.ones_like(xy[..., :1])), dim=-1)
