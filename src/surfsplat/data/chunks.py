@@ -210,7 +210,8 @@ def _example_bytes(example: Example) -> int:
 class ChunkWriter:
     """Writes examples into `000000.torch`, `000001.torch`, ... of about `target_bytes` each,
     then `index.json`. Files are written to a temporary name and renamed, so an interrupted
-    run leaves no half-written chunk. Refuses a folder that already holds chunks unless `append`."""
+    run leaves no half-written chunk; `abort()` (called on an exception inside a `with` block)
+    removes this run's chunks. Refuses a folder that already holds chunks unless `append`."""
 
     def __init__(self, out_dir: str | Path, target_bytes: int = int(1e8), append: bool = False) -> None:
         self.out_dir = Path(out_dir)
@@ -225,6 +226,7 @@ class ChunkWriter:
         self.target_bytes = target_bytes
         self.pending: list[Example] = []
         self.pending_bytes = 0
+        self.created: list[Path] = []
 
     def add(self, example: Example) -> None:
         validate_example(example, f"example '{example.get('key', '?') if isinstance(example, dict) else '?'}'")
@@ -241,6 +243,7 @@ class ChunkWriter:
             return
         name = f"{self.next_chunk:06d}.torch"
         _atomic_save(self.pending, self.out_dir / name)
+        self.created.append(self.out_dir / name)
         for example in self.pending:
             self.index[example["key"]] = name
         self.next_chunk += 1
@@ -253,20 +256,30 @@ class ChunkWriter:
         _atomic_write_text(json.dumps(self.index, indent=1, sort_keys=True), self.out_dir / INDEX_FILE)
         return dict(self.index)
 
+    def abort(self) -> None:
+        """Delete the chunks this writer created; index.json is left as it was."""
+        for path in self.created:
+            path.unlink(missing_ok=True)
+        self.created = []
+        self.pending = []
+        self.pending_bytes = 0
+
     def __enter__(self) -> ChunkWriter:
         return self
 
     def __exit__(self, exc_type: object, *_: object) -> None:
         if exc_type is None:
             self.close()
+        else:
+            self.abort()
 
 
 def write_chunks(examples: Iterable[Example], out_dir: str | Path, target_bytes: int = int(1e8), append: bool = False) -> dict[str, str]:
     """Write examples as chunks plus index.json (see ChunkWriter); returns the index."""
-    writer = ChunkWriter(out_dir, target_bytes=target_bytes, append=append)
-    for example in examples:
-        writer.add(example)
-    return writer.close()
+    with ChunkWriter(out_dir, target_bytes=target_bytes, append=append) as writer:
+        for example in examples:
+            writer.add(example)
+    return dict(writer.index)
 
 
 def iter_examples(chunks: Iterable[Path]) -> Iterator[tuple[Path, Example]]:

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from ...checks import SurfSplatInputError
+from ...geometry.cameras import Cameras
 from ..scene import Scene, check_finite_rows, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
 
@@ -55,16 +57,23 @@ def _resolve_image(json_dir: Path, file_path: str, images: str | None) -> Path:
     return candidate
 
 
-def load_blender(
+@dataclass
+class TransformsCameras:
+    """Cameras of a transforms.json and the image files they belong to (pixels not decoded)."""
+
+    json_path: Path
+    paths: list[Path]
+    cameras: Cameras
+    frames: list[dict[str, Any]]  # the JSON frame entries, in file order
+
+
+def read_transforms(
     path: Path,
     split: str = "train",
     images: str | None = None,
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
     dtype: torch.dtype = torch.float32,
-) -> Scene:
-    """Read a transforms.json capture; `split` picks transforms_{split}.json when there is no
-    transforms.json, `images` substitutes a downscaled image folder (nerfstudio `images_4`),
-    `background` is the colour RGBA images are composited on."""
+) -> TransformsCameras:
+    """Parse and validate a transforms.json (see load_blender); images are only opened for their size."""
     json_path = find_transforms(path, split)
     if json_path is None:
         raise FileNotFoundError(f"{path}: no transforms.json or transforms_{split}.json")
@@ -82,10 +91,15 @@ def load_blender(
     c2w_gl = []
     for i, frame in enumerate(frames):
         where = f"{json_path}: frame {i}"
+        if not isinstance(frame, dict):
+            raise SurfSplatInputError(f"{where}: expected an object, got {type(frame).__name__}")
         for key in ("file_path", "transform_matrix"):
             if key not in frame:
                 raise SurfSplatInputError(f"{where}: missing key '{key}'")
-        matrix = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
+        try:
+            matrix = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise SurfSplatInputError(f"{where}: transform_matrix is not a numeric matrix ({err})") from None
         if matrix.shape == (3, 4):
             matrix = torch.cat([matrix, torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)])
         if matrix.shape != (4, 4):
@@ -132,11 +146,25 @@ def load_blender(
     # applied here so that validation errors name the JSON file).
     c2w_cv = c2w_gl_t @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     cameras = make_cameras(c2w_cv, torch.stack(Ks), str(json_path), dtype)
-    rgb, alpha = load_image_stack(paths, background=background)
+    return TransformsCameras(json_path, paths, cameras, frames)
+
+
+def load_blender(
+    path: Path,
+    split: str = "train",
+    images: str | None = None,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    dtype: torch.dtype = torch.float32,
+) -> Scene:
+    """Read a transforms.json capture; `split` picks transforms_{split}.json when there is no
+    transforms.json, `images` substitutes a downscaled image folder (nerfstudio `images_4`),
+    `background` is the colour RGBA images are composited on."""
+    parsed = read_transforms(path, split=split, images=images, dtype=dtype)
+    rgb, alpha = load_image_stack(parsed.paths, background=background)
     return Scene(
         images=rgb,
-        cameras=cameras,
-        names=[p.name for p in paths],
+        cameras=parsed.cameras,
+        names=[p.name for p in parsed.paths],
         masks=alpha,
-        source=str(json_path),
+        source=str(parsed.json_path),
     )

@@ -153,11 +153,11 @@ def write_synthetic_chunks(
         scene=config or SyntheticConfig(),
     ))
     h, w = image_shape
-    writer = ChunkWriter(out_dir, target_bytes=target_bytes)
-    for i in range(num_scenes):
-        scene = dataset.scene(i)
-        cams = dataset.trajectory(i, scene).cameras(torch.linspace(0, 1, num_frames, dtype=torch.float64), w, h)
-        out = render_synthetic(scene, cams, w, h, supersample=supersample)
-        record = Scene(images=out.image, cameras=cams, names=[str(k) for k in range(num_frames)], depths=out.depth)
-        writer.add(scene_to_example(record, key=f"synthetic-{seed}-{i}", url="synthetic", image_format=image_format))
-    return writer.close()
+    with ChunkWriter(out_dir, target_bytes=target_bytes) as writer:
+        for i in range(num_scenes):
+            scene = dataset.scene(i)
+            cams = dataset.trajectory(i, scene).cameras(torch.linspace(0, 1, num_frames, dtype=torch.float64), w, h)
+            out = render_synthetic(scene, cams, w, h, supersample=supersample)
+            record = Scene(images=out.image, cameras=cams, names=[str(k) for k in range(num_frames)], depths=out.depth)
+            writer.add(scene_to_example(record, key=f"synthetic-{seed}-{i}", url="synthetic", image_format=image_format))
+    return dict(writer.index)
