@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import json
-import math
-import zlib
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
@@ -15,31 +12,18 @@ from safetensors.torch import load_file
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import Lpips, LpipsUnavailable, find_lpips_weights, load_lpips, try_load_lpips
 from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
+from surfsplat.model.formula_weights import formula_tensor  # the golden fixtures' weight formula
 
 # Tiny stand-ins for torchvision's classifier keys: a real file carries them and they are ignored.
 CLASSIFIER = {"classifier.0.weight": torch.zeros(4, 3), "classifier.0.bias": torch.zeros(4)}
 
 
-def formula_tensor(key: str, shape: list[int], mean: float, std: float) -> torch.Tensor:
-    """The fixture's weight formula (golden/lpips/README.md), vectorised in uint64."""
-    n = math.prod(shape)
-    mask = np.uint64(0xFFFFFFFF)
-    h = (np.arange(n, dtype=np.uint64) + np.uint64(zlib.crc32(key.encode("utf-8")))) & mask
-    h = (h * np.uint64(2654435761)) & mask
-    h ^= h >> np.uint64(16)
-    h = (h * np.uint64(0x85EBCA6B)) & mask
-    h ^= h >> np.uint64(13)
-    h = (h * np.uint64(0xC2B2AE35)) & mask
-    h ^= h >> np.uint64(16)
-    z = (h.astype(np.float64) / 2.0**32 - 0.5) * math.sqrt(12.0)
-    w = float(np.float32(mean)) + float(np.float32(std)) * z
-    return torch.from_numpy(w.astype(np.float32).reshape(shape))
-
-
 @pytest.fixture(scope="module")
 def formula_states(golden_dir: Path) -> tuple[dict, dict]:
     spec = json.loads((golden_dir / "lpips" / "formula_weights.json").read_text())
-    state = {t["key"]: formula_tensor(t["key"], t["shape"], t["mean"], t["std"]) for t in spec["tensors"]}
+    state = {
+        t["key"]: torch.from_numpy(formula_tensor(t["key"], tuple(t["shape"]), t["mean"], t["std"])) for t in spec["tensors"]
+    }
     vgg = {k: v for k, v in state.items() if k.startswith("features.")}
     lin = {k: v for k, v in state.items() if k.startswith("lin")}
     assert set(vgg) == set(vgg_shapes()) and set(lin) == set(lin_shapes())
