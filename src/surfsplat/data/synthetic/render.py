@@ -103,7 +103,9 @@ def render_rays(scene: SyntheticScene, origins: Tensor, dirs: Tensor) -> tuple[T
     hit = prim >= 0
     t_hit = torch.where(hit, t, torch.zeros_like(t))
     points = origins + t_hit[:, None] * dirs
-    # Face the viewer: the side of the surface the ray arrives from.
+    # Unit length exactly (a sphere's p / r is off by the hit point's rounding), then face the
+    # viewer: the side of the surface the ray arrives from.
+    n = torch.nn.functional.normalize(n, dim=-1)
     n = torch.where(((n * dirs).sum(-1) > 0)[:, None], -n, n)
     n = torch.where(hit[:, None], n, torch.zeros_like(n))
     return shade(scene, points, n, prim), t_hit, n, prim
