@@ -96,6 +96,9 @@ def plane_sweep_cost_volume(
         warped = F.grid_sample(
             src_flat, g.reshape(n * m, dc * h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True
         ).view(n * m, c, dc, h, w)
-        costs.append((ref_rep * warped).sum(1))  # [N*M, dc, H, W]
-    cost = torch.cat(costs, dim=1) / c**0.5
-    return cost.view(n, m, d, h, w).mean(1)
+        if torch.is_grad_enabled():
+            costs.append((warped * ref_rep).sum(1))  # [N*M, dc, H, W]
+        else:  # in place: no second chunk-sized buffer
+            costs.append(warped.mul_(ref_rep).sum(1))
+    cost = torch.cat(costs, dim=1)
+    return (cost / c**0.5).view(n, m, d, h, w).mean(1)
