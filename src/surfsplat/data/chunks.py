@@ -77,9 +77,11 @@ def read_chunk(path: str | Path) -> list[Example]:
     try:
         # weights_only: a chunk holds only tensors, strings, lists and dicts; nothing to execute.
         data = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, OSError, ValueError, TypeError) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise SurfSplatInputError(f"{path}: cannot load chunk ({first})") from None
+    except Exception as err:  # noqa: BLE001 - corrupt bytes surface as any of a dozen unpickler errors; all mean the same
+        if isinstance(err, MemoryError):
+            raise
+        first = str(err).strip().splitlines()[0][:160] if str(err).strip() else ""
+        raise SurfSplatInputError(f"{path}: cannot load chunk ({type(err).__name__}: {first})") from None
     if not isinstance(data, list):
         raise SurfSplatInputError(f"{path}: expected a list of examples, got {type(data).__name__}")
     if not data:

@@ -103,14 +103,15 @@ def fit_intrinsics(
     Equal sizes: K unchanged. A folder of downscaled images (LLFF/COLMAP `images_N`, DTU
     `images_4`): K' = diag(W'/W, H'/H, 1) K, exact under the pixel-centre-at-(j+0.5) convention,
     accepted only when `allow_downscale` and both axes shrink by the same factor up to the
-    rounding of one pixel. Anything else is an error naming the file and both sizes.
+    rounding of half a pixel. Anything else is an error naming the file and both sizes.
     """
     (cw, ch), (iw, ih) = calibrated_size, image_size
     if (cw, ch) == (iw, ih):
         return K
     factor = cw / iw
-    same_factor = abs(ch / factor - ih) <= 1.0 and abs(cw / factor - iw) <= 1.0
-    if not (allow_downscale and same_factor and factor > 1):
+    # The height must follow the width's factor up to the rounding of the resize (half a pixel).
+    uniform = abs(ch / factor - ih) <= 0.5
+    if not (allow_downscale and uniform and factor > 1):
         raise SurfSplatInputError(
             f"{source}: image is {iw}x{ih} but the intrinsics are for {cw}x{ch} "
             f"(expected the calibrated size{' or a uniform downscale of it' if allow_downscale else ''})"

@@ -36,7 +36,7 @@ def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     K [3, 3] (positive diagonal, K[2, 2] = 1), R [3, 3] (det +1) and t [3], in float64."""
     P = P.to(torch.float64)
     M = P[:, :3].numpy()
-    if abs(np.linalg.det(M)) < 1e-12 * max(np.abs(M).max(), 1e-300) ** 3:
+    if abs(np.linalg.det(M)) <= 1e-12 * np.abs(M).max() ** 3:
         raise SurfSplatInputError("projection matrix: its left 3x3 block is singular")
     K, R = scipy.linalg.rq(M)
     # RQ is unique up to signs: D = diag(sign(K_ii)) gives K D and D R with K's diagonal positive.
