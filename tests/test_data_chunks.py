@@ -29,7 +29,6 @@ from surfsplat.data import (
     scene_to_example,
     write_chunks,
 )
-from surfsplat.data.images import encode_image
 from surfsplat.data.scene import Scene
 from surfsplat.data.synthetic.scene import look_at
 

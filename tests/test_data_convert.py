@@ -125,6 +125,12 @@ def test_dtu_converter_on_scan24(data_dir: Path, tmp_path: Path) -> None:
     torch.testing.assert_close(back.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]], direct.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]], atol=1e-3, rtol=1e-6)
 
 
+def test_command_lists_every_converter() -> None:
+    from surfsplat.data.convert import CONVERTERS
+
+    assert convert_command.FORMATS == CONVERTERS
+
+
 def test_converter_errors(tmp_path: Path) -> None:
     with pytest.raises(SurfSplatInputError, match="format: expected one of"):
         convert("nerf", tmp_path, tmp_path / "out")

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..data.convert import CONVERTERS, convert
+# The formats of surfsplat.data.convert.CONVERTERS, spelled out so `surfsplat --help` does not
+# import the data stack (a test keeps the two equal).
+FORMATS = ("dtu", "llff", "blender", "colmap", "dl3dv", "scannet")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("format", choices=CONVERTERS, help="layout of SRC")
+    parser.add_argument("format", choices=FORMATS, help="layout of SRC")
     parser.add_argument("src", help="one scene folder, or a folder of scene folders")
     parser.add_argument("out", help="output folder for *.torch chunks and index.json (must hold no chunks)")
     parser.add_argument("--images", default=None,
@@ -24,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..data.convert import convert
+
     report = convert(
         args.format,
         args.src,

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -282,10 +282,3 @@ def write_chunks(examples: Iterable[Example], out_dir: str | Path, target_bytes:
         for example in examples:
             writer.add(example)
     return dict(writer.index)
-
-
-def iter_examples(chunks: Iterable[Path]) -> Iterator[tuple[Path, Example]]:
-    """(chunk path, example) over chunk files, one chunk in memory at a time."""
-    for path in chunks:
-        for example in read_chunk(path):
-            yield path, example

@@ -19,7 +19,7 @@ import torch
 
 from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras
-from ..scene import Scene, check_finite_rows, fit_intrinsics
+from ..scene import Scene, check_finite_rows, downscale_from_folder, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -140,7 +140,7 @@ def read_transforms(
         else:
             raise SurfSplatInputError(f"{where}: no intrinsics (expected 'fl_x' or 'camera_angle_x')")
         K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        Ks.append(fit_intrinsics(K, (cw, ch), size, str(paths[i]), allow_downscale=images is not None))
+        Ks.append(fit_intrinsics(K, (cw, ch), size, str(paths[i]), allow_downscale=downscale_from_folder(paths[i].parent)))
 
     # OpenGL -> OpenCV flips the camera's y and z axes (the same matrix as Cameras.from_opengl,
     # applied here so that validation errors name the JSON file).

@@ -7,7 +7,8 @@ used as is. PINHOLE and SIMPLE_PINHOLE cameras are read directly, as is any mode
 distortion parameters are all zero; anything else is an error asking for undistorted images.
 Per-view near/far come from the depths of the view's own triangulated points (0.1 and 99.9
 percentiles, as LLFF's imgs2poses does) when points3D is present and every view sees at least
-one point in front of it; otherwise the scene has no near/far.
+one point in front of it (a view whose points all share one depth gets far = 1.01 near);
+otherwise the scene has no near/far.
 """
 
 from __future__ import annotations

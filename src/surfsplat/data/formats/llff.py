@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ...checks import SurfSplatInputError
-from ...geometry.cameras import Cameras
+from ...geometry.cameras import Cameras, validate_c2w
 from ..images import list_images
 from ..scene import Scene, check_finite_rows, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
@@ -77,11 +77,13 @@ def load_llff(
         if not f > 0:
             raise SurfSplatInputError(f"{poses_path}: row {i}: focal length must be positive, got {f:g}")
 
+    # LLFF's (down, right, back) frame is itself right-handed, so its 3x4 block must already be
+    # rigid; checking it here lets the error name this file and row.
+    raw = torch.eye(4, dtype=torch.float64).repeat(poses.shape[0], 1, 1)
+    raw[:, :3, :] = poses[:, :, :4]
+    validate_c2w(f"{poses_path}: camera", raw)
     # Conversion at full resolution (downscale 1); the image folder decides the factor below.
-    try:
-        full = Cameras.from_llff(poses)
-    except SurfSplatInputError as err:
-        raise SurfSplatInputError(f"{poses_path}: {err}") from None
+    full = Cameras.from_llff(poses)
     c2w, K = full.c2w, full.K
 
     sizes = image_sizes(paths)

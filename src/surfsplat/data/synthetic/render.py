@@ -123,10 +123,10 @@ def render_synthetic(
     """Render `scene` for every camera at width x height (K in pixels of that size).
 
     supersample: s >= 1 averages s x s rays per pixel at offsets ((a + 0.5) / s, (b + 0.5) / s),
-        i.e. exactly the pixel centres of the s-times larger image: a view rendered with
-        supersample s equals the s x s average pooling of the same view rendered at s times
-        the resolution (K scaled by s) with supersample 1. Depth, normal and primitive are always
-        those of the pixel-centre ray (exact values, not averages).
+        i.e. the pixel centres of the s-times larger image: a view rendered with supersample s
+        equals the s x s average pooling of the same view rendered at s times the resolution
+        (K scaled by s) with supersample 1, up to float rounding of the ray directions. Depth,
+        normal and primitive are always those of the pixel-centre ray (exact values, not averages).
     chunk: rays per batch, which bounds memory at any resolution.
     """
     if width < 1 or height < 1:
