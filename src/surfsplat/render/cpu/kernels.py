@@ -1,0 +1,644 @@
+"""Numba kernels of the compiled CPU renderer (float64 throughout, both modes, forward and backward).
+
+The kernels compute the function of the torch reference (`render/torch_backend.py`) pair by pair,
+the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
+
+* `project_surfels` / `project_ewa`: one pass over the Gaussians (parallel) giving each one's
+  per-pixel coefficients, its opacity-aware pixel box and whether it survives culling.
+* `sort_and_bin`: stable depth sort of the survivors, then a counting sort into tiles, so every
+  tile lists its Gaussians front to back (no global key sort).
+* `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
+  each, only over the pixels of its box, so a pair outside the footprint costs nothing. Pixels
+  stop by the 3DGS rule and the tile stops once all of its pixels have.
+* `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
+  transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
+  what lies behind, so no per-pair state is stored. Per-Gaussian gradients go to a buffer per
+  thread, summed afterwards (no atomics).
+* `surfel_project_backward` / `ewa_project_backward`: the chain rule from those per-Gaussian
+  gradients back to camera-frame means, rotations (or covariances), scales and opacities.
+
+Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
+  surfel: projected centre c, log opacity, centre depth mu_z, det T, and the cross product
+          h(p) = A + p_x B + p_y C of 2DGS stored as A_c = h(c), B, C, so that
+          h(p) = A_c + (p_x - c_x) B + (p_y - c_y) C stays exact far from the image origin.
+  ewa:    projected centre, log opacity, centre depth and the inverse 2D covariance (a, b, c).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import get_thread_id, njit, prange
+
+from ..types import ALPHA_MAX, ALPHA_MIN, EWA_DILATION, LOG_ALPHA_MIN, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN
+
+# Columns of the per-Gaussian coefficient rows.
+GEOM_CX, GEOM_CY, GEOM_LOGO, GEOM_DEPTH, GEOM_DET = 0, 1, 2, 3, 4
+GEOM_A, GEOM_B, GEOM_C = 5, 8, 11  # surfel: A_c, B, C (3 each)
+GEOM_CONIC = 5  # ewa: conic (a, b, c) of rho = a dx^2 + 2 b dx dy + c dy^2
+GEOM_SIZE = 14
+
+# Columns of the per-Gaussian gradient rows produced by the compositing backward pass.
+GRAD_H, GRAD_HX, GRAD_HY = 0, 3, 6  # surfel: sum g_h, sum dx g_h, sum dy g_h over the pixels
+GRAD_CONIC = 0  # ewa: dL/d(conic a, b, c)
+GRAD_CX, GRAD_CY, GRAD_DET, GRAD_DEPTH, GRAD_LOGO = 9, 10, 11, 12, 13
+GRAD_FEAT = 14  # 6 features: colour, normal
+GRAD_SIZE = 20
+FEATURES = 6
+
+_NEAR_ZERO = 1e-12  # |z| below this is treated as 1 before dividing (the point is culled anyway)
+_CONIC_DET_MIN = 1e-20  # floor of the 2D covariance determinant (as the torch backend)
+
+
+# ---------------------------------------------------------------------------------------------
+# Projection
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _surfel_matrix(mu, R, s0, s1, R_cw, K):
+    """Rows of T = K [R_cw R e1 s0, R_cw R e2 s1, mu] (2DGS Eq. 9 with the camera-frame mean mu)."""
+    u0 = (R_cw[0, 0] * R[0, 0] + R_cw[0, 1] * R[1, 0] + R_cw[0, 2] * R[2, 0]) * s0
+    u1 = (R_cw[1, 0] * R[0, 0] + R_cw[1, 1] * R[1, 0] + R_cw[1, 2] * R[2, 0]) * s0
+    u2 = (R_cw[2, 0] * R[0, 0] + R_cw[2, 1] * R[1, 0] + R_cw[2, 2] * R[2, 0]) * s0
+    v0 = (R_cw[0, 0] * R[0, 1] + R_cw[0, 1] * R[1, 1] + R_cw[0, 2] * R[2, 1]) * s1
+    v1 = (R_cw[1, 0] * R[0, 1] + R_cw[1, 1] * R[1, 1] + R_cw[1, 2] * R[2, 1]) * s1
+    v2 = (R_cw[2, 0] * R[0, 1] + R_cw[2, 1] * R[1, 1] + R_cw[2, 2] * R[2, 1]) * s1
+    m0, m1, m2 = mu[0], mu[1], mu[2]
+    tx0 = K[0, 0] * u0 + K[0, 1] * u1 + K[0, 2] * u2
+    tx1 = K[0, 0] * v0 + K[0, 1] * v1 + K[0, 2] * v2
+    tx2 = K[0, 0] * m0 + K[0, 1] * m1 + K[0, 2] * m2
+    ty0 = K[1, 0] * u0 + K[1, 1] * u1 + K[1, 2] * u2
+    ty1 = K[1, 0] * v0 + K[1, 1] * v1 + K[1, 2] * v2
+    ty2 = K[1, 0] * m0 + K[1, 1] * m1 + K[1, 2] * m2
+    tw0 = K[2, 0] * u0 + K[2, 1] * u1 + K[2, 2] * u2
+    tw1 = K[2, 0] * v0 + K[2, 1] * v1 + K[2, 2] * v2
+    tw2 = K[2, 0] * m0 + K[2, 1] * m1 + K[2, 2] * m2
+    return tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2
+
+
+@njit(cache=True, inline="always")
+def _opacity_extent(opacity):
+    """k^2 with o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
+    return 2.0 * math.log(max(opacity / ALPHA_MIN, 1.0))
+
+
+@njit(cache=True, inline="always")
+def _pixel_range(lo, hi, size):
+    """Inclusive pixel indices whose centres i + 0.5 lie in [lo, hi], clamped to the image."""
+    first = min(max(math.ceil(lo - 0.5), 0.0), float(size))
+    last = min(max(math.floor(hi - 0.5), -1.0), float(size - 1))
+    return int(first), int(last)
+
+
+@njit(cache=True, inline="always")
+def _set_box(box, i, xmin, xmax, ymin, ymax, width, height):
+    box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
+    box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
+
+
+@njit(parallel=True, cache=True)
+def project_surfels(mu, rotations, scales, opacities, R_cw, K, width, height, near, far, geom, box, keep):
+    """Per-surfel coefficients, pixel boxes and the culling mask.
+
+    mu [N, 3] camera-frame means, rotations [N, 3, 3] world rotations, scales [N, 2], opacities [N],
+    R_cw [3, 3], K [3, 3]. Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N].
+    """
+    for i in prange(mu.shape[0]):
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
+            mu[i], rotations[i], scales[i, 0], scales[i, 1], R_cw, K
+        )
+        z = mu[i, 2]
+        safe_z = z if abs(z) > _NEAR_ZERO else 1.0
+        cx, cy = tx2 / safe_z, ty2 / safe_z
+        # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
+        # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
+        k2 = _opacity_extent(opacities[i])
+        d2 = -1.0 / max(k2, 1e-12)
+        c00 = tx0 * tx0 + tx1 * tx1 + d2 * tx2 * tx2
+        c11 = ty0 * ty0 + ty1 * ty1 + d2 * ty2 * ty2
+        c02 = tx0 * tw0 + tx1 * tw1 + d2 * tx2 * tw2
+        c12 = ty0 * tw0 + ty1 * tw1 + d2 * ty2 * tw2
+        c22 = tw0 * tw0 + tw1 * tw1 + d2 * tw2 * tw2
+        r_lp = math.sqrt(k2 / LOWPASS_RHO_SCALE)  # the screen-space filter's own reach
+        if c22 < -1e-12:
+            ex, ey = c02 / c22, c12 / c22
+            hx = math.sqrt(max(c02 * c02 - c00 * c22, 0.0)) / abs(c22)
+            hy = math.sqrt(max(c12 * c12 - c11 * c22, 0.0)) / abs(c22)
+            xmin, xmax = min(ex - hx, cx - r_lp), max(ex + hx, cx + r_lp)
+            ymin, ymax = min(ey - hy, cy - r_lp), max(ey + hy, cy + r_lp)
+        else:  # the footprint is unbounded (a hyperbola or parabola): every pixel
+            xmin, xmax, ymin, ymax = -math.inf, math.inf, -math.inf, math.inf
+        _set_box(box, i, xmin, xmax, ymin, ymax, width, height)
+        keep[i] = (
+            z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
+        )
+        # h(p) = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x.
+        ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
+        bx, by, bz = ty1 * tw2 - ty2 * tw1, ty2 * tw0 - ty0 * tw2, ty0 * tw1 - ty1 * tw0
+        qx, qy, qz = tw1 * tx2 - tw2 * tx1, tw2 * tx0 - tw0 * tx2, tw0 * tx1 - tw1 * tx0
+        g = geom[i]
+        g[GEOM_CX], g[GEOM_CY] = cx, cy
+        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
+        g[GEOM_DEPTH] = tw2
+        g[GEOM_DET] = tw0 * ax + tw1 * ay + tw2 * az
+        g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2] = ax + cx * bx + cy * qx, ay + cx * by + cy * qy, az + cx * bz + cy * qz
+        g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2] = bx, by, bz
+        g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2] = qx, qy, qz
+
+
+@njit(cache=True, inline="always")
+def _ewa_jacobian(m0, m1, z, K):
+    """d(pixel)/d(camera point) at the mean: rows (j00, j01, j02), (0, j11, j12)."""
+    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+    x, y = m0 / z, m1 / z
+    return fx / z, skew / z, -(fx * x + skew * y) / z, fy / z, -fy * y / z
+
+
+@njit(cache=True, inline="always")
+def _ewa_cov2d(mu, cov, R_cw, K):
+    """J W Sigma W^T J^T (3DGS Eq. 5) as (a, b, c) = entries 00, 01, 11, plus JW rows and z."""
+    z = mu[2]
+    safe_z = z if abs(z) > _NEAR_ZERO else 1.0
+    j00, j01, j02, j11, j12 = _ewa_jacobian(mu[0], mu[1], safe_z, K)
+    p0 = j00 * R_cw[0, 0] + j01 * R_cw[1, 0] + j02 * R_cw[2, 0]
+    p1 = j00 * R_cw[0, 1] + j01 * R_cw[1, 1] + j02 * R_cw[2, 1]
+    p2 = j00 * R_cw[0, 2] + j01 * R_cw[1, 2] + j02 * R_cw[2, 2]
+    q0 = j11 * R_cw[1, 0] + j12 * R_cw[2, 0]
+    q1 = j11 * R_cw[1, 1] + j12 * R_cw[2, 1]
+    q2 = j11 * R_cw[1, 2] + j12 * R_cw[2, 2]
+    # Sigma p and Sigma q
+    sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2
+    sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
+    sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
+    sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2
+    sq1 = cov[1, 0] * q0 + cov[1, 1] * q1 + cov[1, 2] * q2
+    sq2 = cov[2, 0] * q0 + cov[2, 1] * q1 + cov[2, 2] * q2
+    a = p0 * sp0 + p1 * sp1 + p2 * sp2
+    b = p0 * sq0 + p1 * sq1 + p2 * sq2
+    c = q0 * sq0 + q1 * sq1 + q2 * sq2
+    return a, b, c, p0, p1, p2, q0, q1, q2, safe_z
+
+
+@njit(parallel=True, cache=True)
+def project_ewa(mu, covariances, opacities, R_cw, K, width, height, near, far, geom, box, keep):
+    """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine Jacobian J at the mean.
+
+    mu [N, 3] camera-frame means, covariances [N, 3, 3] world covariances, opacities [N].
+    Writes geom [N, GEOM_SIZE], box [N, 4] and keep [N].
+    """
+    for i in prange(mu.shape[0]):
+        a, b, c, _, _, _, _, _, _, safe_z = _ewa_cov2d(mu[i], covariances[i], R_cw, K)
+        a += EWA_DILATION
+        c += EWA_DILATION
+        det = max(a * c - b * b, _CONIC_DET_MIN)
+        cx = K[0, 0] * (mu[i, 0] / safe_z) + K[0, 1] * (mu[i, 1] / safe_z) + K[0, 2]
+        cy = K[1, 1] * (mu[i, 1] / safe_z) + K[1, 2]
+        k2 = _opacity_extent(opacities[i])
+        hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
+        _set_box(box, i, cx - hx, cx + hx, cy - hy, cy + hy, width, height)
+        z = mu[i, 2]
+        keep[i] = (
+            z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
+        )
+        g = geom[i]
+        g[GEOM_CX], g[GEOM_CY] = cx, cy
+        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
+        g[GEOM_DEPTH] = z
+        g[GEOM_DET] = 0.0
+        g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2] = c / det, -b / det, a / det
+        for j in range(GEOM_CONIC + 3, GEOM_SIZE):
+            g[j] = 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Sorting and binning
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
+    """Survivors sorted front to back (stable, so ties keep input order) and listed per tile.
+
+    Returns order [M] (input index of each survivor, nearest first), tile_start [tiles + 1] and
+    tile_ids [pairs]: the survivors (as positions in `order`) touching each tile, front to back.
+    """
+    index = np.nonzero(keep)[0]
+    order = index[np.argsort(depth[index], kind="mergesort")]
+    n_tiles = tiles_x * tiles_y
+    tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
+    for m in range(order.shape[0]):
+        i = order[m]
+        for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
+            for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
+                tile_start[ty * tiles_x + tx + 1] += 1
+    for t in range(n_tiles):
+        tile_start[t + 1] += tile_start[t]
+    cursor = tile_start[:-1].copy()
+    tile_ids = np.empty(tile_start[n_tiles], dtype=np.int64)
+    # Visiting survivors in depth order fills every tile's list already front to back.
+    for m in range(order.shape[0]):
+        i = order[m]
+        for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
+            for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
+                t = ty * tiles_x + tx
+                tile_ids[cursor[t]] = m
+                cursor[t] += 1
+    return order, tile_start, tile_ids
+
+
+@njit(parallel=True, cache=True)
+def gather_rows(src, index, out):
+    """out[m] = src[index[m]] for 2D arrays (parallel)."""
+    for m in prange(index.shape[0]):
+        for j in range(src.shape[1]):
+            out[m, j] = src[index[m], j]
+
+
+# ---------------------------------------------------------------------------------------------
+# Compositing
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _pair_rho(surfel, g, dx, dy):
+    """Exponent rho (alpha = o exp(-rho / 2)) and depth of one pixel, with the branch quantities.
+
+    surfel: rho = min((hx^2 + hy^2) / hz^2, 2 |p - c|^2), taking the ray-splat branch only where
+            it is strictly smaller, which implies hz != 0 (no division at grazing rays); depth is
+            det T / hz there (the z of the intersection) and the centre depth on the filter branch.
+    ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
+    Returns rho, depth, use3d, inv_hz, hx, hy, hz.
+    """
+    if surfel:
+        hx = g[GEOM_A] + dx * g[GEOM_B] + dy * g[GEOM_C]
+        hy = g[GEOM_A + 1] + dx * g[GEOM_B + 1] + dy * g[GEOM_C + 1]
+        hz = g[GEOM_A + 2] + dx * g[GEOM_B + 2] + dy * g[GEOM_C + 2]
+        rho2d = LOWPASS_RHO_SCALE * (dx * dx + dy * dy)
+        a = hx * hx + hy * hy
+        if a < rho2d * (hz * hz):
+            inv_hz = 1.0 / hz
+            return a * inv_hz * inv_hz, g[GEOM_DET] * inv_hz, True, inv_hz, hx, hy, hz
+        return rho2d, g[GEOM_DEPTH], False, 0.0, hx, hy, hz
+    rho = g[GEOM_CONIC] * dx * dx + 2.0 * g[GEOM_CONIC + 1] * dx * dy + g[GEOM_CONIC + 2] * dy * dy
+    return rho, g[GEOM_DEPTH], False, 0.0, 0.0, 0.0, 0.0
+
+
+@njit(parallel=True, cache=True)
+def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
+                      out_features, out_trans, out_depth, out_last, done):
+    """Front-to-back alpha compositing of every tile (tiles in parallel).
+
+    geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
+    Writes out_features [H, W, 6], out_trans [H, W] (final transmittance), out_depth [H, W]
+    (blended depth), out_last [H, W] (1 + position in the tile list of the last blended Gaussian);
+    done [H, W] is scratch.
+    """
+    n_tiles = tile_start.shape[0] - 1
+    for t in prange(n_tiles):
+        x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+        x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        for r in range(y0, y1):
+            for c in range(x0, x1):
+                out_trans[r, c] = 1.0
+                out_depth[r, c] = 0.0
+                out_last[r, c] = 0
+                done[r, c] = False
+                for f in range(FEATURES):
+                    out_features[r, c, f] = 0.0
+        active = (x1 - x0) * (y1 - y0)
+        start = tile_start[t]
+        for k in range(start, tile_start[t + 1]):
+            if active == 0:
+                break  # every pixel of the tile has reached the transmittance floor
+            m = tile_ids[k]
+            g = geom[m]
+            cx, cy, log_o = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO]
+            feat = features[m]
+            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
+                dy = r + 0.5 - cy
+                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
+                    if done[r, c]:
+                        continue
+                    rho, depth, _, _, _, _, _ = _pair_rho(surfel, g, c + 0.5 - cx, dy)
+                    log_alpha = log_o - 0.5 * rho
+                    if not log_alpha >= LOG_ALPHA_MIN:
+                        continue
+                    alpha = min(math.exp(log_alpha), ALPHA_MAX)
+                    T = out_trans[r, c]
+                    T_next = T * (1.0 - alpha)
+                    # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
+                    # ends the pixel and is itself not blended.
+                    if T_next < TRANSMITTANCE_MIN:
+                        done[r, c] = True
+                        active -= 1
+                        continue
+                    w = alpha * T
+                    for f in range(FEATURES):
+                        out_features[r, c, f] += w * feat[f]
+                    out_depth[r, c] += w * depth
+                    out_trans[r, c] = T_next
+                    out_last[r, c] = k - start + 1
+
+
+@njit(parallel=True, cache=True)
+def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
+                       trans_final, last, g_features, g_alpha, g_depth, work_trans, work_behind, grads):
+    """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
+
+    With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
+      dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
+    Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
+    so nothing per pair is stored. g_features [H, W, 6], g_alpha [H, W], g_depth [H, W] are the
+    upstream gradients; work_trans, work_behind [H, W] are scratch; grads [threads, M, GRAD_SIZE]
+    receives per-Gaussian sums (zeroed by the caller), one slab per thread.
+    """
+    n_tiles = tile_start.shape[0] - 1
+    for t in prange(n_tiles):
+        buf = grads[get_thread_id()]
+        x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+        x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        n_last = 0
+        for r in range(y0, y1):
+            for c in range(x0, x1):
+                work_trans[r, c] = trans_final[r, c]
+                work_behind[r, c] = 0.0
+                n_last = max(n_last, last[r, c])
+        start = tile_start[t]
+        acc = np.zeros(GRAD_SIZE)
+        for k in range(start + n_last - 1, start - 1, -1):
+            pos = k - start
+            m = tile_ids[k]
+            g = geom[m]
+            cx, cy, log_o = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO]
+            feat = features[m]
+            acc[:] = 0.0
+            touched = False
+            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
+                dy = r + 0.5 - cy
+                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
+                    if pos >= last[r, c]:
+                        continue  # behind this pixel's last blended Gaussian
+                    dx = c + 0.5 - cx
+                    rho, depth, use3d, inv_hz, hx, hy, hz = _pair_rho(surfel, g, dx, dy)
+                    log_alpha = log_o - 0.5 * rho
+                    if not log_alpha >= LOG_ALPHA_MIN:
+                        continue
+                    touched = True
+                    raw = math.exp(log_alpha)
+                    alpha = min(raw, ALPHA_MAX)
+                    one_minus = 1.0 - alpha
+                    T = work_trans[r, c] / one_minus
+                    work_trans[r, c] = T
+                    w = alpha * T
+                    g_w = g_depth[r, c] * depth
+                    for f in range(FEATURES):
+                        g_w += g_features[r, c, f] * feat[f]
+                        acc[GRAD_FEAT + f] += w * g_features[r, c, f]
+                    behind = work_behind[r, c]
+                    g_a = T * g_w - (behind - g_alpha[r, c] * trans_final[r, c]) / one_minus
+                    work_behind[r, c] = behind + w * g_w
+                    g_rho = 0.0
+                    if raw <= ALPHA_MAX:  # alpha = min(exp(log_alpha), 0.99): clamped pairs pass nothing
+                        g_log_alpha = g_a * alpha
+                        acc[GRAD_LOGO] += g_log_alpha
+                        g_rho = -0.5 * g_log_alpha
+                    g_dpair = w * g_depth[r, c]
+                    if surfel:
+                        if use3d:
+                            # rho = (hx^2 + hy^2) / hz^2, depth = det / hz
+                            s = 2.0 * g_rho * inv_hz * inv_hz
+                            g_hx, g_hy = s * hx, s * hy
+                            g_hz = -2.0 * g_rho * rho * inv_hz - g_dpair * depth * inv_hz
+                            acc[GRAD_H] += g_hx
+                            acc[GRAD_H + 1] += g_hy
+                            acc[GRAD_H + 2] += g_hz
+                            acc[GRAD_HX] += dx * g_hx
+                            acc[GRAD_HX + 1] += dx * g_hy
+                            acc[GRAD_HX + 2] += dx * g_hz
+                            acc[GRAD_HY] += dy * g_hx
+                            acc[GRAD_HY + 1] += dy * g_hy
+                            acc[GRAD_HY + 2] += dy * g_hz
+                            acc[GRAD_DET] += g_dpair * inv_hz
+                        else:
+                            # rho = 2 |p - c|^2, depth = centre depth
+                            s = 2.0 * LOWPASS_RHO_SCALE * g_rho
+                            acc[GRAD_CX] -= s * dx
+                            acc[GRAD_CY] -= s * dy
+                            acc[GRAD_DEPTH] += g_dpair
+                    else:
+                        ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
+                        acc[GRAD_CONIC] += g_rho * dx * dx
+                        acc[GRAD_CONIC + 1] += 2.0 * g_rho * dx * dy
+                        acc[GRAD_CONIC + 2] += g_rho * dy * dy
+                        acc[GRAD_CX] -= 2.0 * g_rho * (ca * dx + cb * dy)
+                        acc[GRAD_CY] -= 2.0 * g_rho * (cb * dx + cc * dy)
+                        acc[GRAD_DEPTH] += g_dpair
+            if touched:
+                for j in range(GRAD_SIZE):
+                    buf[m, j] += acc[j]
+
+
+@njit(parallel=True, cache=True)
+def sum_thread_grads(grads, out):
+    """out [M, G] = sum over the thread axis of grads [threads, M, G]."""
+    for m in prange(grads.shape[1]):
+        for j in range(grads.shape[2]):
+            s = 0.0
+            for th in range(grads.shape[0]):
+                s += grads[th, m, j]
+            out[m, j] = s
+
+
+# ---------------------------------------------------------------------------------------------
+# Projection backward
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def surfel_project_backward(order, mu, rotations, scales, opacities, R_cw, K, geom, grads,
+                            g_mu, g_rotations, g_scales, g_opacities):
+    """Chain rule from per-survivor gradients `grads` [M, GRAD_SIZE] to the surfel parameters.
+
+    geom [M, GEOM_SIZE] holds the survivors' coefficients (sorted like `order`); the outputs
+    g_mu [N, 3], g_rotations [N, 3, 3] (columns u, v only: the normal's gradient comes through
+    the features), g_scales [N, 2], g_opacities [N] must be zero on entry.
+    """
+    for m in prange(order.shape[0]):
+        i = order[m]
+        gr = grads[m]
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
+            mu[i], rotations[i], scales[i, 0], scales[i, 1], R_cw, K
+        )
+        cx, cy = geom[m, GEOM_CX], geom[m, GEOM_CY]
+        # h = A + p_x B + p_y C = A_c + dx B + dy C: the centre cancels, so with dx = p_x - c_x
+        # dL/dA = sum g_h, dL/dB = sum (dx + c_x) g_h, dL/dC = sum (dy + c_y) g_h.
+        gA0, gA1, gA2 = gr[GRAD_H], gr[GRAD_H + 1], gr[GRAD_H + 2]
+        gB0, gB1, gB2 = gr[GRAD_HX] + cx * gA0, gr[GRAD_HX + 1] + cx * gA1, gr[GRAD_HX + 2] + cx * gA2
+        gC0, gC1, gC2 = gr[GRAD_HY] + cy * gA0, gr[GRAD_HY + 1] + cy * gA1, gr[GRAD_HY + 2] + cy * gA2
+        g_det = gr[GRAD_DET]
+        # For u = a x b: dL/da = b x g_u, dL/db = g_u x a. A = Tx x Ty, B = Ty x Tw, C = Tw x Tx,
+        # and det = Tw . (Tx x Ty) adds g_det (Ty x Tw) to Tx, g_det (Tw x Tx) to Ty, g_det (Tx x Ty) to Tw.
+        gdA0, gdA1, gdA2 = gA0 + g_det * tw0, gA1 + g_det * tw1, gA2 + g_det * tw2  # A enters det as Tw . A
+        gx0 = ty1 * gdA2 - ty2 * gdA1 + gC1 * tw2 - gC2 * tw1
+        gx1 = ty2 * gdA0 - ty0 * gdA2 + gC2 * tw0 - gC0 * tw2
+        gx2 = ty0 * gdA1 - ty1 * gdA0 + gC0 * tw1 - gC1 * tw0
+        gy0 = gdA1 * tx2 - gdA2 * tx1 + tw1 * gB2 - tw2 * gB1
+        gy1 = gdA2 * tx0 - gdA0 * tx2 + tw2 * gB0 - tw0 * gB2
+        gy2 = gdA0 * tx1 - gdA1 * tx0 + tw0 * gB1 - tw1 * gB0
+        gw0 = gB1 * ty2 - gB2 * ty1 + tx1 * gC2 - tx2 * gC1
+        gw1 = gB2 * ty0 - gB0 * ty2 + tx2 * gC0 - tx0 * gC2
+        gw2 = gB0 * ty1 - gB1 * ty0 + tx0 * gC1 - tx1 * gC0
+        ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
+        gw0 += g_det * ax
+        gw1 += g_det * ay
+        gw2 += g_det * az
+        # Centre c = (Tx[2], Ty[2]) / mu_z and the filter-branch depth Tw[2].
+        z = mu[i, 2]
+        safe_z = z if abs(z) > _NEAR_ZERO else 1.0
+        g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
+        gx2 += g_cx / safe_z
+        gy2 += g_cy / safe_z
+        g_mu_z = -(g_cx * cx + g_cy * cy) / safe_z if abs(z) > _NEAR_ZERO else 0.0
+        gw2 += gr[GRAD_DEPTH]
+        # T = K M with M = [u s0, v s1, mu]: dL/dM = K^T dL/dT (rows of dL/dT: gx, gy, gw).
+        gm00 = K[0, 0] * gx0 + K[1, 0] * gy0 + K[2, 0] * gw0
+        gm10 = K[0, 1] * gx0 + K[1, 1] * gy0 + K[2, 1] * gw0
+        gm20 = K[0, 2] * gx0 + K[1, 2] * gy0 + K[2, 2] * gw0
+        gm01 = K[0, 0] * gx1 + K[1, 0] * gy1 + K[2, 0] * gw1
+        gm11 = K[0, 1] * gx1 + K[1, 1] * gy1 + K[2, 1] * gw1
+        gm21 = K[0, 2] * gx1 + K[1, 2] * gy1 + K[2, 2] * gw1
+        gm02 = K[0, 0] * gx2 + K[1, 0] * gy2 + K[2, 0] * gw2
+        gm12 = K[0, 1] * gx2 + K[1, 1] * gy2 + K[2, 1] * gw2
+        gm22 = K[0, 2] * gx2 + K[1, 2] * gy2 + K[2, 2] * gw2
+        g_mu[i, 0] = gm02
+        g_mu[i, 1] = gm12
+        g_mu[i, 2] = gm22 + g_mu_z
+        s0, s1 = scales[i, 0], scales[i, 1]
+        R = rotations[i]
+        # Camera-frame tangents u = R_cw R e1, v = R_cw R e2; dL/ds0 = u . dL/dM[:, 0].
+        for col in range(2):
+            s = s0 if col == 0 else s1
+            gc0 = gm00 if col == 0 else gm01
+            gc1 = gm10 if col == 0 else gm11
+            gc2 = gm20 if col == 0 else gm21
+            cam0 = R_cw[0, 0] * R[0, col] + R_cw[0, 1] * R[1, col] + R_cw[0, 2] * R[2, col]
+            cam1 = R_cw[1, 0] * R[0, col] + R_cw[1, 1] * R[1, col] + R_cw[1, 2] * R[2, col]
+            cam2 = R_cw[2, 0] * R[0, col] + R_cw[2, 1] * R[1, col] + R_cw[2, 2] * R[2, col]
+            g_scales[i, col] = cam0 * gc0 + cam1 * gc1 + cam2 * gc2
+            # dL/d(R e_col) = R_cw^T (s dL/dM[:, col])
+            for row in range(3):
+                g_rotations[i, row, col] = s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
+        g_opacities[i] = gr[GRAD_LOGO] / opacities[i]
+
+
+@njit(parallel=True, cache=True)
+def ewa_project_backward(order, mu, covariances, opacities, R_cw, K, grads, g_mu, g_covariances, g_opacities):
+    """Chain rule from per-survivor gradients [M, GRAD_SIZE] to camera-frame means, world
+    covariances and opacities (outputs [N, 3], [N, 3, 3], [N], zero on entry).
+
+    As in the torch backend, the off-diagonal of the 2D covariance is read from its (0, 1) entry,
+    so dL/dSigma is J W-projected from [[g_a, g_b], [0, g_c]] (its antisymmetric part is harmless:
+    Sigma is symmetric wherever it comes from).
+    """
+    for m in prange(order.shape[0]):
+        i = order[m]
+        gr = grads[m]
+        cov = covariances[i]
+        a, b, c, p0, p1, p2, q0, q1, q2, safe_z = _ewa_cov2d(mu[i], cov, R_cw, K)
+        a += EWA_DILATION
+        c += EWA_DILATION
+        det_raw = a * c - b * b
+        det = max(det_raw, _CONIC_DET_MIN)
+        G0, G1, G2 = gr[GRAD_CONIC], gr[GRAD_CONIC + 1], gr[GRAD_CONIC + 2]
+        # conic = (c, -b, a) / det
+        g_det = -(G0 * c - G1 * b + G2 * a) / (det * det) if det_raw >= _CONIC_DET_MIN else 0.0
+        g_a = G2 / det + g_det * c
+        g_c = G0 / det + g_det * a
+        g_b = -G1 / det - 2.0 * b * g_det
+        # cov2d = X Sigma X^T with X = J W (rows p, q); G = [[g_a, g_b], [0, g_c]]:
+        # dL/dX = G X Sigma^T + G^T X Sigma, dL/dSigma = X^T G X.
+        sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2  # Sigma p
+        sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
+        sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
+        sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2  # Sigma q
+        sq1 = cov[1, 0] * q0 + cov[1, 1] * q1 + cov[1, 2] * q2
+        sq2 = cov[2, 0] * q0 + cov[2, 1] * q1 + cov[2, 2] * q2
+        tp0 = cov[0, 0] * p0 + cov[1, 0] * p1 + cov[2, 0] * p2  # Sigma^T p
+        tp1 = cov[0, 1] * p0 + cov[1, 1] * p1 + cov[2, 1] * p2
+        tp2 = cov[0, 2] * p0 + cov[1, 2] * p1 + cov[2, 2] * p2
+        tq0 = cov[0, 0] * q0 + cov[1, 0] * q1 + cov[2, 0] * q2  # Sigma^T q
+        tq1 = cov[0, 1] * q0 + cov[1, 1] * q1 + cov[2, 1] * q2
+        tq2 = cov[0, 2] * q0 + cov[1, 2] * q1 + cov[2, 2] * q2
+        # (G X Sigma^T) row 0 = g_a (Sigma p)^T... written with Sigma^T rows: X Sigma^T rows are (Sigma p, Sigma q).
+        gp0 = g_a * sp0 + g_b * sq0 + g_a * tp0
+        gp1 = g_a * sp1 + g_b * sq1 + g_a * tp1
+        gp2 = g_a * sp2 + g_b * sq2 + g_a * tp2
+        gq0 = g_c * sq0 + g_b * tp0 + g_c * tq0
+        gq1 = g_c * sq1 + g_b * tp1 + g_c * tq1
+        gq2 = g_c * sq2 + g_b * tp2 + g_c * tq2
+        pp = (p0, p1, p2)
+        qq = (q0, q1, q2)
+        for r in range(3):
+            for s in range(3):
+                g_covariances[i, r, s] = g_a * pp[r] * pp[s] + g_b * pp[r] * qq[s] + g_c * qq[r] * qq[s]
+        # X = J W: dL/dJ = dL/dX W^T (W = R_cw).
+        gj00 = gp0 * R_cw[0, 0] + gp1 * R_cw[0, 1] + gp2 * R_cw[0, 2]
+        gj01 = gp0 * R_cw[1, 0] + gp1 * R_cw[1, 1] + gp2 * R_cw[1, 2]
+        gj02 = gp0 * R_cw[2, 0] + gp1 * R_cw[2, 1] + gp2 * R_cw[2, 2]
+        gj11 = gq0 * R_cw[1, 0] + gq1 * R_cw[1, 1] + gq2 * R_cw[1, 2]
+        gj12 = gq0 * R_cw[2, 0] + gq1 * R_cw[2, 1] + gq2 * R_cw[2, 2]
+        fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+        m0, m1 = mu[i, 0], mu[i, 1]
+        z = safe_z
+        z2, z3 = z * z, z * z * z
+        # J = [[fx/z, s/z, -(fx m0 + s m1)/z^2], [0, fy/z, -fy m1/z^2]]
+        g0 = -gj02 * fx / z2
+        g1 = -gj02 * skew / z2 - gj12 * fy / z2
+        g2 = (
+            -(gj00 * fx + gj01 * skew + gj11 * fy) / z2
+            + 2.0 * gj02 * (fx * m0 + skew * m1) / z3
+            + 2.0 * gj12 * fy * m1 / z3
+        )
+        # Centre (fx m0 / z + s m1 / z + cx, fy m1 / z + cy).
+        g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
+        g0 += g_cx * fx / z
+        g1 += (g_cx * skew + g_cy * fy) / z
+        g2 -= (g_cx * (fx * m0 + skew * m1) + g_cy * fy * m1) / z2
+        if abs(mu[i, 2]) <= _NEAR_ZERO:
+            g2 = 0.0
+        g_mu[i, 0] = g0
+        g_mu[i, 1] = g1
+        g_mu[i, 2] = g2 + gr[GRAD_DEPTH]
+        g_opacities[i] = gr[GRAD_LOGO] / opacities[i]
+
+
+# ---------------------------------------------------------------------------------------------
+# Diagnostics
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, height, tile, tiles_x):
+    """Number of (pixel, Gaussian) pairs with alpha >= 1/255, ignoring early termination.
+
+    A property of the scene and the view (the benchmark's work measure), not of a backend.
+    """
+    n_tiles = tile_start.shape[0] - 1
+    per_tile = np.zeros(n_tiles, dtype=np.int64)
+    for t in prange(n_tiles):
+        x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+        x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        n = 0
+        for k in range(tile_start[t], tile_start[t + 1]):
+            m = tile_ids[k]
+            g = geom[m]
+            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
+                dy = r + 0.5 - g[GEOM_CY]
+                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
+                    rho, _, _, _, _, _, _ = _pair_rho(surfel, g, c + 0.5 - g[GEOM_CX], dy)
+                    if g[GEOM_LOGO] - 0.5 * rho >= LOG_ALPHA_MIN:
+                        n += 1
+        per_tile[t] = n
+    return per_tile.sum()

@@ -1,0 +1,25 @@
+"""Settings of the compiled CPU renderer (importable without numba)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ...checks import SurfSplatInputError
+
+
+@dataclass
+class CpuRenderSettings:
+    tile_size: int = 16  # tile edge in pixels: the unit of parallel work and of early termination
+    near_plane: float = 0.01  # Gaussians closer than this (camera z) are culled, as in the torch backend
+    far_plane: float = 1e10  # Gaussians farther than this are culled
+    parallel_chunk: int = 4  # tiles a thread takes at a time (small chunks balance uneven tiles)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tile_size, int) or isinstance(self.tile_size, bool) or self.tile_size <= 0:
+            raise SurfSplatInputError(f"settings.tile_size: expected a positive int, got {self.tile_size!r}")
+        if not 0 <= self.near_plane < self.far_plane:
+            raise SurfSplatInputError(
+                f"settings.near_plane/far_plane: expected 0 <= near < far, got {self.near_plane!r}, {self.far_plane!r}"
+            )
+        if not isinstance(self.parallel_chunk, int) or self.parallel_chunk <= 0:
+            raise SurfSplatInputError(f"settings.parallel_chunk: expected a positive int, got {self.parallel_chunk!r}")
