@@ -118,7 +118,7 @@ def render_synthetic(
     height: int,
     supersample: int = 1,
     dtype: torch.dtype = torch.float32,
-    chunk: int = 1 << 16,
+    chunk: int = 1 << 18,
 ) -> SyntheticRender:
     """Render `scene` for every camera at width x height (K in pixels of that size).
 
