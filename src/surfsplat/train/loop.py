@@ -1,0 +1,414 @@
+"""The training loop: `fit(config)` trains SurfSplat and returns what happened.
+
+    result = fit(train_preset("tiny", out_dir="runs/tiny"))       # one process
+    torchrun --nproc_per_node 2 -m surfsplat train --preset tiny   # the same loop on two ranks
+
+Read top to bottom, one step is: learning rate from the step (pure function), the batch of the
+step (a function of seed and step), forward under autocast, render the target views (surfel or
+EWA, training tau_alpha), MSE + lambda LPIPS (+ the cascade's coarse renders), backward (DDP
+averages gradients over ranks), clip, AdamW. Rank 0 alone writes checkpoints, TensorBoard events,
+metrics.jsonl and the progress bar; every number it reports is first reduced over all ranks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from ..checks import SurfSplatInputError
+from ..data.dataset import mix_seed
+from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
+from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
+from ..model.decoder import decoder_mode, render_views
+from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
+from .cascade import intermediate_gaussians, num_intermediate_depths
+from .checkpoint import (
+    TrainingState,
+    capture_rng,
+    latest_checkpoint,
+    load_training_checkpoint,
+    restore_rng,
+    save_training_checkpoint,
+)
+from .config import TrainConfig, config_from_dict
+from .data import TrainBatch, augment, build_train_batches, build_validation_samples
+from .distributed import DistributedContext, all_gather_objects, all_reduce_mean, barrier, init_distributed, shutdown
+from .events import EventWriter
+from .losses import ImageLoss, cascade_loss
+from .schedule import learning_rate
+from .validation import validate
+
+logger = logging.getLogger("surfsplat.train")
+
+VIT_PREFIX = "encoder.vit."  # parameters of the pretrained monocular ViT (their own learning rate)
+
+
+@dataclass
+class TrainResult:
+    """What a run did (identical on every rank)."""
+
+    out_dir: Path
+    start_step: int  # 0, or the step the run resumed from
+    step: int  # optimizer steps completed
+    losses: list[tuple[int, float]] = field(default_factory=list)  # (step, loss averaged over ranks)
+    validation: dict[int, dict[str, float]] = field(default_factory=dict)  # step -> metrics
+    checkpoint: Path | None = None  # the last checkpoint written
+    seconds: float = 0.0  # wall time of the loop
+
+
+# ------------------------------------------------------------------------------------------ setup
+def build_model(config: TrainConfig) -> SurfSplat:
+    """The network of `config.model`, with its initial weights (random, ours, released or ViT)."""
+    m = config.model
+    if m.init_checkpoint is not None:
+        model = load_checkpoint(m.init_checkpoint)
+        if model.cfg.encoder != PRESETS[m.preset] or model.cfg.adapter != m.adapter:
+            raise SurfSplatInputError(
+                f"model.init_checkpoint: {m.init_checkpoint} holds a different configuration than "
+                f"preset {m.preset!r} with the configured adapter"
+            )
+        return model
+    model = SurfSplat(SurfSplatConfig(encoder=PRESETS[m.preset], adapter=m.adapter))
+    if m.release_weights is not None:
+        load_release_weights(model, m.release_weights)
+    if m.depth_anything is not None:
+        load_depth_anything_v2(model, m.depth_anything)
+    return model
+
+
+def build_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.AdamW:
+    """AdamW with two groups: the pretrained ViT (vit_lr) and everything else (lr), as the release."""
+    vit, rest = [], []
+    for name, param in model.named_parameters():
+        if param.requires_grad:
+            (vit if name.startswith(VIT_PREFIX) else rest).append(param)
+    o = config.optim
+    groups = [
+        {"params": vit, "lr": o.vit_lr, "peak_lr": o.vit_lr, "name": "vit"},
+        {"params": rest, "lr": o.lr, "peak_lr": o.lr, "name": "rest"},
+    ]
+    return torch.optim.AdamW(
+        [g for g in groups if g["params"]], lr=o.lr, betas=o.betas, eps=o.eps, weight_decay=o.weight_decay
+    )
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, step: int, config: TrainConfig) -> float:
+    """Every group at its peak times the schedule of `step`; returns the main group's rate."""
+    o = config.optim
+    for group in optimizer.param_groups:
+        group["lr"] = learning_rate(step, group["peak_lr"], config.steps, o.warmup_fraction, o.initial_div, o.final_div)
+    return optimizer.param_groups[-1]["lr"]
+
+
+def resolve_precision(config: TrainConfig, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype (None: full float32). Mixed precision needs a GPU."""
+    if config.precision == "fp32":
+        return None
+    if device.type != "cuda":
+        if config.precision == "auto":
+            return None
+        raise SurfSplatInputError(f"precision: {config.precision!r} mixed precision needs a CUDA device (use fp32 on CPU)")
+    if config.precision == "fp16":
+        return torch.float16
+    if config.precision == "bf16" or torch.cuda.is_bf16_supported():
+        return torch.bfloat16
+    return torch.float16
+
+
+def keep_adapter_in_float32(model: SurfSplat, device_type: str) -> list[Any]:
+    """Hooks that run the adapter (geometry: unprojection, Sobel tangents, Rodrigues) outside
+    autocast on float32 inputs: bf16 matmuls there would move surfels by ~0.4% of their depth."""
+    state: dict[str, bool] = {}
+
+    def before(module: nn.Module, args: tuple[Any, ...]) -> tuple[Any, ...]:
+        state["enabled"] = torch.is_autocast_enabled(device_type)
+        torch.set_autocast_enabled(device_type, False)
+        return tuple(a.float() if isinstance(a, Tensor) and a.is_floating_point() else a for a in args)
+
+    def after(module: nn.Module, args: tuple[Any, ...], output: Any) -> None:
+        torch.set_autocast_enabled(device_type, state.pop("enabled"))
+
+    return [model.adapter.register_forward_pre_hook(before), model.adapter.register_forward_hook(after)]
+
+
+def _image_grid(rows: list[Tensor]) -> Tensor:
+    """Rows of [N_i, 3, H, W] images -> one [3, rows*H, max(N_i)*W] picture (black padding)."""
+    width = max(r.shape[0] for r in rows)
+    _, c, h, w = rows[0].shape
+    grid = torch.zeros(c, len(rows) * h, width * w)
+    for i, row in enumerate(rows):
+        for j, image in enumerate(row):
+            grid[:, i * h : (i + 1) * h, j * w : (j + 1) * w] = image.detach().float().clamp(0, 1).cpu()
+    return grid
+
+
+class _Reporter:
+    """Rank 0's outputs: TensorBoard events, metrics.jsonl and the progress bar."""
+
+    def __init__(self, config: TrainConfig, ctx: DistributedContext, start_step: int) -> None:
+        self.active = ctx.is_main
+        self.out = Path(config.out_dir)
+        self.events: EventWriter | None = None
+        self.bar: tqdm | None = None
+        if not self.active:
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.json").write_text(json.dumps(config.to_dict(), indent=1))
+        self.events = EventWriter(self.out / "tensorboard")
+        self.jsonl = open(self.out / "metrics.jsonl", "a")
+        self.bar = tqdm(total=config.steps, initial=start_step, disable=not config.progress, unit="step", dynamic_ncols=True)
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        if not self.active:
+            return
+        assert self.events is not None
+        self.events.add_scalars(values, step)
+        self.jsonl.write(json.dumps({"step": step, **values}) + "\n")
+        self.jsonl.flush()
+        self.events.flush()
+
+    def image(self, step: int, tag: str, picture: Tensor) -> None:
+        if self.active and self.events is not None:
+            self.events.add_image(tag, picture, step)
+
+    def progress(self, **postfix: str) -> None:
+        """One step done; new postfix values (loss, rate) when given."""
+        if self.bar is not None:
+            if postfix:
+                self.bar.set_postfix(postfix, refresh=False)
+            self.bar.update(1)
+
+    def message(self, text: str) -> None:
+        if self.active:
+            (self.bar.write if self.bar is not None else print)(text)
+
+    def close(self) -> None:
+        if not self.active:
+            return
+        if self.bar is not None:
+            self.bar.close()
+        if self.events is not None:
+            self.events.close()
+        self.jsonl.close()
+
+
+def _resume_path(config: TrainConfig, resume: bool | str | Path) -> Path | None:
+    if resume is False:
+        return None
+    if resume is True or resume == "auto":
+        found = latest_checkpoint(config.out_dir)
+        if found is None and resume is True:
+            raise SurfSplatInputError(f"resume: no checkpoint in {Path(config.out_dir) / 'checkpoints'}")
+        return found
+    return Path(resume)
+
+
+def _changed_settings(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(saved) | set(current)):
+        a, b = saved.get(key), current.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _changed_settings(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: {a!r} -> {b!r}")
+    return out
+
+
+# ------------------------------------------------------------------------------------------ the loop
+def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResult:
+    """Train per `config`; `resume` = True (newest checkpoint of out_dir), "auto" (newest if any),
+    or a checkpoint folder. Works alone or under torchrun (one process per device)."""
+    config = config_from_dict(config.to_dict())  # validates every field
+    ctx = init_distributed(config.device)
+    try:
+        return _fit(config, ctx, _resume_path(config, resume))
+    finally:
+        shutdown(ctx)
+
+
+def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None) -> TrainResult:
+    device = ctx.device
+    if config.batch_size % ctx.world_size:
+        raise SurfSplatInputError(f"batch_size: {config.batch_size} does not split evenly over {ctx.world_size} ranks")
+
+    # Same initial weights on every rank (DDP also broadcasts rank 0's), then per-rank randomness.
+    torch.manual_seed(config.seed)
+    model = build_model(config).to(device)
+    model.train()
+    loss_fn = ImageLoss(config.loss).to(device)  # fails here, at start-up, without LPIPS weights
+    optimizer = build_optimizer(model, config)
+    amp_dtype = resolve_precision(config, device)
+    scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
+    if amp_dtype is not None:
+        keep_adapter_in_float32(model, device.type)
+    mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
+    cascade = num_intermediate_depths(model) > 0
+
+    start_step, data_state, extra = 0, None, {}
+    torch.manual_seed(mix_seed(config.seed, ctx.rank) & 0x7FFF_FFFF_FFFF_FFFF)
+    if resume_from is not None:
+        state = load_training_checkpoint(resume_from, model, map_location=device)
+        changes = _changed_settings(state.config, json.loads(json.dumps(config.to_dict())))
+        if changes and ctx.is_main:
+            logger.warning("resuming %s with changed settings: %s", resume_from, "; ".join(changes))
+        optimizer.load_state_dict(state.optimizer)
+        if scaler is not None and state.grad_scaler is not None:
+            scaler.load_state_dict(state.grad_scaler)
+        start_step = state.step
+        if len(state.rng) == ctx.world_size:
+            restore_rng(state.rng[ctx.rank])
+            data_state = state.data[ctx.rank]
+        elif ctx.is_main:
+            logger.warning(
+                "resuming %d ranks from a checkpoint of %d: random generators reseeded, streams restart their epoch; "
+                "the run continues but is not bit-identical to an uninterrupted one", ctx.world_size, len(state.rng),
+            )
+        extra = state.extra or {}
+    if start_step >= config.steps:
+        raise SurfSplatInputError(f"steps: the checkpoint is at step {start_step}, nothing left of {config.steps} steps")
+
+    net: nn.Module = model
+    if ctx.is_distributed:
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+
+    stream_state = data_state if data_state and data_state.get("kind") == "stream" else None
+    source = build_train_batches(
+        config.data, config.batch_size, ctx.rank, ctx.world_size, config.seed, start_step, stream_state
+    )
+    val_samples = build_validation_samples(config.data, ctx.rank, ctx.world_size, config.seed) if config.val_every else []
+    val_lpips: Lpips | LpipsUnavailable = (
+        loss_fn.lpips if loss_fn.lpips is not None else try_load_lpips(config.loss.lpips_vgg_path, config.loss.lpips_lin_path)
+    )
+    reporter = _Reporter(config, ctx, start_step)
+    if isinstance(val_lpips, LpipsUnavailable) and val_samples:
+        reporter.message(f"validation without LPIPS: {val_lpips}")
+
+    result = TrainResult(out_dir=Path(config.out_dir), start_step=start_step, step=start_step)
+    h, w = config.data.image_shape
+    pending: list[Tensor] = []  # per-step [total, mse, lpips] not yet reduced over ranks
+    started = time.perf_counter()
+    window_start, window_steps = started, 0
+    try:
+        for step in range(start_step, config.steps):
+            lr = set_learning_rate(optimizer, step, config)
+            batch: TrainBatch = augment(source.next(step), config.data.flip_probability, config.seed).to(device)
+            context, target = batch.context, batch.target
+
+            with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
+                prediction = net(context.images, context.cameras(), context.near, context.far, return_intermediates=cascade)
+            # Coarse cascade surfels first, the final ones last (the order cascade_loss weights).
+            scenes = [*intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far), prediction.gaussians]
+            renders = [
+                render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold).color
+                for g in scenes
+            ]
+            loss, terms = cascade_loss(loss_fn, renders, target.images)
+
+            if scaler is not None:
+                scaler.scale(loss).backward()
+                scaler.unscale_(optimizer)
+            else:
+                loss.backward()
+            grad_norm = nn.utils.clip_grad_norm_(model.parameters(), config.optim.grad_clip if config.optim.grad_clip > 0 else math.inf)
+            if scaler is not None:
+                scaler.step(optimizer)
+                scaler.update()
+            else:
+                optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+
+            final = terms[-1]
+            pending.append(torch.stack([
+                loss.detach().float(), final.mse.detach().float(),
+                (final.lpips.detach().float() if final.lpips is not None else torch.zeros((), device=device)),
+                grad_norm.detach().float(),
+            ]))
+            done = step + 1
+            window_steps += 1
+            is_last = done == config.steps
+
+            if done % config.log_every == 0 or is_last:
+                # One reduction for the whole window: per-step values, averaged over ranks.
+                reduced = all_reduce_mean(torch.stack(pending).cpu(), ctx)
+                first = done - len(pending)
+                result.losses += [(first + i, float(r[0])) for i, r in enumerate(reduced)]
+                now = time.perf_counter()
+                seconds_per_step = (now - window_start) / window_steps
+                last = reduced[-1]
+                values = {
+                    "loss/total": float(last[0]), "loss/mse": float(last[1]), "train/grad_norm": float(last[3]),
+                    "train/lr": lr, "train/samples_per_second": config.batch_size / seconds_per_step,
+                    "train/seconds_per_step": seconds_per_step,
+                }
+                if final.lpips is not None:
+                    values["loss/lpips"] = float(last[2])
+                reporter.scalars(done, values)
+                reporter.progress(
+                    loss=f"{float(last[0]):.4f}", lr=f"{lr:.2e}", rate=f"{config.batch_size / seconds_per_step:.2f} samples/s"
+                )
+                pending.clear()
+                window_start, window_steps = now, 0
+            else:
+                reporter.progress()
+
+            if config.image_every and (done % config.image_every == 0 or is_last) and ctx.is_main:
+                picture = _image_grid([context.images[0], target.images[0], renders[-1][0]])
+                reporter.image(done, "train/context_target_render", picture)
+
+            if config.val_every and (done % config.val_every == 0 or is_last):
+                metrics = validate(net.module if isinstance(net, DistributedDataParallel) else net, val_samples, ctx,
+                                   mode=mode, lpips=val_lpips, factors=config.val_factors)
+                result.validation[done] = metrics
+                reporter.scalars(done, {f"val/{k}": v for k, v in metrics.items()})
+                shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("x"))
+                reporter.message(f"step {done}: validation {shown}")
+
+            if done % config.checkpoint_every == 0 or is_last:
+                rng = all_gather_objects(capture_rng(), ctx)
+                positions = all_gather_objects(source.state(), ctx)
+                if ctx.is_main:
+                    extra["validation"] = {str(k): v for k, v in result.validation.items()}
+                    state = TrainingState(
+                        step=done,
+                        config=config.to_dict(),
+                        optimizer=optimizer.state_dict(),
+                        rng=rng,
+                        data=positions,
+                        grad_scaler=scaler.state_dict() if scaler is not None else None,
+                        extra=extra,
+                    )
+                    result.checkpoint = save_training_checkpoint(config.out_dir, model, state, keep=config.keep_checkpoints)
+                barrier(ctx)
+            result.step = done
+    finally:
+        reporter.close()
+    result.seconds = time.perf_counter() - started
+    return result
+
+
+def read_checkpoint_config(path: str | Path) -> TrainConfig:
+    """The TrainConfig stored in a checkpoint folder (e.g. to resume without repeating options)."""
+    document_path = Path(path) / "train_state.json"
+    if not document_path.is_file():
+        raise FileNotFoundError(f"{document_path}: not a training checkpoint folder")
+    try:
+        document = json.loads(document_path.read_text())
+    except ValueError as err:
+        raise SurfSplatInputError(f"{document_path}: not valid JSON ({err})") from None
+    return config_from_dict(document.get("config"))
+
+
+def replace_config(config: TrainConfig, **changes: Any) -> TrainConfig:
+    """dataclasses.replace with validation (for callers composing configs programmatically)."""
+    return config_from_dict(dataclasses.replace(config, **changes).to_dict())

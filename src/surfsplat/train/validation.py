@@ -1,0 +1,92 @@
+"""Validation during training: PSNR, SSIM, LPIPS at the input resolution and HRRC at x2 / x4.
+
+Each rank scores its own share of the held-out scenes in evaluation mode (tau_alpha 0.001), with
+`surfsplat.metrics.HrrcEvaluator`: renders at s times the resolution (K scaled by s) against the
+ground truth upsampled bicubically (paper Sec. 3.6). Per-image sums and counts are then reduced
+over ranks, so every rank returns the same means, equal to a single process scoring all scenes.
+Where the held-out views carry true depth (synthetic rooms), the predicted context depth is scored
+too (abs rel, delta < 1.25).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from ..metrics.depth import depth_metrics
+from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator
+from ..metrics.lpips import Lpips, LpipsUnavailable
+from ..model.decoder import render_views
+from ..render.types import RenderMode
+from .data import TrainBatch
+from .distributed import DistributedContext, all_reduce_sum
+
+_DEPTH_METRICS = ("abs_rel", "delta1")
+
+
+@torch.no_grad()
+def validate(
+    model: nn.Module,
+    samples: Sequence[TrainBatch],
+    ctx: DistributedContext,
+    *,
+    mode: RenderMode,
+    lpips: Lpips | LpipsUnavailable,
+    factors: tuple[int, ...] = (1, 2, 4),
+) -> dict[str, float]:
+    """Means over every rank's held-out scenes: "x{s}/{metric}" for each factor, "depth/..." where
+    true depth exists, and "num_images". LPIPS is absent when its weights are (see `lpips`)."""
+    was_training = model.training
+    model.eval()
+    evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=factors))
+    depth_sums = torch.zeros(len(_DEPTH_METRICS), dtype=torch.float64)
+    depth_count = 0
+    for i, batch in enumerate(samples):
+        batch = batch.to(ctx.device)
+        context, target = batch.context, batch.target
+        prediction = model(context.images, context.cameras(), context.near, context.far)
+        _, _, h, w = target.shape
+        renders = {}
+        for s in factors:
+            views = render_views(
+                prediction.gaussians.to(torch.float32),
+                target.cameras().scaled(float(s)),
+                w * s,
+                h * s,
+                mode=mode,
+                alpha_threshold=prediction.alpha_threshold,
+            )
+            renders[s] = views.color[0]
+        evaluator.add_scene(f"{ctx.rank}:{i}:{batch.scenes[0]}", target.images[0], renders)
+        if context.depths is not None:
+            errors = depth_metrics(prediction.depths[0].float(), context.depths[0, :, 0].float())
+            keep = errors.num_valid > 0
+            depth_sums += torch.stack([getattr(errors, m)[keep].double().sum().cpu() for m in _DEPTH_METRICS])
+            depth_count += int(keep.sum())
+    model.train(was_training)
+
+    # Sums and counts per (factor, metric), reduced over ranks; a rank without scenes adds zeros.
+    names = [(s, m) for s in factors for m in METRICS]
+    sums = torch.zeros(len(names) + len(_DEPTH_METRICS) + 2, dtype=torch.float64)
+    if samples:
+        report = evaluator.report()
+        for k, (s, m) in enumerate(names):
+            value = report.mean[s][m]
+            sums[k] = 0.0 if value is None else value * report.num_images
+        sums[-2] = report.num_images
+    sums[len(names) : len(names) + len(_DEPTH_METRICS)] = depth_sums
+    sums[-1] = depth_count
+    total = all_reduce_sum(sums, ctx)
+    num_images, num_depth = float(total[-2]), float(total[-1])
+    out: dict[str, float] = {"num_images": num_images}
+    if num_images > 0:
+        for k, (s, m) in enumerate(names):
+            if m == "lpips" and isinstance(lpips, LpipsUnavailable):
+                continue
+            out[f"x{s}/{m}"] = float(total[k]) / num_images
+    if num_depth > 0:
+        for k, m in enumerate(_DEPTH_METRICS):
+            out[f"depth/{m}"] = float(total[len(names) + k]) / num_depth
+    return out
