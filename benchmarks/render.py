@@ -1,0 +1,161 @@
+"""Renderer benchmark: 131,072 surfels (two 256x256 views of a textured scene) rendered to a nearby view.
+
+For each backend, mode and resolution it measures the forward time, the forward+backward time
+(median of repeats after a warm-up) and the peak resident memory of a fresh process, and counts
+the contributing (Gaussian, pixel) pairs (alpha >= 1/255). Writes JSON and prints a table.
+
+    python benchmarks/render.py                       # torch backend, surfel + ewa, 256/512/1024
+    python benchmarks/render.py --backends torch --modes surfel --resolutions 256
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _scene():
+    from surfsplat.scenes import make_scene
+
+    return make_scene(resolution=256, views=2, opacity=0.5)
+
+
+def contributing_pairs(gaussians, cameras, width: int, height: int, mode: str) -> int:
+    """(Gaussian, pixel) pairs with alpha >= 1/255, counted with the torch backend's own pipeline."""
+    from surfsplat.render import torch_backend as tb
+
+    settings = tb.TorchRenderSettings()
+    g = gaussians
+    w2c, K, center = cameras.w2c[0], cameras.K[0], cameras.centers[0]
+    with torch.no_grad():
+        if mode == "surfel":
+            proj = tb.project_surfels(g.means, g.rotations, g.scales, g.opacities, g.sh, w2c, K, center, width, height, settings)
+        else:
+            proj = tb.project_ewa(g.means, g.covariances, g.rotations[:, :, 2], g.opacities, g.sh, w2c, K, center, width, height, settings)
+        bins = tb.bin_tiles(proj.pixel_box, width, height, settings.tile_size)
+        tile = settings.tile_size
+        basis = tb._tile_basis(mode, tile, g.means.dtype, g.means.device)
+        total = 0
+        tiles = bins.count.nonzero().squeeze(1)
+        for chunk in tiles.split(256):
+            k = int(bins.count[chunk].max())
+            slot = torch.arange(k)
+            valid = slot[None] < bins.count[chunk][:, None]
+            pair = (bins.start[chunk][:, None] + slot[None]).clamp_max(bins.gaussian.shape[0] - 1)
+            gi = torch.where(valid, bins.gaussian[pair], 0)
+            origin = torch.stack((chunk % bins.tiles_x * tile, chunk // bins.tiles_x * tile), -1).double()
+            offset = (origin[:, None] - proj.center[gi]).float()
+            log_o = torch.where(valid, torch.log(proj.opacity[gi]), -torch.inf)
+            coef, depth_params = tb._pair_coefficients(mode, proj.geometry.float()[gi], offset)
+            st = tb._block_state(coef, depth_params, log_o, torch.ones(chunk.shape[0], tile * tile), basis)
+            # Only pixels inside the image count.
+            px = (origin[:, None, 0] + basis[1][None]).long()
+            py = (origin[:, None, 1] + basis[2][None]).long()
+            inside = (px < width) & (py < height)
+            total += int(((st["alpha"] > 0) & inside[:, None, :]).sum())
+    return total
+
+
+def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads: int) -> dict:
+    torch.set_num_threads(threads)
+    from surfsplat import Gaussians
+    from surfsplat.render import render
+
+    scene = _scene()
+    g = scene.gaussians
+    cam = scene.target.scaled(res / 256)
+    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    def run_once() -> float:
+        if passes == "forward":
+            t = time.perf_counter()
+            with torch.no_grad():
+                render(g, cam, res, res, mode=mode, backend=backend)
+            return time.perf_counter() - t
+        params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")}
+        t = time.perf_counter()
+        out = render(Gaussians(**params), cam, res, res, mode=mode, backend=backend)
+        (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+        return time.perf_counter() - t
+
+    warm = run_once()
+    times = [run_once() for _ in range(repeats)]
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {
+        "backend": backend, "mode": mode, "resolution": res, "passes": passes,
+        "seconds": statistics.median(times), "seconds_all": times, "warmup_seconds": warm,
+        "peak_rss_mb": peak_rss, "scene_rss_mb": base_rss, "threads": threads,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--backends", nargs="+", default=["torch"])
+    parser.add_argument("--modes", nargs="+", default=["surfel", "ewa"])
+    parser.add_argument("--resolutions", nargs="+", type=int, default=[256, 512, 1024])
+    parser.add_argument("--passes", nargs="+", default=["forward", "forward_backward"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=RESULTS / "render.json")
+    parser.add_argument("--worker", nargs=4, metavar=("BACKEND", "MODE", "RES", "PASSES"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.worker:
+        backend, mode, res, passes = args.worker
+        print(json.dumps(worker(backend, mode, int(res), passes, args.repeats, args.threads)))
+        return
+
+    torch.set_num_threads(args.threads)
+    scene = _scene()
+    rows = []
+    for mode in args.modes:
+        for res in args.resolutions:
+            pairs = contributing_pairs(scene.gaussians, scene.target.scaled(res / 256), res, res, mode)
+            for backend in args.backends:
+                for passes in args.passes:
+                    # A fresh process per measurement, so peak memory belongs to this configuration.
+                    cmd = [sys.executable, __file__, "--worker", backend, mode, str(res), passes,
+                           "--repeats", str(args.repeats), "--threads", str(args.threads)]
+                    proc = subprocess.run(cmd, capture_output=True, text=True)
+                    if proc.returncode != 0:
+                        row = {"backend": backend, "mode": mode, "resolution": res, "passes": passes,
+                               "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+                    else:
+                        row = json.loads(proc.stdout.strip().splitlines()[-1])
+                        row["pairs_per_second"] = pairs / row["seconds"]
+                    row["contributing_pairs"] = pairs
+                    rows.append(row)
+                    print(_format_row(row), flush=True)
+
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "scene": "surfsplat.scenes.make_scene(256, views=2, opacity=0.5): 131,072 surfels, target view scaled",
+        "machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(), "torch": torch.__version__,
+                    "processor": platform.processor()},
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+    args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
+    print(f"\nwrote {args.out}")
+
+
+def _format_row(r: dict) -> str:
+    head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16}"
+    if "error" in r:
+        return f"{head}  ERROR {r['error']}"
+    return (f"{head}  {r['seconds']:8.3f} s  peak {r['peak_rss_mb']:7.0f} MB  "
+            f"pairs {r['contributing_pairs'] / 1e6:6.2f} M  {r['pairs_per_second'] / 1e6:6.2f} M pairs/s")
+
+
+if __name__ == "__main__":
+    main()
