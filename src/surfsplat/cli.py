@@ -15,6 +15,7 @@ from .checks import SurfSplatInputError
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "render-scene": ("surfsplat.commands.render_scene", "render the built-in procedural surfel scene to images"),
+    "convert": ("surfsplat.commands.convert", "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks"),
 }
 
 
