@@ -25,6 +25,16 @@ from surfsplat.data.synthetic import (
 from surfsplat.data.synthetic.scene import SyntheticConfig
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Many small elementwise ops: on a loaded 2-core machine two intra-op threads spend more time
+    in barriers than computing (measured 15x slower), so these tests run single-threaded."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 def _texture(pattern: str = "checker", frequency: float = 1.0, detail: float = 0.0) -> Texture:
     colors = torch.tensor([[0.9, 0.1, 0.1], [0.1, 0.1, 0.9], [0.5, 0.5, 0.5]])
     return Texture(pattern=pattern, colors=colors, frequency=frequency, detail=detail, seed=3)
@@ -218,19 +228,20 @@ def test_same_seed_same_pixels_and_different_seed_different_pixels() -> None:
 
 # --------------------------------------------------------------- native high-resolution truth
 @pytest.fixture(scope="module")
-def hr_setup() -> tuple[SyntheticScene, Cameras]:
+def hr_setup() -> tuple[SyntheticScene, Cameras, torch.Tensor, torch.Tensor]:
+    """A room view rendered natively at x4 (192x160) and at x1 (48x40) with 4x4 supersampling."""
     scene = make_scene(21)
     cams = make_trajectory(scene, torch.Generator().manual_seed(3)).cameras(torch.tensor([0.3]), 48, 40)
-    return scene, cams
+    hr = render_synthetic(scene, cams.scaled(4), 192, 160)
+    lo = render_synthetic(scene, cams, 48, 40, supersample=4)
+    return scene, cams, hr, lo
 
 
-def test_x4_pixels_are_rays_through_the_x1_image_plane(hr_setup: tuple[SyntheticScene, Cameras]) -> None:
-    scene, cams = hr_setup
+def test_x4_pixels_are_rays_through_the_x1_image_plane(hr_setup) -> None:
+    scene, cams, hr, _ = hr_setup
     s = 4
-    hr = render_synthetic(scene, cams.scaled(s), 48 * s, 40 * s)
     # x4 pixel (4i + b, 4j + a) is the x1 ray through (j + (a + 0.5)/4, i + (b + 0.5)/4).
-    ab = torch.tensor([[1, 2], [3, 0]])
-    for a, b in ab.tolist():
+    for a, b in ((1, 2), (3, 0)):
         offs = torch.tensor([[(a + 0.5) / s, (b + 0.5) / s]])
         o, d = pixel_rays(cams, 48, 40, offs, torch.float32)
         rgb, depth, _, _ = render_rays(scene, o.reshape(-1, 3), d.reshape(-1, 3))
@@ -242,28 +253,24 @@ def test_x4_pixels_are_rays_through_the_x1_image_plane(hr_setup: tuple[Synthetic
         assert float(differs.double().mean()) < 0.002
 
 
-def test_supersampled_x1_equals_pooled_x4(hr_setup: tuple[SyntheticScene, Cameras]) -> None:
-    scene, cams = hr_setup
-    hr = render_synthetic(scene, cams.scaled(4), 192, 160)
-    lo = render_synthetic(scene, cams, 48, 40, supersample=4)
+def test_supersampled_x1_equals_pooled_x4(hr_setup) -> None:
+    _, _, hr, lo = hr_setup
     pooled = F.avg_pool2d(hr.image, 4)
     diff = (pooled - lo.image).abs()
     assert float(diff.mean()) < 1e-4
     assert float((diff > 1e-3).double().mean()) < 0.01
 
 
-def test_x4_holds_detail_a_x1_image_cannot(hr_setup: tuple[SyntheticScene, Cameras]) -> None:
-    scene, cams = hr_setup
-    hr = render_synthetic(scene, cams.scaled(4), 192, 160).image
-    lo = render_synthetic(scene, cams, 48, 40, supersample=4).image
-    up = F.interpolate(lo, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
-    mse = float(((hr - up) ** 2).mean())
+def test_x4_holds_detail_a_x1_image_cannot(hr_setup) -> None:
+    _, _, hr, lo = hr_setup
+    up = F.interpolate(lo.image, scale_factor=4, mode="bicubic", align_corners=False).clamp(0, 1)
+    mse = float(((hr.image - up) ** 2).mean())
     psnr = -10 * math.log10(mse)
     # A bicubic upsampling of the x1 image misses the x4 truth's fine texture: well below the
     # ~40+ dB an upsampling of itself would score.
     assert psnr < 32.0
     # Energy above the x1 Nyquist frequency: what remains after removing the 4x4 block means.
-    residual = hr - F.interpolate(F.avg_pool2d(hr, 4), scale_factor=4, mode="nearest")
+    residual = hr.image - F.interpolate(F.avg_pool2d(hr.image, 4), scale_factor=4, mode="nearest")
     assert float(residual.pow(2).mean().sqrt()) > 0.02
 
 
