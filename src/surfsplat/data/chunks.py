@@ -217,6 +217,7 @@ class ChunkWriter:
 
     def __init__(self, out_dir: str | Path, target_bytes: int = int(1e8), append: bool = False) -> None:
         self.out_dir = Path(out_dir)
+        self.created_dir = not self.out_dir.exists()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         existing = list_chunks(self.out_dir)
         if existing and not append:
@@ -259,10 +260,13 @@ class ChunkWriter:
         return dict(self.index)
 
     def abort(self) -> None:
-        """Delete the chunks this writer created; index.json is left as it was."""
+        """Delete the chunks this writer created (and its folder, if it made it and it is now
+        empty); an existing index.json is left as it was."""
         for path in self.created:
             path.unlink(missing_ok=True)
         self.created = []
+        if self.created_dir and not any(self.out_dir.iterdir()):
+            self.out_dir.rmdir()
         self.pending = []
         self.pending_bytes = 0
 

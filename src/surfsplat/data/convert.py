@@ -66,9 +66,9 @@ def _scene_dirs(src: Path, is_scene: Callable[[Path], bool], what: str) -> list[
 
 
 # ------------------------------------------------------------------------- single-scene formats
-def _scene_examples(fmt: str, src: Path, images: str | None, image_format: str, quality: int,
+def _scene_examples(fmt: str, dirs: list[Path], images: str | None, image_format: str, quality: int,
                     report: ConvertReport, skip_bad: bool) -> Iterator[Example]:
-    for scene_dir in _scene_dirs(src, DETECTORS[fmt], fmt):
+    for scene_dir in dirs:
         try:
             scene = load_scene(scene_dir, format=fmt, images=images)
         except (SurfSplatInputError, FileNotFoundError) as err:
@@ -190,7 +190,8 @@ def convert(
     src = Path(src)
     report = ConvertReport()
     if fmt in ("dtu", "llff", "blender", "colmap"):
-        examples: Iterator[Example] = _scene_examples(fmt, src, images, image_format, quality, report, skip_bad)
+        dirs = _scene_dirs(src, DETECTORS[fmt], fmt)
+        examples: Iterator[Example] = _scene_examples(fmt, dirs, images, image_format, quality, report, skip_bad)
     elif fmt == "dl3dv":
         examples = _raw_examples(_scene_dirs(src, _is_dl3dv, "DL3DV"), lambda d: (dl3dv_example(d, images or "images_8"), 0), report, skip_bad)
     else:
