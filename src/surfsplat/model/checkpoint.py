@@ -205,7 +205,8 @@ def load_release_weights(
         raise SurfSplatInputError(
             f"{name}: {len(unmapped)} keys are not release encoder names: {_listing(unmapped)}"
         )
-    loaded = _load_exact(encoder, mapped, name, f"{_describe(encoder)} encoder (release layout)")
+    size = sum(p.numel() for p in encoder.parameters())
+    loaded = _load_exact(encoder, mapped, name, f"{size:,}-parameter encoder (release layout)")
     return LoadReport(loaded=loaded, ignored=ignored)
 
 
@@ -244,11 +245,6 @@ def load_depth_anything_v2(model: nn.Module, source: str | Path | Mapping[str, T
         raise SurfSplatInputError(f"{name}: not a Depth Anything V2 file; unexpected keys: {_listing(stray)}")
     loaded = _load_exact(encoder.vit, vit, name, f"ViT ({encoder.cfg.vit.embed_dim}-wide, {encoder.cfg.vit.depth} blocks)")
     return LoadReport(loaded=loaded, ignored=ignored)
-
-
-def _describe(encoder: SurfSplatEncoder) -> str:
-    n = sum(p.numel() for p in encoder.parameters())
-    return f"{n:,}-parameter"
 
 
 # ----------------------------------------------------------------------------- our own format

@@ -7,7 +7,7 @@
 The encoder (`surfsplat.model.encoder`) predicts depth and raw per-pixel parameters; the adapter
 (`surfsplat.model.adapter`) applies the surface continuity prior and the opacity bound. Presets are
 data: `small`, `base` and `large` are the release's configurations (their state dicts load from
-released checkpoints), `tiny` is a few-thousand-parameter model for fast CPU tests.
+released checkpoints), `tiny` is a 1M-parameter model for fast CPU tests.
 """
 
 from __future__ import annotations
@@ -126,13 +126,6 @@ class SurfSplat(nn.Module):
             raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cameras).__name__}")
         if len(cameras) != b * v:
             raise SurfSplatInputError(f"cameras: expected {b * v} cameras (B*V = {b}*{v}), got {len(cameras)}")
-        m = self.cfg.encoder.size_multiple
-        if height % m or width % m:
-            raise SurfSplatInputError(
-                f"images: height and width must be multiples of {m}, got {height}x{width} (crop or resize first)"
-            )
-        if v < 2:
-            raise SurfSplatInputError(f"images: the model matches views, expected at least 2 views, got {v}")
         near_t = _depth_bound("near", near, b, v, images)
         far_t = _depth_bound("far", far, b, v, images)
         if bool((near_t >= far_t).any()):

@@ -13,6 +13,7 @@ The module computes exactly the release's function, so released weights load thr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -20,6 +21,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
+from ...checks import SurfSplatInputError
 from .cnn import CNNEncoder
 from .cost_volume import linear_inverse_depth_candidates, local_inverse_depth_candidates, plane_sweep_cost_volume
 from .dpt import DPTHead, DPTLayout, FeaturePyramid
@@ -63,8 +65,12 @@ class EncoderConfig:
 
     @property
     def size_multiple(self) -> int:
-        """Input height and width must be multiples of this (CNN, windows, U-Net levels, DPT)."""
-        return 16
+        """Input height and width must be multiples of this: the DPT heads resize ViT features to
+        1/8 and upsample them 4x onto the 1/2 CNN features; the transformer splits the 1/4 map into
+        attn_splits windows; every U-Net level halves its scale's map (16 for all presets)."""
+        unet_levels = len(self.unet_channel_mult) - 1
+        unet = [MATCHING_STRIDE // 2**i * 2 ** (unet_levels + i) for i in range(self.num_scales)]
+        return math.lcm(8, MATCHING_STRIDE * self.attn_splits, *unet)
 
 
 @dataclass
@@ -156,9 +162,9 @@ class SurfSplatEncoder(nn.Module):
         b, v, _, height, width = images.shape
         m = cfg.size_multiple
         if height % m or width % m:
-            raise ValueError(f"image size {height}x{width} must be a multiple of {m} in both directions")
+            raise SurfSplatInputError(f"images: height and width must be multiples of {m}, got {height}x{width}")
         if v < 2:
-            raise ValueError(f"the encoder matches views against each other: got {v} view, need at least 2")
+            raise SurfSplatInputError(f"images: the encoder matches views, expected at least 2 views, got {v}")
         inter: dict[str, Tensor] | None = {} if return_intermediates else None
         flat = ((images - self.image_mean) / self.image_std).flatten(0, 1)  # [(B V), 3, H, W]
         inv_min = (1.0 / far).reshape(-1)  # the far plane is the smallest inverse depth

@@ -2,8 +2,8 @@
 
 Parameter names follow DINOv2 (`patch_embed.proj`, `blocks.{i}.attn.qkv`, `ls1.gamma`, ...) so that
 Depth Anything V2 weights (`pretrained.*`) and the release's `depth_predictor.pretrained.*` map onto
-this module by a prefix. Only what the encoder uses is built: no mask token, no classification head,
-and blocks after the last tapped layer are not run.
+this module by a prefix. Only what the encoder uses is built (no mask token, no classification head), and
+blocks after the last tapped one are not run.
 """
 
 from __future__ import annotations
@@ -107,8 +107,7 @@ class VisionTransformer(nn.Module):
         self.cls_token = nn.Parameter(torch.zeros(1, 1, dim))
         self.pos_embed = nn.Parameter(torch.zeros(1, cfg.pos_grid**2 + 1, dim))
         self.patch_embed = PatchEmbed(cfg.patch_size, dim)
-        # Blocks after the last tap are never run, so they are not built (ViT-S/B/L tap the last block).
-        self.blocks = nn.ModuleList(Block(cfg) for _ in range(max(cfg.taps) + 1))
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.depth))
         self.norm = nn.LayerNorm(dim, eps=1e-6)
         nn.init.trunc_normal_(self.pos_embed, std=0.02)
         nn.init.normal_(self.cls_token, std=1e-6)
@@ -142,8 +141,8 @@ class VisionTransformer(nn.Module):
         tokens = tokens + self._position_embedding(height // p, width // p)
         taps = set(self.cfg.taps)
         outputs = []
-        for i, block in enumerate(self.blocks):
-            tokens = block(tokens)
+        for i in range(max(taps) + 1):  # blocks after the last tap would not change any output
+            tokens = self.blocks[i](tokens)
             if i in taps:
                 outputs.append(self.norm(tokens)[:, 1:])  # drop the class token
         return outputs

@@ -1,0 +1,142 @@
+"""Encoder benchmark: forward time and peak memory per preset.
+
+    python benchmarks/encoder.py                      # tiny, small, base, large at 2 x 256 x 256 on CPU
+    python benchmarks/encoder.py --device cuda        # on a GPU
+    python benchmarks/encoder.py --presets small --views 4 --size 512
+
+Each preset runs in a fresh subprocess so that its peak resident memory (CPU) or peak allocated
+memory (CUDA) is its own. The timed call is one full `SurfSplat` forward (encoder + official
+adapter, as the release's encoder call) under `no_grad` in eval mode, after one warm-up call; the
+encoder alone is timed as well. Results go to benchmarks/results/encoder_<device>.json and a table
+is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def run_one(preset: str, views: int, size: int, device: str, repeats: int, threads: int) -> dict:
+    import torch
+
+    from surfsplat import Cameras
+    from surfsplat.model import SurfSplat
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = SurfSplat.from_preset(preset, adapter="official").eval().to(device)
+    images = torch.rand(1, views, 3, size, size, device=device)
+    K = torch.tensor([[0.9 * size, 0, size / 2], [0, 0.9 * size, size / 2], [0, 0, 1.0]]).repeat(views, 1, 1)
+    c2w = torch.eye(4).repeat(views, 1, 1)
+    c2w[:, 0, 3] = 0.15 * torch.arange(views)
+    cameras = Cameras(c2w, K).to(device)
+    K_b, c2w_b = cameras.K.view(1, views, 3, 3), cameras.c2w.view(1, views, 4, 4)
+    near = torch.full((1, views), 0.5, device=device)
+    far = torch.full((1, views), 100.0, device=device)
+
+    def sync() -> None:
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    full, encoder_only = [], []
+    with torch.no_grad():
+        model(images, cameras, near, far)  # warm-up: allocator, kernel selection
+        sync()
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        for _ in range(repeats):
+            t = time.perf_counter()
+            model(images, cameras, near, far)
+            sync()
+            full.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            model.encoder(images, K_b, c2w_b, near, far)
+            sync()
+            encoder_only.append(time.perf_counter() - t)
+    if device.startswith("cuda"):
+        peak_mb = torch.cuda.max_memory_allocated() / 2**20
+        peak_kind = "cuda_max_allocated"
+    else:
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+        peak_kind = "process_peak_rss"
+    return {
+        "preset": preset,
+        "device": device,
+        "views": views,
+        "size": size,
+        "threads": threads,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "forward_s": full,
+        "forward_median_s": statistics.median(full),
+        "encoder_forward_s": encoder_only,
+        "encoder_median_s": statistics.median(encoder_only),
+        "peak_mb": peak_mb,
+        "peak_kind": peak_kind,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=["tiny", "small", "base", "large"])
+    parser.add_argument("--views", type=int, default=2)
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--single", help=argparse.SUPPRESS)  # internal: run one preset, print JSON
+    args = parser.parse_args()
+
+    if args.single:
+        print(json.dumps(run_one(args.single, args.views, args.size, args.device, args.repeats, args.threads)))
+        return 0
+
+    rows = []
+    for preset in args.presets:
+        cmd = [sys.executable, __file__, "--single", preset, "--views", str(args.views), "--size", str(args.size)]
+        cmd += ["--device", args.device, "--repeats", str(args.repeats), "--threads", str(args.threads)]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            print(f"{preset}: failed\n{done.stderr.strip()}", file=sys.stderr)
+            return 1
+        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+
+    import torch
+
+    report = {
+        "benchmark": "encoder forward",
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "load_average": os.getloadavg(),
+            "torch": torch.__version__,
+            "cuda_device": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
+        },
+        "results": rows,
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    out = RESULTS / f"encoder_{args.device.split(':')[0]}.json"
+    out.write_text(json.dumps(report, indent=2))
+
+    print(f"{'preset':<7} {'params':>12} {'views':>5} {'size':>5} {'forward s (median)':>19} "
+          f"{'encoder s':>10} {'peak MB':>9}")
+    for r in rows:
+        print(f"{r['preset']:<7} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} "
+              f"{r['forward_median_s']:>19.3f} {r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f}")
+    print(f"({rows[0]['peak_kind']}; load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
