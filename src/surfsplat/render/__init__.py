@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import torch
@@ -10,10 +11,15 @@ from torch import Tensor
 from ..checks import SurfSplatInputError, check_tensor
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from .cpu import CpuRenderSettings
+from .cpu import backend_unavailable as cpu_backend_unavailable
 from .torch_backend import TorchRenderSettings, render_torch
 from .types import Backend, RenderMode, RenderOutput
 
-__all__ = ["render", "RenderOutput", "TorchRenderSettings", "normalize_by_alpha", "gsplat_available"]
+__all__ = [
+    "render", "RenderOutput", "TorchRenderSettings", "CpuRenderSettings", "normalize_by_alpha", "gsplat_available",
+    "resolve_backend",
+]
 
 DEFAULT_ALPHA_THRESHOLD = 0.001  # SurfSplat's evaluation tau_alpha (paper Sec. 3.4); training uses 0.1
 
@@ -39,7 +45,7 @@ def render(
     backend: Backend = "auto",
     background: Tensor | Sequence[float] | None = None,
     alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD,
-    settings: TorchRenderSettings | None = None,
+    settings: TorchRenderSettings | CpuRenderSettings | None = None,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -50,14 +56,17 @@ def render(
     alpha_threshold: forced alpha blending (paper Sec. 3.4): colour, depth and normal are divided by
                      alpha wherever alpha >= threshold, and such pixels count as opaque for the
                      background. None disables it (plain 2DGS/3DGS compositing, the "w/o FAB" ablation).
+    backend:         "torch" (reference, any device), "cpu" (compiled numba kernels), "gsplat" (CUDA) or
+                     "auto": see `resolve_backend`.
+    settings:        TorchRenderSettings or CpuRenderSettings of the chosen backend; with "auto" the
+                     settings' type picks that backend.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
     """
     _validate(gaussians, cameras, width, height, mode, alpha_threshold)
     device = gaussians.means.device
     dtype = gaussians.means.dtype
     bg = _background(background, dtype, device)
-    if backend == "auto":
-        backend = "gsplat" if gsplat_available(device) else "torch"
+    backend = resolve_backend(backend, device, settings, cameras)
     if backend == "gsplat":
         if not gsplat_available(device):
             raise SurfSplatInputError(
@@ -67,13 +76,55 @@ def render(
         from .gsplat_backend import render_gsplat
 
         color, alpha, depth, normal = render_gsplat(gaussians, cameras, width, height, mode)
-    elif backend == "torch":
-        color, alpha, depth, normal = _render_torch_all(gaussians, cameras, width, height, mode, settings)
+    elif backend == "cpu":
+        from .cpu import render_cpu
+
+        color, alpha, depth, normal = render_cpu(gaussians, cameras, width, height, mode, settings)
     else:
-        raise SurfSplatInputError(f"backend: expected 'auto', 'torch' or 'gsplat', got {backend!r}")
+        color, alpha, depth, normal = _render_torch_all(gaussians, cameras, width, height, mode, settings)
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
     color = color + (1 - coverage) * bg[None, :, None, None]
     return RenderOutput(color=color, alpha=alpha, depth=depth, normal=normal)
+
+
+def resolve_backend(
+    backend: str, device: torch.device, settings: TorchRenderSettings | CpuRenderSettings | None, cameras: Cameras
+) -> str:
+    """The concrete backend for a request. "auto" picks, first match wins:
+
+    gsplat on CUDA when installed; torch for TorchRenderSettings, for tensors off the CPU, or when
+    the cameras require gradients (only torch differentiates them); cpu for CpuRenderSettings;
+    otherwise the compiled cpu backend, or torch with a one-line warning if that cannot load.
+    """
+    if backend not in ("auto", "torch", "cpu", "gsplat"):
+        raise SurfSplatInputError(f"backend: expected 'auto', 'torch', 'cpu' or 'gsplat', got {backend!r}")
+    if backend == "auto":
+        if gsplat_available(device):
+            return "gsplat"
+        if isinstance(settings, TorchRenderSettings) or device.type != "cpu":
+            backend = "torch"
+        elif cameras.c2w.requires_grad or cameras.K.requires_grad:
+            backend = "torch"
+        elif isinstance(settings, CpuRenderSettings):
+            backend = "cpu"
+        else:
+            reason = cpu_backend_unavailable()
+            if reason is None:
+                return "cpu"
+            warnings.warn(
+                f"surfsplat.render: compiled CPU backend unavailable, using the torch backend: {reason}", stacklevel=3
+            )
+            backend = "torch"
+    if backend == "cpu":
+        reason = cpu_backend_unavailable()
+        if reason is not None:
+            raise SurfSplatInputError(f"backend: 'cpu' cannot load: {reason}")
+    wanted = CpuRenderSettings if backend == "cpu" else TorchRenderSettings
+    if settings is not None and backend != "gsplat" and not isinstance(settings, wanted):
+        raise SurfSplatInputError(
+            f"settings: backend {backend!r} takes {wanted.__name__}, got {type(settings).__name__}"
+        )
+    return backend
 
 
 def normalize_by_alpha(

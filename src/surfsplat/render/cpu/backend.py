@@ -1,112 +1,113 @@
-"""Torch-facing side of the compiled CPU renderer: per-camera planning and the autograd function.
+"""Torch-facing side of the compiled CPU renderer: one autograd function per camera.
 
-Per camera:
-1. torch (autograd): camera-frame means mu = R_cw x + t in float64, computed with the very
-   expression of the torch backend, so culling and the depth order agree with it bit for bit;
-2. kernels (no autograd): projection, culling, stable depth sort, tile lists;
-3. torch (autograd): colour from SH and the camera-facing normal of the survivors only, again with
-   the torch backend's own helpers (the sign of an edge-on normal is decided identically);
-4. `_Rasterize` (autograd.Function): compositing forward; backward = compositing backward, then the
-   chain rule through the projection, both in the kernels.
+Only the quaternion-to-matrix map runs in torch (`Gaussians.rotations`, so the normal every
+backend orients is the same float rounding for float rounding); everything after it - camera
+transform, SH colour, normal orientation, projection, culling, sorting, binning, compositing and
+all their gradients - runs in the kernels of `kernels.py`, in float64, on every core.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import numba
+import numpy as np
 import torch
 from torch import Tensor
 
 from ...checks import SurfSplatInputError
 from ...gaussians import Gaussians
 from ...geometry.cameras import Cameras
-from ..torch_backend import _camera_facing, _colors
 from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
+_SCRATCH = 64  # per-thread work space of the projection kernels (SH basis and its gradient)
+
+
+@dataclass
+class _Camera:
+    """One camera as the kernels take it (float64 NumPy)."""
+
+    R_cw: np.ndarray  # [3, 3] world-to-camera rotation
+    t_cw: np.ndarray  # [3]
+    center: np.ndarray  # [3] camera centre in the world
+    K: np.ndarray  # [3, 3]
+    width: int
+    height: int
+
 
 @dataclass
 class _Plan:
-    """Everything the compositing needs for one camera, from the projection and binning kernels."""
+    """What the forward pass leaves for the backward pass."""
 
-    surfel: bool
     order: np.ndarray  # [M] input index of each survivor, front to back
     geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
+    features: np.ndarray  # [M, 6] survivors' colour and oriented normal
+    flip: np.ndarray  # [N] +-1: the sign given to each normal
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] positions in `order`, per tile front to back
-    R_cw: np.ndarray  # [3, 3] float64
-    K: np.ndarray  # [3, 3] float64
-    width: int
-    height: int
-    tile: int
+    trans: np.ndarray  # [H, W] final transmittance
+    last: np.ndarray  # [H, W] 1 + tile-list position of each pixel's last blended Gaussian
     tiles_x: int
-    chunk: int
 
 
 def _np64(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
 
 
-def _plan(
-    mode: RenderMode, mu: Tensor, shape_src: Tensor, opacities: Tensor, scales: Tensor | None,
-    R_cw: np.ndarray, K: np.ndarray, width: int, height: int, settings: CpuRenderSettings,
-) -> _Plan:
-    """Projection, culling, depth sort and tile lists (no autograd). shape_src: rotations or covariances."""
-    n = mu.shape[0]
-    mu_np, src_np, opac_np = _np64(mu), _np64(shape_src), _np64(opacities)
-    geom = np.empty((n, kernels.GEOM_SIZE))
-    box = np.empty((n, 4), dtype=np.int64)
-    keep = np.empty(n, dtype=np.bool_)
-    args = (width, height, settings.near_plane, settings.far_plane, geom, box, keep)
-    if mode == "surfel":
-        assert scales is not None
-        kernels.project_surfels(mu_np, src_np, _np64(scales), opac_np, R_cw, K, *args)
-    else:
-        kernels.project_ewa(mu_np, src_np, opac_np, R_cw, K, *args)
-    tile = settings.tile_size
-    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-    order, tile_start, tile_ids = kernels.sort_and_bin(keep, mu_np[:, 2].copy(), box, tile, tiles_x, tiles_y)
-    geom_sorted = np.empty((order.shape[0], kernels.GEOM_SIZE))
-    box_sorted = np.empty((order.shape[0], 4), dtype=np.int64)
-    kernels.gather_rows(geom, order, geom_sorted)
-    kernels.gather_rows(box, order, box_sorted)
-    return _Plan(mode == "surfel", order, geom_sorted, box_sorted, tile_start, tile_ids, R_cw, K,
-                 width, height, tile, tiles_x, settings.parallel_chunk)
+def _inputs(means, rotations, scales, opacities, sh, covariances):
+    return (
+        _np64(means), _np64(rotations), _np64(scales), _np64(opacities), _np64(sh),
+        _np64(covariances) if covariances is not None else np.zeros((0, 3, 3)),
+    )
 
 
 class _Rasterize(torch.autograd.Function):
-    """Compositing of one camera with a hand-written backward (see `kernels.composite_backward`).
+    """Render one camera; backward = compositing backward then the projection's chain rule.
 
-    Inputs: mu [N, 3] camera-frame means (float64), shape [N, 3, 3] world rotations (surfel) or
-    world covariances (ewa), scales [N, 2] (surfel; ignored for ewa), opacities [N], features [M, 6]
-    (colour and oriented normal of the survivors, in `plan.order`).
-    Outputs: features [H, W, 6], alpha [H, W], depth [H, W], un-normalized, in the features' dtype.
+    Inputs: means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B],
+    covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
+    Outputs (un-normalized, the means' dtype): colour and normal [H, W, 6], alpha [H, W], depth [H, W].
     """
 
     @staticmethod
-    def forward(ctx, mu, shape, scales, opacities, features, plan: _Plan):
-        H, W = plan.height, plan.width
-        feat_np = _np64(features)
+    def forward(ctx, means, rotations, scales, opacities, sh, covariances, surfel: bool, camera: _Camera,
+                settings: CpuRenderSettings):
+        x, rot, sc, op, shc, cov = _inputs(means, rotations, scales, opacities, sh, covariances)
+        n = x.shape[0]
+        W, H, tile = camera.width, camera.height, settings.tile_size
+        threads = numba.get_num_threads()
+        geom = np.empty((n, kernels.GEOM_SIZE))
+        box = np.empty((n, 4), dtype=np.int64)
+        keep = np.empty(n, dtype=np.bool_)
+        depth = np.empty(n)
+        features = np.empty((n, kernels.FEATURES))
+        flip = np.empty(n)
+        kernels.project(
+            surfel, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K, W, H,
+            settings.near_plane, settings.far_plane, geom, box, keep, depth, features, flip,
+            np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
+        )
+        tiles_x, tiles_y = -(-W // tile), -(-H // tile)
+        order, tile_start, tile_ids = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
+        geom, box, features = kernels.gather_rows(geom, order), kernels.gather_rows(box, order), kernels.gather_rows(
+            features, order
+        )
         out_feat = np.empty((H, W, kernels.FEATURES))
         out_trans = np.empty((H, W))
         out_depth = np.empty((H, W))
         out_last = np.empty((H, W), dtype=np.int64)
-        done = np.empty((H, W), dtype=np.bool_)
-        with numba.parallel_chunksize(plan.chunk):
+        with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_forward(
-                plan.surfel, plan.geom, feat_np, plan.box, plan.tile_start, plan.tile_ids, W, H, plan.tile,
-                plan.tiles_x, out_feat, out_trans, out_depth, out_last, done,
+                surfel, geom, features, box, tile_start, tile_ids, W, H, tile, tiles_x,
+                out_feat, out_trans, out_depth, out_last, np.empty((H, W), dtype=np.bool_),
             )
-        ctx.plan = plan
-        ctx.feat_np = feat_np
-        ctx.trans = out_trans
-        ctx.last = out_last
-        ctx.save_for_backward(mu, shape, scales, opacities, features)
-        dtype = features.dtype
+        ctx.surfel, ctx.camera, ctx.settings = surfel, camera, settings
+        ctx.plan = _Plan(order, geom, box, features, flip, tile_start, tile_ids, out_trans, out_last, tiles_x)
+        ctx.save_for_backward(means, rotations, scales, opacities, sh, covariances)
+        dtype = means.dtype
         return (
             torch.from_numpy(out_feat).to(dtype),
             torch.from_numpy(1.0 - out_trans).to(dtype),
@@ -116,49 +117,41 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_feat, g_alpha, g_depth):
         plan: _Plan = ctx.plan
-        mu, shape, scales, opacities, features = ctx.saved_tensors
-        H, W = plan.height, plan.width
+        camera: _Camera = ctx.camera
+        settings: CpuRenderSettings = ctx.settings
+        means, rotations, scales, opacities, sh, covariances = ctx.saved_tensors
+        W, H = camera.width, camera.height
         M = plan.order.shape[0]
+        threads = numba.get_num_threads()
         g_feat_np = np.zeros((H, W, kernels.FEATURES)) if g_feat is None else _np64(g_feat)
         g_alpha_np = np.zeros((H, W)) if g_alpha is None else _np64(g_alpha)
         g_depth_np = np.zeros((H, W)) if g_depth is None else _np64(g_depth)
-        grads = np.zeros((numba.get_num_threads(), M, kernels.GRAD_SIZE))
-        with numba.parallel_chunksize(plan.chunk):
+        per_thread = np.zeros((threads, M, kernels.GRAD_SIZE))
+        with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_backward(
-                plan.surfel, plan.geom, ctx.feat_np, plan.box, plan.tile_start, plan.tile_ids, W, H, plan.tile,
-                plan.tiles_x, ctx.trans, ctx.last, g_feat_np, g_alpha_np, g_depth_np,
-                np.empty((H, W)), np.empty((H, W)), grads,
+                ctx.surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
+                settings.tile_size, plan.tiles_x, plan.trans, plan.last, g_feat_np, g_alpha_np, g_depth_np,
+                np.empty((H, W)), np.empty((H, W)), per_thread,
             )
-        summed = np.empty((M, kernels.GRAD_SIZE))
-        kernels.sum_thread_grads(grads, summed)
-        n = mu.shape[0]
-        g_mu = np.zeros((n, 3))
-        g_shape = np.zeros((n, 3, 3))
-        g_scales = np.zeros((n, 2))
-        g_opac = np.zeros(n)
-        mu_np, shape_np, opac_np = _np64(mu), _np64(shape), _np64(opacities)
-        if plan.surfel:
-            kernels.surfel_project_backward(
-                plan.order, mu_np, shape_np, _np64(scales), opac_np, plan.R_cw, plan.K, plan.geom, summed,
-                g_mu, g_shape, g_scales, g_opac,
-            )
-        else:
-            kernels.ewa_project_backward(
-                plan.order, mu_np, shape_np, opac_np, plan.R_cw, plan.K, summed, g_mu, g_shape, g_opac
-            )
-        g_features = summed[:, kernels.GRAD_FEAT : kernels.GRAD_FEAT + kernels.FEATURES]
+        grads = kernels.sum_thread_grads(per_thread)
+        x, rot, sc, op, shc, cov = _inputs(means, rotations, scales, opacities, sh, covariances)
+        n = x.shape[0]
+        g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
+        g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
+        kernels.project_backward(
+            ctx.surfel, plan.order, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K,
+            plan.geom, plan.flip, grads, g_means, g_rot, g_scales, g_opac, g_sh, g_cov,
+            np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
+        )
 
-        def out(grad: np.ndarray, like: Tensor, needed: bool) -> Tensor | None:
-            return torch.from_numpy(np.ascontiguousarray(grad)).to(like.dtype) if needed else None
+        def out(grad: np.ndarray, like: Tensor | None, index: int) -> Tensor | None:
+            if like is None or not ctx.needs_input_grad[index]:
+                return None
+            return torch.from_numpy(grad).to(like.dtype)
 
-        need = ctx.needs_input_grad
         return (
-            out(g_mu, mu, need[0]),
-            out(g_shape, shape, need[1]),
-            out(g_scales, scales, need[2] and plan.surfel),
-            out(g_opac, opacities, need[3]),
-            out(g_features, features, need[4]),
-            None,
+            out(g_means, means, 0), out(g_rot, rotations, 1), out(g_scales, scales, 2), out(g_opac, opacities, 3),
+            out(g_sh, sh, 4), out(g_cov, covariances, 5), None, None, None,
         )
 
 
@@ -168,8 +161,8 @@ def render_cpu(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
 
-    The same function as `render_torch` (float rounding aside), differentiable with respect to the
-    Gaussians (not the cameras).
+    The function of `render_torch` (float rounding aside), differentiable with respect to the
+    Gaussians; camera parameters get no gradient (the dispatcher sends such requests to torch).
     """
     settings = settings or CpuRenderSettings()
     g = gaussians
@@ -177,26 +170,19 @@ def render_cpu(
         raise SurfSplatInputError(f"backend: 'cpu' renders tensors on the CPU, got Gaussians on {g.means.device}")
     if cameras.c2w.requires_grad or cameras.K.requires_grad:
         raise SurfSplatInputError("cameras: the 'cpu' backend does not differentiate cameras; use backend='torch'")
-    dt = torch.float64
     rotations = g.rotations
-    shape = g.covariances if mode == "ewa" else rotations
-    w2c = cameras.w2c.to(g.means)
-    K_all = cameras.K.to(g.means)
-    centers = cameras.centers.to(g.means)
+    covariances = g.explicit_covariances if mode == "ewa" else None
+    w2c = _np64(cameras.w2c.to(g.means))
+    K = _np64(cameras.K.to(g.means))
+    centers = _np64(cameras.centers.to(g.means))
     outs = []
     for c in range(len(cameras)):
-        R_cw_t, t_cw = w2c[c, :3, :3].to(dt), w2c[c, :3, 3].to(dt)
-        mu = g.means.to(dt) @ R_cw_t.T + t_cw  # [N, 3] (the torch backend's expression)
-        plan = _plan(
-            mode, mu, shape, g.opacities, g.scales if mode == "surfel" else None,
-            _np64(R_cw_t), _np64(K_all[c]), width, height, settings,
+        camera = _Camera(
+            np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height
         )
-        idx = torch.from_numpy(plan.order)
-        normals = _camera_facing(rotations[idx, :, 2], mu[idx].to(g.means.dtype), w2c[c, :3, :3])
-        colors = _colors(g.sh[idx], g.means[idx], centers[c])
-        features = torch.cat((colors, normals), dim=-1)  # [M, 6]
-        scales = g.scales if mode == "surfel" else g.opacities.new_zeros(0)
-        outs.append(_Rasterize.apply(mu, shape, scales, g.opacities, features, plan))
+        outs.append(
+            _Rasterize.apply(g.means, rotations, g.scales, g.opacities, g.sh, covariances, mode == "surfel", camera, settings)
+        )
     color = torch.stack([o[0][..., 0:3] for o in outs]).permute(0, 3, 1, 2)
     normal = torch.stack([o[0][..., 3:6] for o in outs]).permute(0, 3, 1, 2)
     alpha = torch.stack([o[1] for o in outs])[:, None]

@@ -31,6 +31,8 @@ import math
 import numpy as np
 from numba import get_thread_id, njit, prange
 
+from ...gaussians import THIN_SCALE
+from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..types import ALPHA_MAX, ALPHA_MIN, EWA_DILATION, LOG_ALPHA_MIN, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN
 
 # Columns of the per-Gaussian coefficient rows.
@@ -93,124 +95,210 @@ def _pixel_range(lo, hi, size):
 
 
 @njit(cache=True, inline="always")
-def _set_box(box, i, xmin, xmax, ymin, ymax, width, height):
-    box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
-    box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
-
-
-@njit(parallel=True, cache=True)
-def project_surfels(mu, rotations, scales, opacities, R_cw, K, width, height, near, far, geom, box, keep):
-    """Per-surfel coefficients, pixel boxes and the culling mask.
-
-    mu [N, 3] camera-frame means, rotations [N, 3, 3] world rotations, scales [N, 2], opacities [N],
-    R_cw [3, 3], K [3, 3]. Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N].
-    """
-    for i in prange(mu.shape[0]):
-        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
-            mu[i], rotations[i], scales[i, 0], scales[i, 1], R_cw, K
-        )
-        z = mu[i, 2]
-        safe_z = z if abs(z) > _NEAR_ZERO else 1.0
-        cx, cy = tx2 / safe_z, ty2 / safe_z
-        # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
-        # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
-        k2 = _opacity_extent(opacities[i])
-        d2 = -1.0 / max(k2, 1e-12)
-        c00 = tx0 * tx0 + tx1 * tx1 + d2 * tx2 * tx2
-        c11 = ty0 * ty0 + ty1 * ty1 + d2 * ty2 * ty2
-        c02 = tx0 * tw0 + tx1 * tw1 + d2 * tx2 * tw2
-        c12 = ty0 * tw0 + ty1 * tw1 + d2 * ty2 * tw2
-        c22 = tw0 * tw0 + tw1 * tw1 + d2 * tw2 * tw2
-        r_lp = math.sqrt(k2 / LOWPASS_RHO_SCALE)  # the screen-space filter's own reach
-        if c22 < -1e-12:
-            ex, ey = c02 / c22, c12 / c22
-            hx = math.sqrt(max(c02 * c02 - c00 * c22, 0.0)) / abs(c22)
-            hy = math.sqrt(max(c12 * c12 - c11 * c22, 0.0)) / abs(c22)
-            xmin, xmax = min(ex - hx, cx - r_lp), max(ex + hx, cx + r_lp)
-            ymin, ymax = min(ey - hy, cy - r_lp), max(ey + hy, cy + r_lp)
-        else:  # the footprint is unbounded (a hyperbola or parabola): every pixel
-            xmin, xmax, ymin, ymax = -math.inf, math.inf, -math.inf, math.inf
-        _set_box(box, i, xmin, xmax, ymin, ymax, width, height)
-        keep[i] = (
-            z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
-        )
-        # h(p) = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x.
-        ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
-        bx, by, bz = ty1 * tw2 - ty2 * tw1, ty2 * tw0 - ty0 * tw2, ty0 * tw1 - ty1 * tw0
-        qx, qy, qz = tw1 * tx2 - tw2 * tx1, tw2 * tx0 - tw0 * tx2, tw0 * tx1 - tw1 * tx0
-        g = geom[i]
-        g[GEOM_CX], g[GEOM_CY] = cx, cy
-        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
-        g[GEOM_DEPTH] = tw2
-        g[GEOM_DET] = tw0 * ax + tw1 * ay + tw2 * az
-        g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2] = ax + cx * bx + cy * qx, ay + cx * by + cy * qy, az + cx * bz + cy * qz
-        g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2] = bx, by, bz
-        g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2] = qx, qy, qz
-
-
-@njit(cache=True, inline="always")
-def _ewa_jacobian(m0, m1, z, K):
-    """d(pixel)/d(camera point) at the mean: rows (j00, j01, j02), (0, j11, j12)."""
-    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
-    x, y = m0 / z, m1 / z
-    return fx / z, skew / z, -(fx * x + skew * y) / z, fy / z, -fy * y / z
+def _camera_point(x, R_cw, t_cw):
+    """mu = R_cw x + t (the torch backend's camera-frame mean, float64)."""
+    return (
+        R_cw[0, 0] * x[0] + R_cw[0, 1] * x[1] + R_cw[0, 2] * x[2] + t_cw[0],
+        R_cw[1, 0] * x[0] + R_cw[1, 1] * x[1] + R_cw[1, 2] * x[2] + t_cw[1],
+        R_cw[2, 0] * x[0] + R_cw[2, 1] * x[1] + R_cw[2, 2] * x[2] + t_cw[2],
+    )
 
 
 @njit(cache=True, inline="always")
 def _ewa_cov2d(mu, cov, R_cw, K):
-    """J W Sigma W^T J^T (3DGS Eq. 5) as (a, b, c) = entries 00, 01, 11, plus JW rows and z."""
-    z = mu[2]
-    safe_z = z if abs(z) > _NEAR_ZERO else 1.0
-    j00, j01, j02, j11, j12 = _ewa_jacobian(mu[0], mu[1], safe_z, K)
+    """J W Sigma W^T J^T (3DGS Eq. 5) with the affine Jacobian J at the camera-frame mean mu.
+
+    Returns its entries (a, b, c) = (00, 01, 11), the rows p, q of J W, and the guarded z.
+    J = [[fx/z, s/z, -(fx x + s y)/z], [0, fy/z, -fy y/z]] with x = mu_x/z, y = mu_y/z.
+    """
+    z = mu[2] if abs(mu[2]) > _NEAR_ZERO else 1.0
+    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+    x, y = mu[0] / z, mu[1] / z
+    j00, j01, j02, j11, j12 = fx / z, skew / z, -(fx * x + skew * y) / z, fy / z, -fy * y / z
     p0 = j00 * R_cw[0, 0] + j01 * R_cw[1, 0] + j02 * R_cw[2, 0]
     p1 = j00 * R_cw[0, 1] + j01 * R_cw[1, 1] + j02 * R_cw[2, 1]
     p2 = j00 * R_cw[0, 2] + j01 * R_cw[1, 2] + j02 * R_cw[2, 2]
     q0 = j11 * R_cw[1, 0] + j12 * R_cw[2, 0]
     q1 = j11 * R_cw[1, 1] + j12 * R_cw[2, 1]
     q2 = j11 * R_cw[1, 2] + j12 * R_cw[2, 2]
-    # Sigma p and Sigma q
-    sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2
-    sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
-    sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
-    sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2
+    sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2  # Sigma q
     sq1 = cov[1, 0] * q0 + cov[1, 1] * q1 + cov[1, 2] * q2
     sq2 = cov[2, 0] * q0 + cov[2, 1] * q1 + cov[2, 2] * q2
+    sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2  # Sigma p
+    sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
+    sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
     a = p0 * sp0 + p1 * sp1 + p2 * sp2
     b = p0 * sq0 + p1 * sq1 + p2 * sq2
     c = q0 * sq0 + q1 * sq1 + q2 * sq2
-    return a, b, c, p0, p1, p2, q0, q1, q2, safe_z
+    return a, b, c, p0, p1, p2, q0, q1, q2, z
+
+
+@njit(cache=True, inline="always")
+def _thin_covariance(R, s0, s1, out):
+    """out = R diag(s0^2, s1^2, THIN_SCALE^2) R^T: the surfel as a thin 3D Gaussian (Gaussians.covariances)."""
+    v0, v1, v2 = s0 * s0, s1 * s1, THIN_SCALE * THIN_SCALE
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = R[r, 0] * v0 * R[c, 0] + R[r, 1] * v1 * R[c, 1] + R[r, 2] * v2 * R[c, 2]
+
+
+@njit(cache=True, inline="always")
+def _sh_basis(x, y, z, n_bases, Y):
+    """Real SH basis of 3DGS (geometry/sh.py) at the unit direction (x, y, z), first n_bases terms."""
+    Y[0] = SH_C0
+    if n_bases > 1:
+        Y[1], Y[2], Y[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
+    if n_bases > 4:
+        xx, yy, zz = x * x, y * y, z * z
+        Y[4] = SH_C2[0] * x * y
+        Y[5] = SH_C2[1] * y * z
+        Y[6] = SH_C2[2] * (2.0 * zz - xx - yy)
+        Y[7] = SH_C2[3] * x * z
+        Y[8] = SH_C2[4] * (xx - yy)
+    if n_bases > 9:
+        Y[9] = SH_C3[0] * y * (3.0 * xx - yy)
+        Y[10] = SH_C3[1] * x * y * z
+        Y[11] = SH_C3[2] * y * (4.0 * zz - xx - yy)
+        Y[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        Y[13] = SH_C3[4] * x * (4.0 * zz - xx - yy)
+        Y[14] = SH_C3[5] * z * (xx - yy)
+        Y[15] = SH_C3[6] * x * (xx - 3.0 * yy)
+
+
+@njit(cache=True, inline="always")
+def _sh_basis_grad(x, y, z, n_bases, GX, GY, GZ):
+    """Partial derivatives of `_sh_basis` with respect to x, y, z (first n_bases terms)."""
+    for k in range(n_bases):
+        GX[k], GY[k], GZ[k] = 0.0, 0.0, 0.0
+    if n_bases > 1:
+        GY[1], GZ[2], GX[3] = -SH_C1, SH_C1, -SH_C1
+    if n_bases > 4:
+        GX[4], GY[4] = SH_C2[0] * y, SH_C2[0] * x
+        GY[5], GZ[5] = SH_C2[1] * z, SH_C2[1] * y
+        GX[6], GY[6], GZ[6] = -2.0 * SH_C2[2] * x, -2.0 * SH_C2[2] * y, 4.0 * SH_C2[2] * z
+        GX[7], GZ[7] = SH_C2[3] * z, SH_C2[3] * x
+        GX[8], GY[8] = 2.0 * SH_C2[4] * x, -2.0 * SH_C2[4] * y
+    if n_bases > 9:
+        xx, yy, zz = x * x, y * y, z * z
+        GX[9], GY[9] = 6.0 * SH_C3[0] * x * y, SH_C3[0] * (3.0 * xx - 3.0 * yy)
+        GX[10], GY[10], GZ[10] = SH_C3[1] * y * z, SH_C3[1] * x * z, SH_C3[1] * x * y
+        GX[11] = -2.0 * SH_C3[2] * x * y
+        GY[11] = SH_C3[2] * (4.0 * zz - xx - 3.0 * yy)
+        GZ[11] = 8.0 * SH_C3[2] * y * z
+        GX[12], GY[12] = -6.0 * SH_C3[3] * x * z, -6.0 * SH_C3[3] * y * z
+        GZ[12] = SH_C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy)
+        GX[13] = SH_C3[4] * (4.0 * zz - 3.0 * xx - yy)
+        GY[13] = -2.0 * SH_C3[4] * x * y
+        GZ[13] = 8.0 * SH_C3[4] * x * z
+        GX[14], GY[14], GZ[14] = 2.0 * SH_C3[5] * x * z, -2.0 * SH_C3[5] * y * z, SH_C3[5] * (xx - yy)
+        GX[15], GY[15] = SH_C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * SH_C3[6] * x * y
+
+
+@njit(cache=True, inline="always")
+def _view_direction(x, cam_center):
+    """Unit direction from the camera centre to x (F.normalize: divided by max(|v|, 1e-12))."""
+    v0, v1, v2 = x[0] - cam_center[0], x[1] - cam_center[1], x[2] - cam_center[2]
+    norm = max(math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-12)
+    return v0 / norm, v1 / norm, v2 / norm, norm
 
 
 @njit(parallel=True, cache=True)
-def project_ewa(mu, covariances, opacities, R_cw, K, width, height, near, far, geom, box, keep):
-    """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine Jacobian J at the mean.
+def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center, K,
+            width, height, near, far, geom, box, keep, depth, features, flip, scratch, cov_scratch):
+    """Per-Gaussian coefficients, pixel boxes, culling, colour and oriented normal (parallel over N).
 
-    mu [N, 3] camera-frame means, covariances [N, 3, 3] world covariances, opacities [N].
-    Writes geom [N, GEOM_SIZE], box [N, 4] and keep [N].
+    means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
+    covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
+    Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N], depth [N] (camera
+    z, the sort key), features [N, 6] (colour, normal facing the camera) and flip [N] (+-1, the
+    normal's sign). scratch [threads, 64], cov_scratch [threads, 2, 3, 3] are per-thread work space.
     """
-    for i in prange(mu.shape[0]):
-        a, b, c, _, _, _, _, _, _, safe_z = _ewa_cov2d(mu[i], covariances[i], R_cw, K)
-        a += EWA_DILATION
-        c += EWA_DILATION
-        det = max(a * c - b * b, _CONIC_DET_MIN)
-        cx = K[0, 0] * (mu[i, 0] / safe_z) + K[0, 1] * (mu[i, 1] / safe_z) + K[0, 2]
-        cy = K[1, 1] * (mu[i, 1] / safe_z) + K[1, 2]
+    n_bases = sh.shape[2]
+    explicit = covariances.shape[0] > 0
+    for i in prange(means.shape[0]):
+        tid = get_thread_id()
+        mu = _camera_point(means[i], R_cw, t_cw)
+        z = mu[2]
+        safe_z = z if abs(z) > _NEAR_ZERO else 1.0
+        depth[i] = z
         k2 = _opacity_extent(opacities[i])
-        hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
-        _set_box(box, i, cx - hx, cx + hx, cy - hy, cy + hy, width, height)
-        z = mu[i, 2]
+        g = geom[i]
+        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
+        if surfel:
+            tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
+                mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
+            )
+            cx, cy = tx2 / safe_z, ty2 / safe_z
+            # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
+            # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
+            d2 = -1.0 / max(k2, 1e-12)
+            c00 = tx0 * tx0 + tx1 * tx1 + d2 * tx2 * tx2
+            c11 = ty0 * ty0 + ty1 * ty1 + d2 * ty2 * ty2
+            c02 = tx0 * tw0 + tx1 * tw1 + d2 * tx2 * tw2
+            c12 = ty0 * tw0 + ty1 * tw1 + d2 * ty2 * tw2
+            c22 = tw0 * tw0 + tw1 * tw1 + d2 * tw2 * tw2
+            r_lp = math.sqrt(k2 / LOWPASS_RHO_SCALE)  # the screen-space filter's own reach
+            if c22 < -1e-12:
+                ex, ey = c02 / c22, c12 / c22
+                hx = math.sqrt(max(c02 * c02 - c00 * c22, 0.0)) / abs(c22)
+                hy = math.sqrt(max(c12 * c12 - c11 * c22, 0.0)) / abs(c22)
+                xmin, xmax = min(ex - hx, cx - r_lp), max(ex + hx, cx + r_lp)
+                ymin, ymax = min(ey - hy, cy - r_lp), max(ey + hy, cy + r_lp)
+            else:  # the footprint is unbounded (a hyperbola or parabola): every pixel
+                xmin, xmax, ymin, ymax = -math.inf, math.inf, -math.inf, math.inf
+            # h(p) = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x.
+            ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
+            bx, by, bz = ty1 * tw2 - ty2 * tw1, ty2 * tw0 - ty0 * tw2, ty0 * tw1 - ty1 * tw0
+            qx, qy, qz = tw1 * tx2 - tw2 * tx1, tw2 * tx0 - tw0 * tx2, tw0 * tx1 - tw1 * tx0
+            g[GEOM_DEPTH] = tw2
+            g[GEOM_DET] = tw0 * ax + tw1 * ay + tw2 * az
+            g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2] = ax + cx * bx + cy * qx, ay + cx * by + cy * qy, az + cx * bz + cy * qz
+            g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2] = bx, by, bz
+            g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2] = qx, qy, qz
+        else:
+            if explicit:
+                cov = covariances[i]
+            else:
+                cov = cov_scratch[tid, 0]
+                _thin_covariance(rotations[i], scales[i, 0], scales[i, 1], cov)
+            a, b, c, _, _, _, _, _, _, _ = _ewa_cov2d(mu, cov, R_cw, K)
+            a += EWA_DILATION
+            c += EWA_DILATION
+            det = max(a * c - b * b, _CONIC_DET_MIN)
+            cx = K[0, 0] * (mu[0] / safe_z) + K[0, 1] * (mu[1] / safe_z) + K[0, 2]
+            cy = K[1, 1] * (mu[1] / safe_z) + K[1, 2]
+            hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
+            xmin, xmax, ymin, ymax = cx - hx, cx + hx, cy - hy, cy + hy
+            g[GEOM_DEPTH] = z
+            g[GEOM_DET] = 0.0
+            g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2] = c / det, -b / det, a / det
+            for j in range(GEOM_CONIC + 3, GEOM_SIZE):
+                g[j] = 0.0
+        g[GEOM_CX], g[GEOM_CY] = cx, cy
+        box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
+        box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
         keep[i] = (
             z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
         )
-        g = geom[i]
-        g[GEOM_CX], g[GEOM_CY] = cx, cy
-        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
-        g[GEOM_DEPTH] = z
-        g[GEOM_DET] = 0.0
-        g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2] = c / det, -b / det, a / det
-        for j in range(GEOM_CONIC + 3, GEOM_SIZE):
-            g[j] = 0.0
-
+        # Colour: SH at the direction from the camera centre, + 0.5, clamped at 0 (3DGS).
+        dx, dy, dz, _ = _view_direction(means[i], cam_center)
+        Y = scratch[tid]
+        _sh_basis(dx, dy, dz, n_bases, Y)
+        for ch in range(3):
+            v = 0.5
+            for k in range(n_bases):
+                v += sh[i, ch, k] * Y[k]
+            features[i, ch] = max(v, 0.0)
+        # Normal: the rotated z axis, flipped to face the camera (n_cam . mu <= 0).
+        R = rotations[i]
+        n_dot = (
+            (R_cw[0, 0] * R[0, 2] + R_cw[0, 1] * R[1, 2] + R_cw[0, 2] * R[2, 2]) * mu[0]
+            + (R_cw[1, 0] * R[0, 2] + R_cw[1, 1] * R[1, 2] + R_cw[1, 2] * R[2, 2]) * mu[1]
+            + (R_cw[2, 0] * R[0, 2] + R_cw[2, 1] * R[1, 2] + R_cw[2, 2] * R[2, 2]) * mu[2]
+        )
+        flip[i] = -1.0 if n_dot > 0 else 1.0
+        for r in range(3):
+            features[i, 3 + r] = flip[i] * R[r, 2]
 
 # ---------------------------------------------------------------------------------------------
 # Sorting and binning
@@ -249,11 +337,13 @@ def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
 
 
 @njit(parallel=True, cache=True)
-def gather_rows(src, index, out):
-    """out[m] = src[index[m]] for 2D arrays (parallel)."""
+def gather_rows(src, index):
+    """src[index] for a 2D array (parallel)."""
+    out = np.empty((index.shape[0], src.shape[1]), dtype=src.dtype)
     for m in prange(index.shape[0]):
         for j in range(src.shape[1]):
             out[m, j] = src[index[m], j]
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -441,14 +531,16 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
 
 
 @njit(parallel=True, cache=True)
-def sum_thread_grads(grads, out):
-    """out [M, G] = sum over the thread axis of grads [threads, M, G]."""
+def sum_thread_grads(grads):
+    """Sum over the thread axis of grads [threads, M, G] -> [M, G]."""
+    out = np.empty((grads.shape[1], grads.shape[2]))
     for m in prange(grads.shape[1]):
         for j in range(grads.shape[2]):
             s = 0.0
             for th in range(grads.shape[0]):
                 s += grads[th, m, j]
             out[m, j] = s
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -456,163 +548,207 @@ def sum_thread_grads(grads, out):
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
-def surfel_project_backward(order, mu, rotations, scales, opacities, R_cw, K, geom, grads,
-                            g_mu, g_rotations, g_scales, g_opacities):
-    """Chain rule from per-survivor gradients `grads` [M, GRAD_SIZE] to the surfel parameters.
+@njit(cache=True, inline="always")
+def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
+    """Chain rule of the surfel projection: writes dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
 
-    geom [M, GEOM_SIZE] holds the survivors' coefficients (sorted like `order`); the outputs
-    g_mu [N, 3], g_rotations [N, 3, 3] (columns u, v only: the normal's gradient comes through
-    the features), g_scales [N, 2], g_opacities [N] must be zero on entry.
+    gr is the survivor's gradient row from the compositing (GRAD_* columns).
     """
+    tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(mu, R, s0, s1, R_cw, K)
+    # h = A + p_x B + p_y C = A_c + dx B + dy C: the centre cancels, so with dx = p_x - c_x
+    # dL/dA = sum g_h, dL/dB = sum (dx + c_x) g_h, dL/dC = sum (dy + c_y) g_h.
+    gA0, gA1, gA2 = gr[GRAD_H], gr[GRAD_H + 1], gr[GRAD_H + 2]
+    gB0, gB1, gB2 = gr[GRAD_HX] + cx * gA0, gr[GRAD_HX + 1] + cx * gA1, gr[GRAD_HX + 2] + cx * gA2
+    gC0, gC1, gC2 = gr[GRAD_HY] + cy * gA0, gr[GRAD_HY + 1] + cy * gA1, gr[GRAD_HY + 2] + cy * gA2
+    g_det = gr[GRAD_DET]
+    # For u = a x b: dL/da = b x g_u, dL/db = g_u x a; A = Tx x Ty, B = Ty x Tw, C = Tw x Tx,
+    # and det = Tw . A adds g_det Tw to dL/dA and g_det A to dL/dTw.
+    gdA0, gdA1, gdA2 = gA0 + g_det * tw0, gA1 + g_det * tw1, gA2 + g_det * tw2
+    gx0 = ty1 * gdA2 - ty2 * gdA1 + gC1 * tw2 - gC2 * tw1
+    gx1 = ty2 * gdA0 - ty0 * gdA2 + gC2 * tw0 - gC0 * tw2
+    gx2 = ty0 * gdA1 - ty1 * gdA0 + gC0 * tw1 - gC1 * tw0
+    gy0 = gdA1 * tx2 - gdA2 * tx1 + tw1 * gB2 - tw2 * gB1
+    gy1 = gdA2 * tx0 - gdA0 * tx2 + tw2 * gB0 - tw0 * gB2
+    gy2 = gdA0 * tx1 - gdA1 * tx0 + tw0 * gB1 - tw1 * gB0
+    ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
+    gw0 = gB1 * ty2 - gB2 * ty1 + tx1 * gC2 - tx2 * gC1 + g_det * ax
+    gw1 = gB2 * ty0 - gB0 * ty2 + tx2 * gC0 - tx0 * gC2 + g_det * ay
+    gw2 = gB0 * ty1 - gB1 * ty0 + tx0 * gC1 - tx1 * gC0 + g_det * az
+    # Centre c = (Tx[2], Ty[2]) / mu_z; filter-branch depth Tw[2].
+    g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
+    g_mu_z = 0.0
+    if abs(mu[2]) > _NEAR_ZERO:
+        gx2 += g_cx / mu[2]
+        gy2 += g_cy / mu[2]
+        g_mu_z = -(g_cx * cx + g_cy * cy) / mu[2]
+    gw2 += gr[GRAD_DEPTH]
+    # T = K M with M = [u s0, v s1, mu]: dL/dM = K^T dL/dT (rows of dL/dT: gx, gy, gw).
+    gm00 = K[0, 0] * gx0 + K[1, 0] * gy0 + K[2, 0] * gw0
+    gm10 = K[0, 1] * gx0 + K[1, 1] * gy0 + K[2, 1] * gw0
+    gm20 = K[0, 2] * gx0 + K[1, 2] * gy0 + K[2, 2] * gw0
+    gm01 = K[0, 0] * gx1 + K[1, 0] * gy1 + K[2, 0] * gw1
+    gm11 = K[0, 1] * gx1 + K[1, 1] * gy1 + K[2, 1] * gw1
+    gm21 = K[0, 2] * gx1 + K[1, 2] * gy1 + K[2, 2] * gw1
+    gm02 = K[0, 0] * gx2 + K[1, 0] * gy2 + K[2, 0] * gw2
+    gm12 = K[0, 1] * gx2 + K[1, 1] * gy2 + K[2, 1] * gw2
+    gm22 = K[0, 2] * gx2 + K[1, 2] * gy2 + K[2, 2] * gw2
+    # Camera-frame tangents u = R_cw R e_col: dL/ds = u . dL/dM[:, col], dL/d(R e_col) = s R_cw^T dL/dM[:, col].
+    for col in range(2):
+        s = s0 if col == 0 else s1
+        gc0 = gm00 if col == 0 else gm01
+        gc1 = gm10 if col == 0 else gm11
+        gc2 = gm20 if col == 0 else gm21
+        cam0 = R_cw[0, 0] * R[0, col] + R_cw[0, 1] * R[1, col] + R_cw[0, 2] * R[2, col]
+        cam1 = R_cw[1, 0] * R[0, col] + R_cw[1, 1] * R[1, col] + R_cw[1, 2] * R[2, col]
+        cam2 = R_cw[2, 0] * R[0, col] + R_cw[2, 1] * R[1, col] + R_cw[2, 2] * R[2, col]
+        g_scale[col] = cam0 * gc0 + cam1 * gc1 + cam2 * gc2
+        for row in range(3):
+            g_rot[row, col] = s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
+    return gm02, gm12, gm22 + g_mu_z
+
+
+@njit(cache=True, inline="always")
+def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
+    """Chain rule of the EWA projection: writes dL/dSigma (world) into g_cov, returns dL/dmu.
+
+    As in the torch backend, the 2D covariance's off-diagonal is its (0, 1) entry, so dL/dSigma =
+    X^T [[g_a, g_b], [0, g_c]] X with X = J W; its antisymmetric part is harmless for a symmetric Sigma.
+    """
+    a, b, c, p0, p1, p2, q0, q1, q2, z = _ewa_cov2d(mu, cov, R_cw, K)
+    a += EWA_DILATION
+    c += EWA_DILATION
+    det_raw = a * c - b * b
+    det = max(det_raw, _CONIC_DET_MIN)
+    G0, G1, G2 = gr[GRAD_CONIC], gr[GRAD_CONIC + 1], gr[GRAD_CONIC + 2]
+    # conic = (c, -b, a) / det
+    g_det = -(G0 * c - G1 * b + G2 * a) / (det * det) if det_raw >= _CONIC_DET_MIN else 0.0
+    g_a = G2 / det + g_det * c
+    g_c = G0 / det + g_det * a
+    g_b = -G1 / det - 2.0 * b * g_det
+    # cov2d = X Sigma X^T with rows p, q of X and G = [[g_a, g_b], [0, g_c]]:
+    # dL/dX = G X Sigma^T + G^T X Sigma, whose rows are built from Sigma p, Sigma q, Sigma^T p, Sigma^T q.
+    sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2
+    sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
+    sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
+    sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2
+    sq1 = cov[1, 0] * q0 + cov[1, 1] * q1 + cov[1, 2] * q2
+    sq2 = cov[2, 0] * q0 + cov[2, 1] * q1 + cov[2, 2] * q2
+    tp0 = cov[0, 0] * p0 + cov[1, 0] * p1 + cov[2, 0] * p2
+    tp1 = cov[0, 1] * p0 + cov[1, 1] * p1 + cov[2, 1] * p2
+    tp2 = cov[0, 2] * p0 + cov[1, 2] * p1 + cov[2, 2] * p2
+    tq0 = cov[0, 0] * q0 + cov[1, 0] * q1 + cov[2, 0] * q2
+    tq1 = cov[0, 1] * q0 + cov[1, 1] * q1 + cov[2, 1] * q2
+    tq2 = cov[0, 2] * q0 + cov[1, 2] * q1 + cov[2, 2] * q2
+    gp0 = g_a * (sp0 + tp0) + g_b * sq0
+    gp1 = g_a * (sp1 + tp1) + g_b * sq1
+    gp2 = g_a * (sp2 + tp2) + g_b * sq2
+    gq0 = g_c * (sq0 + tq0) + g_b * tp0
+    gq1 = g_c * (sq1 + tq1) + g_b * tp1
+    gq2 = g_c * (sq2 + tq2) + g_b * tp2
+    pp = (p0, p1, p2)
+    qq = (q0, q1, q2)
+    for r in range(3):
+        for s in range(3):
+            g_cov[r, s] = g_a * pp[r] * pp[s] + g_b * pp[r] * qq[s] + g_c * qq[r] * qq[s]
+    # X = J W: dL/dJ = dL/dX W^T.
+    gj00 = gp0 * R_cw[0, 0] + gp1 * R_cw[0, 1] + gp2 * R_cw[0, 2]
+    gj01 = gp0 * R_cw[1, 0] + gp1 * R_cw[1, 1] + gp2 * R_cw[1, 2]
+    gj02 = gp0 * R_cw[2, 0] + gp1 * R_cw[2, 1] + gp2 * R_cw[2, 2]
+    gj11 = gq0 * R_cw[1, 0] + gq1 * R_cw[1, 1] + gq2 * R_cw[1, 2]
+    gj12 = gq0 * R_cw[2, 0] + gq1 * R_cw[2, 1] + gq2 * R_cw[2, 2]
+    if abs(mu[2]) <= _NEAR_ZERO:
+        return 0.0, 0.0, 0.0
+    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+    m0, m1 = mu[0], mu[1]
+    z2, z3 = z * z, z * z * z
+    g0 = -gj02 * fx / z2
+    g1 = -gj02 * skew / z2 - gj12 * fy / z2
+    g2 = -(gj00 * fx + gj01 * skew + gj11 * fy) / z2 + 2.0 * gj02 * (fx * m0 + skew * m1) / z3 + 2.0 * gj12 * fy * m1 / z3
+    # Centre (fx m0 / z + s m1 / z + cx, fy m1 / z + cy).
+    g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
+    g0 += g_cx * fx / z
+    g1 += (g_cx * skew + g_cy * fy) / z
+    g2 -= (g_cx * (fx * m0 + skew * m1) + g_cy * fy * m1) / z2
+    return g0, g1, g2 + gr[GRAD_DEPTH]
+
+
+@njit(parallel=True, cache=True)
+def project_backward(surfel, order, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center,
+                     K, geom, flip, grads, g_means, g_rotations, g_scales, g_opacities, g_sh, g_covariances,
+                     scratch, cov_scratch):
+    """Chain rule from the survivors' compositing gradients grads [M, GRAD_SIZE] (rows in `order`)
+    to the Gaussian parameters. Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
+    g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
+    [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64], cov_scratch
+    [threads, 2, 3, 3] are per-thread work space.
+    """
+    n_bases = sh.shape[2]
+    explicit = covariances.shape[0] > 0
     for m in prange(order.shape[0]):
         i = order[m]
+        tid = get_thread_id()
         gr = grads[m]
-        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
-            mu[i], rotations[i], scales[i, 0], scales[i, 1], R_cw, K
-        )
-        cx, cy = geom[m, GEOM_CX], geom[m, GEOM_CY]
-        # h = A + p_x B + p_y C = A_c + dx B + dy C: the centre cancels, so with dx = p_x - c_x
-        # dL/dA = sum g_h, dL/dB = sum (dx + c_x) g_h, dL/dC = sum (dy + c_y) g_h.
-        gA0, gA1, gA2 = gr[GRAD_H], gr[GRAD_H + 1], gr[GRAD_H + 2]
-        gB0, gB1, gB2 = gr[GRAD_HX] + cx * gA0, gr[GRAD_HX + 1] + cx * gA1, gr[GRAD_HX + 2] + cx * gA2
-        gC0, gC1, gC2 = gr[GRAD_HY] + cy * gA0, gr[GRAD_HY + 1] + cy * gA1, gr[GRAD_HY + 2] + cy * gA2
-        g_det = gr[GRAD_DET]
-        # For u = a x b: dL/da = b x g_u, dL/db = g_u x a. A = Tx x Ty, B = Ty x Tw, C = Tw x Tx,
-        # and det = Tw . (Tx x Ty) adds g_det (Ty x Tw) to Tx, g_det (Tw x Tx) to Ty, g_det (Tx x Ty) to Tw.
-        gdA0, gdA1, gdA2 = gA0 + g_det * tw0, gA1 + g_det * tw1, gA2 + g_det * tw2  # A enters det as Tw . A
-        gx0 = ty1 * gdA2 - ty2 * gdA1 + gC1 * tw2 - gC2 * tw1
-        gx1 = ty2 * gdA0 - ty0 * gdA2 + gC2 * tw0 - gC0 * tw2
-        gx2 = ty0 * gdA1 - ty1 * gdA0 + gC0 * tw1 - gC1 * tw0
-        gy0 = gdA1 * tx2 - gdA2 * tx1 + tw1 * gB2 - tw2 * gB1
-        gy1 = gdA2 * tx0 - gdA0 * tx2 + tw2 * gB0 - tw0 * gB2
-        gy2 = gdA0 * tx1 - gdA1 * tx0 + tw0 * gB1 - tw1 * gB0
-        gw0 = gB1 * ty2 - gB2 * ty1 + tx1 * gC2 - tx2 * gC1
-        gw1 = gB2 * ty0 - gB0 * ty2 + tx2 * gC0 - tx0 * gC2
-        gw2 = gB0 * ty1 - gB1 * ty0 + tx0 * gC1 - tx1 * gC0
-        ax, ay, az = tx1 * ty2 - tx2 * ty1, tx2 * ty0 - tx0 * ty2, tx0 * ty1 - tx1 * ty0
-        gw0 += g_det * ax
-        gw1 += g_det * ay
-        gw2 += g_det * az
-        # Centre c = (Tx[2], Ty[2]) / mu_z and the filter-branch depth Tw[2].
-        z = mu[i, 2]
-        safe_z = z if abs(z) > _NEAR_ZERO else 1.0
-        g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
-        gx2 += g_cx / safe_z
-        gy2 += g_cy / safe_z
-        g_mu_z = -(g_cx * cx + g_cy * cy) / safe_z if abs(z) > _NEAR_ZERO else 0.0
-        gw2 += gr[GRAD_DEPTH]
-        # T = K M with M = [u s0, v s1, mu]: dL/dM = K^T dL/dT (rows of dL/dT: gx, gy, gw).
-        gm00 = K[0, 0] * gx0 + K[1, 0] * gy0 + K[2, 0] * gw0
-        gm10 = K[0, 1] * gx0 + K[1, 1] * gy0 + K[2, 1] * gw0
-        gm20 = K[0, 2] * gx0 + K[1, 2] * gy0 + K[2, 2] * gw0
-        gm01 = K[0, 0] * gx1 + K[1, 0] * gy1 + K[2, 0] * gw1
-        gm11 = K[0, 1] * gx1 + K[1, 1] * gy1 + K[2, 1] * gw1
-        gm21 = K[0, 2] * gx1 + K[1, 2] * gy1 + K[2, 2] * gw1
-        gm02 = K[0, 0] * gx2 + K[1, 0] * gy2 + K[2, 0] * gw2
-        gm12 = K[0, 1] * gx2 + K[1, 1] * gy2 + K[2, 1] * gw2
-        gm22 = K[0, 2] * gx2 + K[1, 2] * gy2 + K[2, 2] * gw2
-        g_mu[i, 0] = gm02
-        g_mu[i, 1] = gm12
-        g_mu[i, 2] = gm22 + g_mu_z
-        s0, s1 = scales[i, 0], scales[i, 1]
         R = rotations[i]
-        # Camera-frame tangents u = R_cw R e1, v = R_cw R e2; dL/ds0 = u . dL/dM[:, 0].
-        for col in range(2):
-            s = s0 if col == 0 else s1
-            gc0 = gm00 if col == 0 else gm01
-            gc1 = gm10 if col == 0 else gm11
-            gc2 = gm20 if col == 0 else gm21
-            cam0 = R_cw[0, 0] * R[0, col] + R_cw[0, 1] * R[1, col] + R_cw[0, 2] * R[2, col]
-            cam1 = R_cw[1, 0] * R[0, col] + R_cw[1, 1] * R[1, col] + R_cw[1, 2] * R[2, col]
-            cam2 = R_cw[2, 0] * R[0, col] + R_cw[2, 1] * R[1, col] + R_cw[2, 2] * R[2, col]
-            g_scales[i, col] = cam0 * gc0 + cam1 * gc1 + cam2 * gc2
-            # dL/d(R e_col) = R_cw^T (s dL/dM[:, col])
-            for row in range(3):
-                g_rotations[i, row, col] = s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
-        g_opacities[i] = gr[GRAD_LOGO] / opacities[i]
-
-
-@njit(parallel=True, cache=True)
-def ewa_project_backward(order, mu, covariances, opacities, R_cw, K, grads, g_mu, g_covariances, g_opacities):
-    """Chain rule from per-survivor gradients [M, GRAD_SIZE] to camera-frame means, world
-    covariances and opacities (outputs [N, 3], [N, 3, 3], [N], zero on entry).
-
-    As in the torch backend, the off-diagonal of the 2D covariance is read from its (0, 1) entry,
-    so dL/dSigma is J W-projected from [[g_a, g_b], [0, g_c]] (its antisymmetric part is harmless:
-    Sigma is symmetric wherever it comes from).
-    """
-    for m in prange(order.shape[0]):
-        i = order[m]
-        gr = grads[m]
-        cov = covariances[i]
-        a, b, c, p0, p1, p2, q0, q1, q2, safe_z = _ewa_cov2d(mu[i], cov, R_cw, K)
-        a += EWA_DILATION
-        c += EWA_DILATION
-        det_raw = a * c - b * b
-        det = max(det_raw, _CONIC_DET_MIN)
-        G0, G1, G2 = gr[GRAD_CONIC], gr[GRAD_CONIC + 1], gr[GRAD_CONIC + 2]
-        # conic = (c, -b, a) / det
-        g_det = -(G0 * c - G1 * b + G2 * a) / (det * det) if det_raw >= _CONIC_DET_MIN else 0.0
-        g_a = G2 / det + g_det * c
-        g_c = G0 / det + g_det * a
-        g_b = -G1 / det - 2.0 * b * g_det
-        # cov2d = X Sigma X^T with X = J W (rows p, q); G = [[g_a, g_b], [0, g_c]]:
-        # dL/dX = G X Sigma^T + G^T X Sigma, dL/dSigma = X^T G X.
-        sp0 = cov[0, 0] * p0 + cov[0, 1] * p1 + cov[0, 2] * p2  # Sigma p
-        sp1 = cov[1, 0] * p0 + cov[1, 1] * p1 + cov[1, 2] * p2
-        sp2 = cov[2, 0] * p0 + cov[2, 1] * p1 + cov[2, 2] * p2
-        sq0 = cov[0, 0] * q0 + cov[0, 1] * q1 + cov[0, 2] * q2  # Sigma q
-        sq1 = cov[1, 0] * q0 + cov[1, 1] * q1 + cov[1, 2] * q2
-        sq2 = cov[2, 0] * q0 + cov[2, 1] * q1 + cov[2, 2] * q2
-        tp0 = cov[0, 0] * p0 + cov[1, 0] * p1 + cov[2, 0] * p2  # Sigma^T p
-        tp1 = cov[0, 1] * p0 + cov[1, 1] * p1 + cov[2, 1] * p2
-        tp2 = cov[0, 2] * p0 + cov[1, 2] * p1 + cov[2, 2] * p2
-        tq0 = cov[0, 0] * q0 + cov[1, 0] * q1 + cov[2, 0] * q2  # Sigma^T q
-        tq1 = cov[0, 1] * q0 + cov[1, 1] * q1 + cov[2, 1] * q2
-        tq2 = cov[0, 2] * q0 + cov[1, 2] * q1 + cov[2, 2] * q2
-        # (G X Sigma^T) row 0 = g_a (Sigma p)^T... written with Sigma^T rows: X Sigma^T rows are (Sigma p, Sigma q).
-        gp0 = g_a * sp0 + g_b * sq0 + g_a * tp0
-        gp1 = g_a * sp1 + g_b * sq1 + g_a * tp1
-        gp2 = g_a * sp2 + g_b * sq2 + g_a * tp2
-        gq0 = g_c * sq0 + g_b * tp0 + g_c * tq0
-        gq1 = g_c * sq1 + g_b * tp1 + g_c * tq1
-        gq2 = g_c * sq2 + g_b * tp2 + g_c * tq2
-        pp = (p0, p1, p2)
-        qq = (q0, q1, q2)
+        mu = _camera_point(means[i], R_cw, t_cw)
+        if surfel:
+            gm0, gm1, gm2 = _surfel_backward(
+                mu, R, scales[i, 0], scales[i, 1], R_cw, K, gr, geom[m, GEOM_CX], geom[m, GEOM_CY],
+                g_rotations[i], g_scales[i],
+            )
+        else:
+            if explicit:
+                gm0, gm1, gm2 = _ewa_backward(mu, covariances[i], R_cw, K, gr, g_covariances[i])
+            else:
+                cov, g_cov = cov_scratch[tid, 0], cov_scratch[tid, 1]
+                _thin_covariance(R, scales[i, 0], scales[i, 1], cov)
+                gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, gr, g_cov)
+                # Sigma = R D R^T, D = diag(s0^2, s1^2, thin^2): dL/dR = (G + G^T) R D,
+                # dL/ds_j = 2 s_j (R^T G R)_jj.
+                var = (scales[i, 0] * scales[i, 0], scales[i, 1] * scales[i, 1], THIN_SCALE * THIN_SCALE)
+                for r in range(3):
+                    for j in range(3):
+                        acc = 0.0
+                        for k in range(3):
+                            acc += (g_cov[r, k] + g_cov[k, r]) * R[k, j]
+                        g_rotations[i, r, j] = acc * var[j]
+                for j in range(2):
+                    acc = 0.0
+                    for r in range(3):
+                        for k in range(3):
+                            acc += R[r, j] * g_cov[r, k] * R[k, j]
+                    g_scales[i, j] = 2.0 * scales[i, j] * acc
+        # mu = R_cw x + t
         for r in range(3):
-            for s in range(3):
-                g_covariances[i, r, s] = g_a * pp[r] * pp[s] + g_b * pp[r] * qq[s] + g_c * qq[r] * qq[s]
-        # X = J W: dL/dJ = dL/dX W^T (W = R_cw).
-        gj00 = gp0 * R_cw[0, 0] + gp1 * R_cw[0, 1] + gp2 * R_cw[0, 2]
-        gj01 = gp0 * R_cw[1, 0] + gp1 * R_cw[1, 1] + gp2 * R_cw[1, 2]
-        gj02 = gp0 * R_cw[2, 0] + gp1 * R_cw[2, 1] + gp2 * R_cw[2, 2]
-        gj11 = gq0 * R_cw[1, 0] + gq1 * R_cw[1, 1] + gq2 * R_cw[1, 2]
-        gj12 = gq0 * R_cw[2, 0] + gq1 * R_cw[2, 1] + gq2 * R_cw[2, 2]
-        fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
-        m0, m1 = mu[i, 0], mu[i, 1]
-        z = safe_z
-        z2, z3 = z * z, z * z * z
-        # J = [[fx/z, s/z, -(fx m0 + s m1)/z^2], [0, fy/z, -fy m1/z^2]]
-        g0 = -gj02 * fx / z2
-        g1 = -gj02 * skew / z2 - gj12 * fy / z2
-        g2 = (
-            -(gj00 * fx + gj01 * skew + gj11 * fy) / z2
-            + 2.0 * gj02 * (fx * m0 + skew * m1) / z3
-            + 2.0 * gj12 * fy * m1 / z3
-        )
-        # Centre (fx m0 / z + s m1 / z + cx, fy m1 / z + cy).
-        g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
-        g0 += g_cx * fx / z
-        g1 += (g_cx * skew + g_cy * fy) / z
-        g2 -= (g_cx * (fx * m0 + skew * m1) + g_cy * fy * m1) / z2
-        if abs(mu[i, 2]) <= _NEAR_ZERO:
-            g2 = 0.0
-        g_mu[i, 0] = g0
-        g_mu[i, 1] = g1
-        g_mu[i, 2] = g2 + gr[GRAD_DEPTH]
+            g_means[i, r] = R_cw[0, r] * gm0 + R_cw[1, r] * gm1 + R_cw[2, r] * gm2
         g_opacities[i] = gr[GRAD_LOGO] / opacities[i]
-
+        # Normal feature = flip * R e3.
+        for r in range(3):
+            g_rotations[i, r, 2] += flip[i] * gr[GRAD_FEAT + 3 + r]
+        # Colour feature = max(sum_k sh_k Y_k(d) + 0.5, 0), d = normalize(x - camera centre).
+        dx, dy, dz, norm = _view_direction(means[i], cam_center)
+        Y, GX, GY, GZ = scratch[tid, 0:16], scratch[tid, 16:32], scratch[tid, 32:48], scratch[tid, 48:64]
+        _sh_basis(dx, dy, dz, n_bases, Y)
+        gd0, gd1, gd2 = 0.0, 0.0, 0.0
+        if n_bases > 1:
+            _sh_basis_grad(dx, dy, dz, n_bases, GX, GY, GZ)
+        for ch in range(3):
+            v = 0.5
+            for k in range(n_bases):
+                v += sh[i, ch, k] * Y[k]
+            g_col = gr[GRAD_FEAT + ch] if v >= 0.0 else 0.0
+            for k in range(n_bases):
+                g_sh[i, ch, k] = g_col * Y[k]
+            if n_bases > 1:
+                for k in range(1, n_bases):
+                    gd0 += g_col * sh[i, ch, k] * GX[k]
+                    gd1 += g_col * sh[i, ch, k] * GY[k]
+                    gd2 += g_col * sh[i, ch, k] * GZ[k]
+        if n_bases > 1 and norm > 1e-12:
+            # d = v / |v|: dL/dv = (dL/dd - d (d . dL/dd)) / |v|
+            proj = dx * gd0 + dy * gd1 + dz * gd2
+            g_means[i, 0] += (gd0 - dx * proj) / norm
+            g_means[i, 1] += (gd1 - dy * proj) / norm
+            g_means[i, 2] += (gd2 - dz * proj) / norm
 
 # ---------------------------------------------------------------------------------------------
 # Diagnostics
