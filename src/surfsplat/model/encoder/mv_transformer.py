@@ -109,10 +109,18 @@ class AttentionLayer(nn.Module):
         else:
             self.mlp = None
 
-    def forward(self, source: Tensor, keys: Tensor, values: Tensor, mask: Tensor | None) -> Tensor:
+    def project(self, x: Tensor, *names: str) -> tuple[Tensor, ...]:
+        """Several of the q/k/v projections of the same tokens in one matrix product."""
+        weight = torch.cat([getattr(self, f"{n}_proj").weight for n in names])
+        return F.linear(x, weight).chunk(len(names), dim=-1)
+
+    def forward(
+        self, source: Tensor, keys: Tensor, values: Tensor, mask: Tensor | None, query: Tensor | None = None
+    ) -> Tensor:
         """Tokens in window order. source [N, W, L, C]; keys, values [N, W, S, C] already projected;
-        mask [1, W, L, S] or None -> updated source [N, W, L, C]."""
-        message = F.scaled_dot_product_attention(self.q_proj(source), keys, values, attn_mask=mask)
+        mask [1, W, L, S] or None; query: q_proj(source) when already computed -> [N, W, L, C]."""
+        query = self.q_proj(source) if query is None else query
+        message = F.scaled_dot_product_attention(query, keys, values, attn_mask=mask)
         message = self.norm1(self.merge(message))
         if self.mlp is not None:
             message = self.norm2(self.mlp(torch.cat((source, message), dim=-1)))
@@ -158,12 +166,14 @@ class MultiViewTransformer(nn.Module):
             flat = xw.reshape(b * v, windows, length, c)
             # self-attention within each view's windows
             sa = layer.self_attn
-            x_self = sa(flat, sa.k_proj(flat), sa.v_proj(flat), self_mask if shift else None)
+            q, k, vv = sa.project(flat, "q", "k", "v")
+            x_self = sa(flat, k, vv, self_mask if shift else None, query=q)
             # cross-attention to the same windows of the neighbours, using their features from
             # before this layer; one softmax over all neighbours' tokens
             ca = layer.cross_attn
-            keys = torch.gather(ca.k_proj(xw), 1, index)  # [B, V*M, L_all, C]
-            values = torch.gather(ca.v_proj(xw), 1, index)
+            k, vv = ca.project(xw, "k", "v")
+            keys = torch.gather(k, 1, index)  # [B, V*M, L_all, C]
+            values = torch.gather(vv, 1, index)
             keys = rearrange(keys, "b (v m) (w l) c -> (b v) w (m l) c", v=v, w=windows)
             values = rearrange(values, "b (v m) (w l) c -> (b v) w (m l) c", v=v, w=windows)
             xw = ca(x_self, keys, values, cross_mask if shift else None)
