@@ -360,7 +360,8 @@ def test_two_scale_cascade_runs():
     from surfsplat.model.surfsplat import SurfSplatConfig
 
     torch.manual_seed(5)
-    cfg = SurfSplatConfig(encoder=replace(PRESETS["tiny"], num_scales=2))
+    # a CNN stage width different from the matching width checks every concatenation's bookkeeping
+    cfg = SurfSplatConfig(encoder=replace(PRESETS["tiny"], num_scales=2, cnn_dims=(16, 24, 40)))
     model = SurfSplat(cfg).eval()
     images = torch.rand(1, 2, 3, 64, 64)
     with torch.no_grad():

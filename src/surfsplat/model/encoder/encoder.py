@@ -122,10 +122,13 @@ class SurfSplatEncoder(nn.Module):
         if cfg.num_scales == 2:
             self.mv_pyramid = FeaturePyramid(cfg.feature_channels)
             self.mono_pyramid = FeaturePyramid(vit_dim)
+        # CNN outputs, highest resolution first: layer1 and layer2 at 1/2, the projection at 1/4
+        cnn_channels = (cfg.cnn_dims[0], cfg.cnn_dims[1], cfg.feature_channels)
         scales = []
         for i in range(cfg.num_scales):
             candidates = cfg.num_depth_candidates // 4**i
-            in_channels = candidates + cfg.cnn_dims[-1 - i] + cfg.feature_channels // 2**i + vit_dim // 2**i
+            # concat(cost volume, CNN features, multi-view features, monocular features)
+            in_channels = candidates + cnn_channels[2 - i] + cfg.feature_channels // 2**i + vit_dim // 2**i
             channels = cfg.unet_channels // 2**i
             unet = UNet(
                 channels,
@@ -139,7 +142,7 @@ class SurfSplatEncoder(nn.Module):
         layout = dict(
             vit_channels=vit_dim,
             out_channels=tuple(cfg.dpt_out_channels),
-            cnn_channels=tuple(cfg.cnn_dims),
+            cnn_channels=cnn_channels,
             mv_channels=mv_channels,
             upsample_factor=cfg.upsample_factor,
         )
