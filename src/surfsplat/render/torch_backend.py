@@ -285,16 +285,14 @@ def _block_state(coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor,
         hx, hy, hz, rho2d = (coef.reshape(4, n * k, -1) @ basis).reshape(4, n, k, -1).unbind(0)
         a = hx * hx
         a.addcmul_(hy, hy)
-        hz2 = hz * hz
         # min(rho3d, rho2d) without dividing where the ray grazes the splat (hz -> 0): the 3D
         # branch is taken only where a < rho2d hz^2, which implies hz != 0.
-        use3d = a < rho2d * hz2
-        inv_hz = torch.where(use3d, hz, 1.0).reciprocal_().mul_(use3d)  # 1 / hz on the 3D branch, else 0
-        rho = a.mul_(inv_hz).mul_(inv_hz)
-        rho.add_(rho2d.mul_(~use3d))
+        use3d = a < rho2d * (hz * hz)
+        inv_hz = torch.where(use3d, hz, math.inf).reciprocal_()  # 1 / hz on the 3D branch, else 0
+        rho = torch.where(use3d, a.mul_(inv_hz).mul_(inv_hz), rho2d)
         # 2DGS: the depth of the ray-splat intersection, det(T) / hz; the centre depth where the filter wins.
         det, mu_z = depth_params[..., 0:1], depth_params[..., 1:2]
-        depth = (det * inv_hz).add_(mu_z * ~use3d)
+        depth = torch.where(use3d, det * inv_hz, mu_z)
         st.update(hx=hx, hy=hy, hz=hz, use3d=use3d, inv_hz=inv_hz, depth=depth)
     else:
         rho = (coef.reshape(n * k, -1) @ basis).reshape(n, k, -1)
@@ -302,15 +300,14 @@ def _block_state(coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor,
     log_alpha = torch.add(log_opacity[..., None], rho, alpha=-0.5)  # log(o exp(-rho / 2))
     alpha = torch.exp(log_alpha)
     saturated = alpha > ALPHA_MAX
-    alpha.clamp_max_(ALPHA_MAX).mul_(log_alpha >= LOG_ALPHA_MIN)  # [n, k, P]
+    alpha.clamp_max_(ALPHA_MAX).masked_fill_(log_alpha < LOG_ALPHA_MIN, 0.0)  # [n, k, P]
     one_minus = 1 - alpha
     trans_incl = torch.cumprod(one_minus, dim=1).mul_(transmittance[:, None, :])
     # 3DGS/2DGS rule: a Gaussian that would push transmittance below the floor ends the pixel and
     # is itself not blended; transmittance only falls, so `keep` is a prefix along the depth axis.
     keep = trans_incl >= TRANSMITTANCE_MIN
     trans_excl = trans_incl.div_(one_minus)  # transmittance in front of each Gaussian
-    weight = alpha * trans_excl
-    weight.mul_(keep)
+    weight = (alpha * trans_excl).masked_fill_(~keep, 0.0)
     st.update(alpha=alpha, saturated=saturated, one_minus=one_minus, trans_excl=trans_excl, keep=keep, weight=weight)
     st["trans_out"] = transmittance - weight.sum(1)
     return st
@@ -349,10 +346,10 @@ class _CompositeBlock(torch.autograd.Function):
         total = contrib.sum(1)  # [n, P]
         behind = total[:, None, :] - contrib.cumsum(1)  # sum over j > i
         behind.add_((g_trans * trans_out)[:, None, :])
-        g_alpha = (g_w * st["trans_excl"]).sub_(behind.div_(st["one_minus"])).mul_(st["keep"])
+        g_alpha = (g_w * st["trans_excl"]).sub_(behind.div_(st["one_minus"])).masked_fill_(~st["keep"], 0.0)
         g_transmittance = (total + g_trans * trans_out) / transmittance
         # alpha = min(exp(log_alpha), 0.99) where log_alpha >= log(1/255), else 0.
-        g_log_alpha = g_alpha.mul_(alpha).mul_(~st["saturated"])
+        g_log_alpha = g_alpha.mul_(alpha).masked_fill_(st["saturated"], 0.0)
         g_log_opacity = g_log_alpha.sum(-1)
         g_rho = g_log_alpha.mul_(-0.5)
         n, k = log_opacity.shape
@@ -363,14 +360,15 @@ class _CompositeBlock(torch.autograd.Function):
         # rho = (hx^2 + hy^2) / hz^2 on the 3D branch, rho2d elsewhere; depth = det / hz or mu_z.
         g_depth_pair = w.mul_(g_depth[:, None, :])
         g_det = (g_depth_pair * inv_hz).sum(-1)
-        g_mu_z = (g_depth_pair * ~use3d).sum(-1)
-        g_r = g_rho * inv_hz * inv_hz  # d rho / d hx = 2 hx / hz^2
-        g_hx = 2 * g_r * hx
-        g_hy = 2 * g_r * hy
-        g_hz = (-2 * g_rho * st["rho"]).mul_(inv_hz).sub_(g_depth_pair * st["depth"] * inv_hz)
-        g_rho2d = g_rho.mul_(~use3d)
-        g_planes = torch.stack((g_hx, g_hy, g_hz, g_rho2d)).reshape(4, n * k, -1)
-        g_coef = (g_planes @ basis.T).reshape(coef.shape)
+        g_mu_z = g_depth_pair.sum(-1) - torch.where(use3d, g_depth_pair, 0.0).sum(-1)
+        g_planes = torch.empty(4, n, k, g_rho.shape[-1], dtype=g_rho.dtype, device=g_rho.device)
+        g_r = torch.mul(g_rho, inv_hz).mul_(inv_hz).mul_(2)  # d rho / d hx = 2 hx / hz^2
+        torch.mul(g_r, hx, out=g_planes[0])
+        torch.mul(g_r, hy, out=g_planes[1])
+        # d rho / d hz = -2 rho / hz; d depth / d hz = -depth / hz (both zero off the 3D branch).
+        torch.mul(g_rho, st["rho"], out=g_planes[2]).mul_(-2).sub_(g_depth_pair.mul_(st["depth"])).mul_(inv_hz)
+        g_planes[3].copy_(g_rho).masked_fill_(use3d, 0.0)
+        g_coef = (g_planes.reshape(4, n * k, -1) @ basis.T).reshape(coef.shape)
         g_depth_params = torch.stack((g_det, g_mu_z), dim=-1)
         return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None
 
@@ -386,9 +384,15 @@ def composite(
     F_ = proj.features.shape[1]
     n_tiles = bins.tiles_x * bins.tiles_y
     basis = _tile_basis(mode, tile, dtype, device)
-    log_opacity = torch.log(proj.opacity)
-    geometry = proj.geometry.to(dtype)
-    center = proj.center
+    # One table row per Gaussian so each block needs a single gather. The projected centre is
+    # split into a working-precision value and its remainder, so tile offsets stay exact to
+    # float64 accuracy on large images.
+    center_hi = proj.center.to(dtype)
+    center_lo = (proj.center - center_hi.to(proj.center.dtype)).to(dtype)
+    G = proj.geometry.shape[1]
+    table = torch.cat(
+        (proj.geometry.to(dtype), proj.features, torch.log(proj.opacity)[:, None], center_hi, center_lo), dim=1
+    )  # [M, G + F + 5]
 
     tile_feats = torch.zeros(n_tiles, P, F_, dtype=dtype, device=device)
     tile_depth = torch.zeros(n_tiles, P, dtype=dtype, device=device)
@@ -410,7 +414,7 @@ def composite(
         g_start, g_count = bins.start[group], bins.count[group]
         tiles_x = group % bins.tiles_x
         tiles_y = group // bins.tiles_x
-        origin = torch.stack((tiles_x * tile, tiles_y * tile), dim=-1).to(torch.float64)  # [n, 2]
+        origin = torch.stack((tiles_x * tile, tiles_y * tile), dim=-1).to(dtype)  # [n, 2]
         trans = torch.ones(group.shape[0], P, dtype=dtype, device=device)
         feats = torch.zeros(group.shape[0], P, F_, dtype=dtype, device=device)
         depth = torch.zeros(group.shape[0], P, dtype=dtype, device=device)
@@ -421,10 +425,11 @@ def composite(
                 break
             pair = (g_start[:, None] + slot[None, :]).clamp_max(max(bins.gaussian.shape[0] - 1, 0))
             gi = torch.where(valid, bins.gaussian[pair], torch.zeros_like(pair))
-            offset = (origin[:, None, :] - center[gi]).to(dtype)
-            log_opac = torch.where(valid, log_opacity[gi], -math.inf)
-            coef, depth_params = _pair_coefficients(mode, geometry[gi], offset)
-            trans, f_blk, d_blk = _CompositeBlock.apply(coef, depth_params, log_opac, proj.features[gi], trans, basis)
+            rows = table[gi]  # [n, kb, G + F + 5]
+            offset = (origin[:, None, :] - rows[..., -4:-2]) - rows[..., -2:]
+            log_opac = torch.where(valid, rows[..., G + F_], -math.inf)
+            coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset)
+            trans, f_blk, d_blk = _CompositeBlock.apply(coef, depth_params, log_opac, rows[..., G : G + F_], trans, basis)
             feats = feats + f_blk
             depth = depth + d_blk
             if bool((trans < TRANSMITTANCE_MIN).all()):
