@@ -1,0 +1,478 @@
+"""Evaluation over an evaluation index: standard metrics and HRRC (paper Sec. 3.6) per scene.
+
+    model, name = load_model(ModelSpec("runs/tiny/checkpoints/step-00000200"))
+    samples = iter_index_samples(["data/re10k/test"], EvaluationIndex.load("evaluation_index_re10k.json"))
+    result = evaluate(model, samples, EvalConfig(), lpips=try_load_lpips(), name=name)
+    print(format_results({name: result}))       # the paper's table: standard / x2 / x4 / average
+
+For every index entry the model sees the context views once; the target views are rendered at the
+input resolution (standard metrics) and at 2x and 4x with K scaled by s, and scored against the
+ground truth upsampled bicubically (`surfsplat.metrics.hrrc`). Where chunks carry true depth
+(synthetic rooms, ScanNet) the predicted context depth is scored as well. Wall time of the forward
+pass and of each render scale, and peak memory, are measured per run.
+
+Checkpoints: our own (`model.safetensors` + `model.json`, a training checkpoint folder or a run
+folder, whose newest checkpoint is taken) and the release's Lightning `.ckpt` / `.pth` files (loaded
+through the key mapping into the official-compatible adapter). Ablations of a checkpoint are adapter
+overrides (`opacity_max=1.0` is "w/o FAB" at inference), so `--compare` puts them side by side.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import resource
+import sys
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from .checks import SurfSplatInputError
+from .data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
+from .data.eval_index import EvaluationIndex
+from .data.transforms import rescale_and_crop
+from .geometry.cameras import Cameras
+from .metrics.depth import depth_metrics
+from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
+from .metrics.lpips import Lpips, LpipsUnavailable
+from .model.decoder import decoder_mode
+from .model.surfsplat import SurfSplat, SurfSplatConfig
+from .render import RenderOutput, render
+
+RELEASE_SUFFIXES = (".ckpt", ".pth", ".pt")
+DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
+
+
+# ----------------------------------------------------------------------------------------- models
+@dataclass(frozen=True)
+class ModelSpec:
+    """Which network to evaluate: a checkpoint, and how to read it."""
+
+    checkpoint: str  # our .safetensors/.json pair, a training checkpoint folder, a run folder, or a release .ckpt/.pth
+    name: str | None = None  # label in tables (default: derived from the path and overrides)
+    preset: str = "small"  # encoder preset of a release checkpoint (ours store their configuration)
+    adapter_overrides: tuple[tuple[str, object], ...] = ()  # AdapterConfig fields to change, e.g. (("opacity_max", 1.0),)
+    trust_pickle: bool = False  # release .ckpt files pickle their hyper-parameters; allow unpickling them
+
+    @staticmethod
+    def parse(text: str, preset: str = "small", trust_pickle: bool = False) -> ModelSpec:
+        """`[NAME=]CHECKPOINT[:field=value,field=value]`, e.g. `w/o FAB=runs/tiny:opacity_max=1.0`.
+
+        Values are JSON (numbers, true/false) or bare words (strings such as prior=none).
+        """
+        name = None
+        head, _, tail = text.partition(":")
+        if "=" in head:
+            name, head = head.split("=", 1)
+        if not head:
+            raise SurfSplatInputError(f"--compare {text!r}: expected [NAME=]CHECKPOINT[:field=value,...]")
+        overrides = []
+        for item in filter(None, tail.split(",")):
+            if "=" not in item:
+                raise SurfSplatInputError(f"--compare {text!r}: adapter override {item!r} is not field=value")
+            key, value = item.split("=", 1)
+            try:
+                parsed: object = json.loads(value)
+            except ValueError:
+                parsed = value
+            overrides.append((key.strip(), parsed))
+        return ModelSpec(checkpoint=head, name=name or None, preset=preset, adapter_overrides=tuple(overrides), trust_pickle=trust_pickle)
+
+    def label(self) -> str:
+        if self.name:
+            return self.name
+        path = Path(self.checkpoint)
+        base = path.parent.parent.name + "/" + path.name if path.parent.name == "checkpoints" else path.name
+        extra = ",".join(f"{k}={v}" for k, v in self.adapter_overrides)
+        return base + (f" [{extra}]" if extra else "")
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The model file stem of our checkpoint formats, or the release file itself.
+
+    Accepts `x.safetensors` / `x.json`, a training checkpoint folder (`model.safetensors` inside),
+    a run folder (its newest `checkpoints/step-*`), or a release `.ckpt` / `.pth`.
+    """
+    path = Path(path)
+    if not path.exists() and not path.with_suffix(".json").exists():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    if path.is_dir():
+        if (path / "model.json").is_file():
+            return path / "model.safetensors"
+        steps = sorted((path / "checkpoints").glob("step-*")) if (path / "checkpoints").is_dir() else []
+        steps = [s for s in steps if (s / "model.json").is_file()]
+        if steps:
+            return steps[-1] / "model.safetensors"
+        raise FileNotFoundError(f"{path}: a folder without model.json or checkpoints/step-*/model.json")
+    return path
+
+
+def load_model(spec: ModelSpec, device: torch.device | str = "cpu") -> tuple[SurfSplat, str]:
+    """(model in eval mode, table label) for a ModelSpec."""
+    from .model.checkpoint import load_checkpoint, load_release_weights
+
+    path = resolve_checkpoint(spec.checkpoint)
+    if path.suffix in RELEASE_SUFFIXES:
+        model = SurfSplat.from_preset(spec.preset, adapter="official")
+        load_release_weights(model, path, trust_pickle=spec.trust_pickle)
+    else:
+        model = load_checkpoint(path)
+    if spec.adapter_overrides:
+        model = with_adapter(model, dict(spec.adapter_overrides))
+    return model.to(device).eval(), spec.label()
+
+
+def with_adapter(model: SurfSplat, overrides: dict[str, object]) -> SurfSplat:
+    """The same weights under a changed adapter configuration (an inference-time ablation)."""
+    fields = set(type(model.cfg.adapter).__dataclass_fields__)
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise SurfSplatInputError(f"adapter overrides: unknown fields {unknown} (known: {sorted(fields)})")
+    adapter = replace(model.cfg.adapter, **overrides)
+    changed = SurfSplat(SurfSplatConfig(encoder=model.cfg.encoder, adapter=adapter))
+    mine, theirs = changed.state_dict(), model.state_dict()
+    if set(mine) != set(theirs) or any(mine[k].shape != theirs[k].shape for k in mine):
+        raise SurfSplatInputError(
+            f"adapter overrides {overrides}: the network's head differs under this adapter; a checkpoint trained "
+            "with it is needed (train the ablation instead)"
+        )
+    changed.load_state_dict(theirs)
+    return changed
+
+
+# ----------------------------------------------------------------------------------------- samples
+@dataclass
+class EvalSample:
+    """One evaluation index entry with its decoded views."""
+
+    key: str  # index entry key
+    scene: str  # chunk example key
+    context_images: Tensor  # [Vc, 3, H, W]
+    context_cameras: Cameras
+    target_images: Tensor  # [Vt, 3, H, W]
+    target_cameras: Cameras
+    near: float
+    far: float
+    context_depths: Tensor | None = None  # [Vc, 1, H, W] true depth where the chunk has it
+    context_views: tuple[int, ...] = ()
+    target_views: tuple[int, ...] = ()
+
+
+@dataclass
+class SampleCounts:
+    """What happened to the index entries (nothing is skipped silently)."""
+
+    evaluated: int = 0
+    excluded: int = 0  # null entries of the index (the benchmark leaves those scenes out)
+    not_in_index: int = 0  # chunk scenes the index does not mention
+    missing: list[str] = field(default_factory=list)  # index entries whose scene is in no chunk
+
+
+def iter_index_samples(
+    roots: Sequence[str | Path],
+    index: EvaluationIndex,
+    image_shape: tuple[int, int] | None = None,
+    near: float = 0.5,
+    far: float = 100.0,
+    max_entries: int | None = None,
+    counts: SampleCounts | None = None,
+) -> Iterator[EvalSample]:
+    """Samples for every non-null index entry whose scene is in the chunk folders, in chunk order.
+
+    image_shape: rescale and centre-crop every view to (H, W) first (the release evaluates RE10K at
+    256x256 this way), with K following exactly; None keeps the stored size.
+    `counts` (optional) is filled in as the iteration proceeds.
+    """
+    if not roots:
+        raise SurfSplatInputError("data: expected at least one chunk folder")
+    if not 0 < near < far:
+        raise SurfSplatInputError(f"near/far: expected 0 < near < far, got {near}, {far}")
+    counts = counts if counts is not None else SampleCounts()
+    found: set[str] = set()
+    produced = 0
+    for root in roots:
+        chunks = list_chunks(root)
+        if not chunks:
+            raise SurfSplatInputError(f"{root}: no .torch chunks in this folder")
+        for chunk in chunks:
+            for example in read_chunk(chunk):
+                entries = index.lookup(example["key"])
+                if not entries:
+                    counts.not_in_index += 1
+                    continue
+                for entry_key, entry in entries:
+                    found.add(entry_key)
+                    if entry is None:
+                        counts.excluded += 1
+                        continue
+                    if max_entries is not None and produced >= max_entries:
+                        return
+                    yield _decode_entry(example, entry_key, entry.context, entry.target, str(chunk), image_shape, near, far)
+                    produced += 1
+                    counts.evaluated += 1
+    counts.missing = sorted(k for k, v in index.entries.items() if v is not None and k not in found)
+
+
+def _decode_entry(
+    example: dict, entry_key: str, context: tuple[int, ...], target: tuple[int, ...], source: str,
+    image_shape: tuple[int, int] | None, near: float, far: float,
+) -> EvalSample:
+    num_views = example["cameras"].shape[0]
+    largest = max(context + target)
+    if largest >= num_views:
+        raise SurfSplatInputError(f"{source}: index entry '{entry_key}' uses view {largest} but the scene has {num_views} views")
+    views = list(context) + list(target)
+    images = decode_views(example, views, source)
+    width, height = image_size(example, views[0], source)
+    cameras = example_cameras(example, width, height, source)[torch.tensor(views)]
+    depths = decode_depths(example, list(context), source)
+    K = cameras.K
+    c = len(context)
+    if image_shape is not None and tuple(images.shape[-2:]) != tuple(image_shape):
+        if depths is not None:
+            _, _, depths = rescale_and_crop(images[:c], K[:c], image_shape, depths=depths)
+        images, K, _ = rescale_and_crop(images, K, image_shape)
+    elif depths is not None and depths.shape[-2:] != images.shape[-2:]:
+        depths = torch.nn.functional.interpolate(depths, size=images.shape[-2:], mode="nearest-exact")
+    cams = Cameras(cameras.c2w, K, validate=False)
+    return EvalSample(
+        key=entry_key,
+        scene=example["key"],
+        context_images=images[:c],
+        context_cameras=cams[:c],
+        target_images=images[c:],
+        target_cameras=cams[c:],
+        near=near,
+        far=far,
+        context_depths=depths,
+        context_views=tuple(context),
+        target_views=tuple(target),
+    )
+
+
+# ----------------------------------------------------------------------------------------- prediction
+@dataclass
+class ScenePrediction:
+    sample: EvalSample
+    gaussians: object  # unbatched surfsplat.Gaussians of the scene
+    depths: Tensor  # [Vc, H, W] predicted context depth
+    renders: dict[int, RenderOutput]  # factor -> target renders at s times the resolution
+    seconds_forward: float
+    seconds_render: dict[int, float]
+
+
+@torch.no_grad()
+def predict_sample(
+    model: SurfSplat,
+    sample: EvalSample,
+    factors: Sequence[int] = (1, 2, 4),
+    mode: Literal["auto", "surfel", "ewa"] = "auto",
+    alpha_threshold: float | None | Literal["model"] = "model",
+) -> ScenePrediction:
+    """Reconstruct a sample's scene from its context views and render its targets at every factor."""
+    device = next(model.parameters()).device
+    h, w = sample.target_images.shape[-2:]
+    images = sample.context_images[None].to(device)
+    cams = sample.context_cameras.to(device=device, dtype=torch.float32)
+    _sync(device)
+    start = time.perf_counter()
+    prediction = model(images, cams, sample.near, sample.far)
+    _sync(device)
+    forward = time.perf_counter() - start
+    gaussians = prediction.gaussians.select(0).to(torch.float32)
+    rmode = decoder_mode(model.cfg.adapter, mode)
+    tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
+    targets = sample.target_cameras.to(device=device, dtype=torch.float32)
+    renders, seconds = {}, {}
+    for s in factors:
+        start = time.perf_counter()
+        renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
+        _sync(device)
+        seconds[s] = time.perf_counter() - start
+    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+# ----------------------------------------------------------------------------------------- evaluation
+@dataclass(frozen=True)
+class EvalConfig:
+    """How an evaluation runs."""
+
+    factors: tuple[int, ...] = (1, 2, 4)  # 1 = standard metrics, 2 and 4 = HRRC
+    upsample: Literal["bicubic", "bilinear"] = "bicubic"  # HRRC ground truth: the paper; bilinear = the release's code
+    mode: Literal["auto", "surfel", "ewa"] = "auto"  # rasterization; auto follows the adapter
+    max_entries: int | None = None  # stop after this many index entries (smoke runs)
+    progress: bool = True  # tqdm bar over the entries
+
+    def __post_init__(self) -> None:
+        if self.upsample not in UPSAMPLE_MODES:
+            raise SurfSplatInputError(f"upsample: expected one of {UPSAMPLE_MODES}, got {self.upsample!r}")
+        if not self.factors or any(not isinstance(s, int) or s < 1 for s in self.factors):
+            raise SurfSplatInputError(f"factors: expected positive integers, got {self.factors!r}")
+
+
+@dataclass
+class EvaluationResult:
+    """One model's evaluation: the HRRC report, depth errors, timing and memory."""
+
+    name: str
+    report: HrrcReport
+    depth: dict[str, float] | None  # mean context-depth errors where true depth exists
+    seconds_forward: float  # mean wall time of one forward pass (context views -> surfels)
+    seconds_render: dict[int, float]  # mean wall time to render one entry's targets at each factor
+    seconds_total: float
+    peak_memory_bytes: int
+    peak_memory_kind: str  # what the peak counts: CUDA allocations of the run, or the process's peak RSS
+    num_entries: int
+    per_scene_depth: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name,
+            **self.report.to_json(),
+            "depth": self.depth,
+            "per_scene_depth": self.per_scene_depth,
+            "timing": {
+                "seconds_forward_mean": self.seconds_forward,
+                "seconds_render_mean": {f"x{s}": v for s, v in self.seconds_render.items()},
+                "seconds_total": self.seconds_total,
+            },
+            "peak_memory": {"bytes": self.peak_memory_bytes, "kind": self.peak_memory_kind},
+            "num_entries": self.num_entries,
+        }
+
+
+def evaluate(
+    model: SurfSplat,
+    samples: Iterable[EvalSample],
+    config: EvalConfig = EvalConfig(),
+    *,
+    lpips: Lpips | LpipsUnavailable,
+    name: str = "model",
+    total: int | None = None,
+) -> EvaluationResult:
+    """Standard and HRRC metrics (plus context depth errors where true depth exists) over samples."""
+    device = next(model.parameters()).device
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    model.eval()
+    evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
+    forward, renders = [], {s: [] for s in config.factors}
+    depth_rows: dict[str, dict[str, float]] = {}
+    started = time.perf_counter()
+    bar = tqdm(samples, total=total, disable=not config.progress, desc=f"eval {name}", unit="scene", dynamic_ncols=True)
+    for sample in bar:
+        pred = predict_sample(model, sample, config.factors, config.mode)
+        evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})
+        forward.append(pred.seconds_forward)
+        for s, t in pred.seconds_render.items():
+            renders[s].append(t)
+        if sample.context_depths is not None:
+            errors = depth_metrics(pred.depths.float().cpu(), sample.context_depths[:, 0].float())
+            keep = errors.num_valid > 0
+            if bool(keep.any()):
+                depth_rows[sample.key] = {m: float(getattr(errors, m)[keep].double().mean()) for m in DEPTH_METRICS}
+    report = evaluator.report()  # raises when no entry was evaluated
+    n = len(forward)
+    if device.type == "cuda":
+        peak, kind = int(torch.cuda.max_memory_allocated(device)), "CUDA memory allocated (peak of this evaluation)"
+    else:
+        peak, kind = peak_rss_bytes(), "process peak resident memory (RSS, since start)"
+    depth = {m: sum(r[m] for r in depth_rows.values()) / len(depth_rows) for m in DEPTH_METRICS} if depth_rows else None
+    return EvaluationResult(
+        name=name,
+        report=report,
+        depth=depth,
+        seconds_forward=sum(forward) / n,
+        seconds_render={s: sum(v) / n for s, v in renders.items()},
+        seconds_total=time.perf_counter() - started,
+        peak_memory_bytes=peak,
+        peak_memory_kind=kind,
+        num_entries=n,
+        per_scene_depth=depth_rows,
+    )
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident set size (Linux reports kilobytes, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if sys.platform == "darwin" else peak * 1024)
+
+
+# ----------------------------------------------------------------------------------------- reporting
+def format_results(results: dict[str, EvaluationResult]) -> str:
+    """The paper's table (standard / x2 / x4 / average) for every model, then timing and memory."""
+    lines = [format_hrrc_table({name: r.report for name, r in results.items()}), ""]
+    name_w = max(len("Method"), *(len(n) for n in results))
+    factors = next(iter(results.values())).report.factors
+    head = "Method".ljust(name_w) + " | forward s | " + " | ".join(f"render x{s} s" for s in factors) + " | peak memory"
+    lines += [head, "-" * len(head)]
+    for name, r in results.items():
+        cells = " | ".join(f"{r.seconds_render[s]:>11.3f}" for s in factors)
+        lines.append(f"{name.ljust(name_w)} | {r.seconds_forward:>9.3f} | {cells} | {r.peak_memory_bytes / 2**20:,.0f} MiB")
+    kinds = sorted({r.peak_memory_kind for r in results.values()})
+    lines.append("peak memory: " + "; ".join(kinds))
+    depth = {n: r.depth for n, r in results.items() if r.depth is not None}
+    if depth:
+        lines.append("")
+        lines.append("Context depth (true depth in the chunks): " + ", ".join(DEPTH_METRICS))
+        for name, d in depth.items():
+            lines.append(f"{name.ljust(name_w)} | " + " | ".join(f"{d[m]:.4f}" for m in DEPTH_METRICS))
+    return "\n".join(lines)
+
+
+def per_scene_csv(results: dict[str, EvaluationResult]) -> str:
+    """One row per (model, entry, factor): PSNR, SSIM, LPIPS (empty where unavailable)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["model", "entry", "factor", *METRICS, *DEPTH_METRICS])
+    for name, r in results.items():
+        for entry, per_factor in r.report.per_scene.items():
+            depth = r.per_scene_depth.get(entry, {})
+            for s, metrics in per_factor.items():
+                values = ["" if metrics[m] is None else f"{metrics[m]:.6f}" for m in METRICS]
+                writer.writerow([name, entry, s, *values, *(f"{depth[m]:.6f}" if m in depth else "" for m in DEPTH_METRICS)])
+    return buffer.getvalue()
+
+
+def write_results(results: dict[str, EvaluationResult], out_dir: str | Path, counts: SampleCounts | None = None) -> dict[str, Path]:
+    """metrics.json (every number), per_scene.csv and table.txt in out_dir; each written atomically."""
+    from .export.figures import write_text
+
+    out = Path(out_dir)
+    document = {"models": {n: r.to_json() for n, r in results.items()}}
+    if counts is not None:
+        document["entries"] = {
+            "evaluated_per_model": counts.evaluated // max(1, len(results)),
+            "excluded_null": counts.excluded,
+            "scenes_not_in_index": counts.not_in_index,
+            "missing_from_data": len(counts.missing),
+        }
+    return {
+        "metrics": write_text(out / "metrics.json", json.dumps(_finite(document), indent=2)),
+        "per_scene": write_text(out / "per_scene.csv", per_scene_csv(results)),
+        "table": write_text(out / "table.txt", format_results(results) + "\n"),
+    }
+
+
+def _finite(value: object) -> object:
+    """JSON cannot hold inf/NaN: such values become strings ("inf"), visibly not numbers."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
