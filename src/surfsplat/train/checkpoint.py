@@ -206,7 +206,11 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
     _fsync_dir(root)
     if keep > 0:
         for old in list_checkpoints(out_dir)[:-keep]:
-            shutil.rmtree(old)
+            # Unpublish with one rename before deleting: a kill during rmtree must not leave a
+            # half-deleted folder under a published name.
+            doomed = root / f"{_TEMP_PREFIX}old-{old.name}-{os.getpid()}"
+            old.rename(doomed)
+            shutil.rmtree(doomed)
     return final
 
 

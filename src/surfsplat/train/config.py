@@ -125,8 +125,6 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(0 <= o.warmup_fraction < 1, "optim.warmup_fraction", "a value in [0, 1)", o.warmup_fraction)
     need(o.initial_div >= 1 and o.final_div >= 1, "optim.initial_div/final_div", "values >= 1", (o.initial_div, o.final_div))
     need(d.dataset in ("synthetic", "chunks"), "data.dataset", "synthetic or chunks", d.dataset)
-    if d.dataset == "chunks":
-        need(len(d.roots) > 0, "data.roots", "at least one chunk folder for dataset 'chunks'", d.roots)
     h, w = d.image_shape
     need(h > 0 and w > 0 and h % 16 == 0 and w % 16 == 0, "data.image_shape", "(H, W) multiples of 16", d.image_shape)
     need(d.num_context_views >= 2, "data.num_context_views", "at least 2", d.num_context_views)

@@ -199,6 +199,12 @@ class StepBatchSampler(Sampler):
             step += 1
 
 
+def _loader_generator(seed: int, rank: int, epoch: int) -> torch.Generator:
+    """A DataLoader's own generator: starting an iterator draws a seed from it, and drawing from
+    the global generator instead would make the run's random stream depend on when loaders start."""
+    return torch.Generator().manual_seed(mix_seed(seed, rank, epoch, 0x10AD))
+
+
 def _collate_keyed(items: list[tuple[Any, int]]) -> tuple[dict[str, Any], list[int]]:
     samples, keys = zip(*items)
     return default_collate(list(samples)), list(keys)
@@ -217,6 +223,7 @@ class MapBatches:
             num_workers=num_workers,
             collate_fn=_collate_keyed,
             persistent_workers=num_workers > 0,
+            generator=_loader_generator(seed, rank, 0),
         )
         self._iter = iter(self.loader)
 
@@ -257,7 +264,7 @@ class StreamBatches:
         self.dataset.set_epoch(self.epoch)
         loader = DataLoader(
             self.dataset, batch_size=self.local_batch, drop_last=True, num_workers=self.num_workers,
-            collate_fn=default_collate,
+            collate_fn=default_collate, generator=_loader_generator(self.dataset.config.seed, self.rank, self.epoch),
         )
         self._iter = iter(loader)
         self.batches = 0
@@ -335,6 +342,8 @@ def build_train_batches(
         if config.cache_samples:
             dataset = CachedDataset(dataset)
         return MapBatches(dataset, global_batch, rank, world_size, seed, start_step, config.num_workers)
+    if not config.roots:
+        raise SurfSplatInputError("data.roots: dataset 'chunks' needs at least one chunk folder (--roots)")
     sampler_config = replace(
         config.view_sampler, num_context_views=config.num_context_views, num_target_views=config.num_target_views
     )

@@ -59,6 +59,7 @@ class TrainResult:
     """What a run did (identical on every rank)."""
 
     out_dir: Path
+    rank: int  # this process's rank (0 reports)
     start_step: int  # 0, or the step the run resumed from
     step: int  # optimizer steps completed
     losses: list[tuple[int, float]] = field(default_factory=list)  # (step, loss averaged over ranks)
@@ -255,7 +256,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     cascade = num_intermediate_depths(model) > 0
 
-    start_step, data_state, extra = 0, None, {}
+    start_step, data_state, rng_state, extra = 0, None, None, {}
     torch.manual_seed(mix_seed(config.seed, ctx.rank) & 0x7FFF_FFFF_FFFF_FFFF)
     if resume_from is not None:
         state = load_training_checkpoint(resume_from, model, map_location=device)
@@ -267,7 +268,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
             scaler.load_state_dict(state.grad_scaler)
         start_step = state.step
         if len(state.rng) == ctx.world_size:
-            restore_rng(state.rng[ctx.rank])
+            rng_state = state.rng[ctx.rank]
             data_state = state.data[ctx.rank]
         elif ctx.is_main:
             logger.warning(
@@ -294,7 +295,10 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     if isinstance(val_lpips, LpipsUnavailable) and val_samples:
         reporter.message(f"validation without LPIPS: {val_lpips}")
 
-    result = TrainResult(out_dir=Path(config.out_dir), start_step=start_step, step=start_step)
+    if rng_state is not None:
+        # Last thing before the loop: whatever start-up drew from the generators is overwritten.
+        restore_rng(rng_state)
+    result = TrainResult(out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step)
     h, w = config.data.image_shape
     pending: list[Tensor] = []  # per-step [total, mse, lpips] not yet reduced over ranks
     started = time.perf_counter()
