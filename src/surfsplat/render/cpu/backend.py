@@ -1,9 +1,9 @@
 """Torch-facing side of the compiled CPU renderer: one autograd function per camera.
 
-Only the quaternion-to-matrix map runs in torch (`Gaussians.rotations`, so the normal every
-backend orients is the same float rounding for float rounding); everything after it - camera
-transform, SH colour, normal orientation, projection, culling, sorting, binning, compositing and
-all their gradients - runs in the kernels of `kernels.py`, in float64, on every core.
+No torch op runs per Gaussian: quaternion to rotation, camera transform, SH colour, normal
+orientation, projection, culling, sorting, binning, compositing and all their gradients run in the
+kernels of `kernels.py`, in float64, on every core. Torch only hands tensors over (a NumPy view
+or one cast) - which also keeps torch's own thread pool out of the way of the kernels'.
 """
 
 from __future__ import annotations
@@ -57,9 +57,9 @@ def _np64(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
 
 
-def _inputs(means, rotations, scales, opacities, sh, covariances):
+def _inputs(means, quats, scales, opacities, sh, covariances):
     return (
-        _np64(means), _np64(rotations), _np64(scales), _np64(opacities), _np64(sh),
+        _np64(means), _np64(quats), _np64(scales), _np64(opacities), _np64(sh),
         _np64(covariances) if covariances is not None else np.zeros((0, 3, 3)),
     )
 
@@ -67,16 +67,18 @@ def _inputs(means, rotations, scales, opacities, sh, covariances):
 class _Rasterize(torch.autograd.Function):
     """Render one camera; backward = compositing backward then the projection's chain rule.
 
-    Inputs: means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B],
+    Inputs: means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, 3, B],
     covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
     Outputs (un-normalized, the means' dtype): colour and normal [H, W, 6], alpha [H, W], depth [H, W].
     """
 
     @staticmethod
-    def forward(ctx, means, rotations, scales, opacities, sh, covariances, surfel: bool, camera: _Camera,
+    def forward(ctx, means, quats, scales, opacities, sh, covariances, surfel: bool, camera: _Camera,
                 settings: CpuRenderSettings):
-        x, rot, sc, op, shc, cov = _inputs(means, rotations, scales, opacities, sh, covariances)
+        x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
         n = x.shape[0]
+        rot = np.empty((n, 3, 3))
+        kernels.quats_to_rotations(q, rot)
         W, H, tile = camera.width, camera.height, settings.tile_size
         threads = numba.get_num_threads()
         geom = np.empty((n, kernels.GEOM_SIZE))
@@ -102,11 +104,11 @@ class _Rasterize(torch.autograd.Function):
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_forward(
                 surfel, geom, features, box, tile_start, tile_ids, W, H, tile, tiles_x,
-                out_feat, out_trans, out_depth, out_last, np.empty((H, W), dtype=np.bool_),
+                out_feat, out_trans, out_depth, out_last,
             )
         ctx.surfel, ctx.camera, ctx.settings = surfel, camera, settings
         ctx.plan = _Plan(order, geom, box, features, flip, tile_start, tile_ids, out_trans, out_last, tiles_x)
-        ctx.save_for_backward(means, rotations, scales, opacities, sh, covariances)
+        ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)
         dtype = means.dtype
         return (
             torch.from_numpy(out_feat).to(dtype),
@@ -119,7 +121,7 @@ class _Rasterize(torch.autograd.Function):
         plan: _Plan = ctx.plan
         camera: _Camera = ctx.camera
         settings: CpuRenderSettings = ctx.settings
-        means, rotations, scales, opacities, sh, covariances = ctx.saved_tensors
+        means, quats, scales, opacities, sh, covariances = ctx.saved_tensors
         W, H = camera.width, camera.height
         M = plan.order.shape[0]
         threads = numba.get_num_threads()
@@ -130,12 +132,13 @@ class _Rasterize(torch.autograd.Function):
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_backward(
                 ctx.surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
-                settings.tile_size, plan.tiles_x, plan.trans, plan.last, g_feat_np, g_alpha_np, g_depth_np,
-                np.empty((H, W)), np.empty((H, W)), per_thread,
+                settings.tile_size, plan.tiles_x, plan.trans, plan.last, g_feat_np, g_alpha_np, g_depth_np, per_thread,
             )
         grads = kernels.sum_thread_grads(per_thread)
-        x, rot, sc, op, shc, cov = _inputs(means, rotations, scales, opacities, sh, covariances)
+        x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
         n = x.shape[0]
+        rot = np.empty((n, 3, 3))
+        kernels.quats_to_rotations(q, rot)
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
         kernels.project_backward(
@@ -143,6 +146,8 @@ class _Rasterize(torch.autograd.Function):
             plan.geom, plan.flip, grads, g_means, g_rot, g_scales, g_opac, g_sh, g_cov,
             np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
         )
+        g_quats = np.empty((n, 4))
+        kernels.quats_backward(q, g_rot, g_quats)
 
         def out(grad: np.ndarray, like: Tensor | None, index: int) -> Tensor | None:
             if like is None or not ctx.needs_input_grad[index]:
@@ -150,7 +155,7 @@ class _Rasterize(torch.autograd.Function):
             return torch.from_numpy(grad).to(like.dtype)
 
         return (
-            out(g_means, means, 0), out(g_rot, rotations, 1), out(g_scales, scales, 2), out(g_opac, opacities, 3),
+            out(g_means, means, 0), out(g_quats, quats, 1), out(g_scales, scales, 2), out(g_opac, opacities, 3),
             out(g_sh, sh, 4), out(g_cov, covariances, 5), None, None, None,
         )
 
@@ -170,7 +175,6 @@ def render_cpu(
         raise SurfSplatInputError(f"backend: 'cpu' renders tensors on the CPU, got Gaussians on {g.means.device}")
     if cameras.c2w.requires_grad or cameras.K.requires_grad:
         raise SurfSplatInputError("cameras: the 'cpu' backend does not differentiate cameras; use backend='torch'")
-    rotations = g.rotations
     covariances = g.explicit_covariances if mode == "ewa" else None
     w2c = _np64(cameras.w2c.to(g.means))
     K = _np64(cameras.K.to(g.means))
@@ -181,7 +185,7 @@ def render_cpu(
             np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height
         )
         outs.append(
-            _Rasterize.apply(g.means, rotations, g.scales, g.opacities, g.sh, covariances, mode == "surfel", camera, settings)
+            _Rasterize.apply(g.means, g.quats, g.scales, g.opacities, g.sh, covariances, mode == "surfel", camera, settings)
         )
     color = torch.stack([o[0][..., 0:3] for o in outs]).permute(0, 3, 1, 2)
     normal = torch.stack([o[0][..., 3:6] for o in outs]).permute(0, 3, 1, 2)

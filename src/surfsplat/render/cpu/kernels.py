@@ -51,6 +51,7 @@ FEATURES = 6
 
 _NEAR_ZERO = 1e-12  # |z| below this is treated as 1 before dividing (the point is culled anyway)
 _CONIC_DET_MIN = 1e-20  # floor of the 2D covariance determinant (as the torch backend)
+_QUAT_NORM_MIN = 1e-300  # quaternion norms are floored here before dividing (Gaussians rejects zero quaternions)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -58,7 +59,7 @@ _CONIC_DET_MIN = 1e-20  # floor of the 2D covariance determinant (as the torch b
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _surfel_matrix(mu, R, s0, s1, R_cw, K):
     """Rows of T = K [R_cw R e1 s0, R_cw R e2 s1, mu] (2DGS Eq. 9 with the camera-frame mean mu)."""
     u0 = (R_cw[0, 0] * R[0, 0] + R_cw[0, 1] * R[1, 0] + R_cw[0, 2] * R[2, 0]) * s0
@@ -80,13 +81,13 @@ def _surfel_matrix(mu, R, s0, s1, R_cw, K):
     return tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _opacity_extent(opacity):
     """k^2 with o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
     return 2.0 * math.log(max(opacity / ALPHA_MIN, 1.0))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _pixel_range(lo, hi, size):
     """Inclusive pixel indices whose centres i + 0.5 lie in [lo, hi], clamped to the image."""
     first = min(max(math.ceil(lo - 0.5), 0.0), float(size))
@@ -94,7 +95,43 @@ def _pixel_range(lo, hi, size):
     return int(first), int(last)
 
 
-@njit(cache=True, inline="always")
+@njit(parallel=True, cache=True, error_model="numpy")
+def quats_to_rotations(quats, out):
+    """out [N, 3, 3] = rotation of the normalized quaternion (w, x, y, z) (geometry/rotations.py)."""
+    for i in prange(quats.shape[0]):
+        q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
+        w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
+        out[i, 1, 0], out[i, 1, 1], out[i, 1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
+        out[i, 2, 0], out[i, 2, 1], out[i, 2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def quats_backward(quats, g_rotations, g_quats):
+    """g_quats [N, 4] = dL/dquats from dL/drotations [N, 3, 3] through `quats_to_rotations`."""
+    for i in prange(quats.shape[0]):
+        q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        raw = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        norm = max(raw, _QUAT_NORM_MIN)
+        w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+        G = g_rotations[i]
+        gw = 2.0 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+        gx = 2.0 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2.0 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
+                    + w * G[2, 1] - 2.0 * x * G[2, 2])
+        gy = 2.0 * (-2.0 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
+                    + z * G[2, 1] - 2.0 * y * G[2, 2])
+        gz = 2.0 * (-2.0 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2.0 * z * G[1, 1] + y * G[1, 2]
+                    + x * G[2, 0] + y * G[2, 1])
+        # q_hat = q / |q|: dL/dq = (dL/dq_hat - q_hat (q_hat . dL/dq_hat)) / |q|
+        dot = w * gw + x * gx + y * gy + z * gz if raw > _QUAT_NORM_MIN else 0.0
+        g_quats[i, 0] = (gw - w * dot) / norm
+        g_quats[i, 1] = (gx - x * dot) / norm
+        g_quats[i, 2] = (gy - y * dot) / norm
+        g_quats[i, 3] = (gz - z * dot) / norm
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _camera_point(x, R_cw, t_cw):
     """mu = R_cw x + t (the torch backend's camera-frame mean, float64)."""
     return (
@@ -104,7 +141,7 @@ def _camera_point(x, R_cw, t_cw):
     )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _ewa_cov2d(mu, cov, R_cw, K):
     """J W Sigma W^T J^T (3DGS Eq. 5) with the affine Jacobian J at the camera-frame mean mu.
 
@@ -133,7 +170,7 @@ def _ewa_cov2d(mu, cov, R_cw, K):
     return a, b, c, p0, p1, p2, q0, q1, q2, z
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _thin_covariance(R, s0, s1, out):
     """out = R diag(s0^2, s1^2, THIN_SCALE^2) R^T: the surfel as a thin 3D Gaussian (Gaussians.covariances)."""
     v0, v1, v2 = s0 * s0, s1 * s1, THIN_SCALE * THIN_SCALE
@@ -142,7 +179,7 @@ def _thin_covariance(R, s0, s1, out):
             out[r, c] = R[r, 0] * v0 * R[c, 0] + R[r, 1] * v1 * R[c, 1] + R[r, 2] * v2 * R[c, 2]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _sh_basis(x, y, z, n_bases, Y):
     """Real SH basis of 3DGS (geometry/sh.py) at the unit direction (x, y, z), first n_bases terms."""
     Y[0] = SH_C0
@@ -165,7 +202,7 @@ def _sh_basis(x, y, z, n_bases, Y):
         Y[15] = SH_C3[6] * x * (xx - 3.0 * yy)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _sh_basis_grad(x, y, z, n_bases, GX, GY, GZ):
     """Partial derivatives of `_sh_basis` with respect to x, y, z (first n_bases terms)."""
     for k in range(n_bases):
@@ -194,7 +231,7 @@ def _sh_basis_grad(x, y, z, n_bases, GX, GY, GZ):
         GX[15], GY[15] = SH_C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * SH_C3[6] * x * y
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _view_direction(x, cam_center):
     """Unit direction from the camera centre to x (F.normalize: divided by max(|v|, 1e-12))."""
     v0, v1, v2 = x[0] - cam_center[0], x[1] - cam_center[1], x[2] - cam_center[2]
@@ -202,7 +239,7 @@ def _view_direction(x, cam_center):
     return v0 / norm, v1 / norm, v2 / norm, norm
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center, K,
             width, height, near, far, geom, box, keep, depth, features, flip, scratch, cov_scratch):
     """Per-Gaussian coefficients, pixel boxes, culling, colour and oriented normal (parallel over N).
@@ -305,7 +342,7 @@ def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, 
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
     """Survivors sorted front to back (stable, so ties keep input order) and listed per tile.
 
@@ -336,7 +373,7 @@ def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
     return order, tile_start, tile_ids
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def gather_rows(src, index):
     """src[index] for a 2D array (parallel)."""
     out = np.empty((index.shape[0], src.shape[1]), dtype=src.dtype)
@@ -350,53 +387,93 @@ def gather_rows(src, index):
 # Compositing
 # ---------------------------------------------------------------------------------------------
 
+_EXP_MIN = LOG_ALPHA_MIN - 2.0  # exponents below this give alpha < ALPHA_MIN anyway
+_TAYLOR = (
+    1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5040, 1.0 / 40320, 1.0 / 362880,
+    1.0 / 3628800, 1.0 / 39916800,
+)
 
-@njit(cache=True, inline="always")
-def _pair_rho(surfel, g, dx, dy):
-    """Exponent rho (alpha = o exp(-rho / 2)) and depth of one pixel, with the branch quantities.
 
-    surfel: rho = min((hx^2 + hy^2) / hz^2, 2 |p - c|^2), taking the ray-splat branch only where
-            it is strictly smaller, which implies hz != 0 (no division at grazing rays); depth is
-            det T / hz there (the z of the intersection) and the centre depth on the filter branch.
-    ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
-    Returns rho, depth, use3d, inv_hz, hx, hy, hz.
+@njit(cache=True, inline="always", error_model="numpy")
+def _exp_nonpositive(x):
+    """e^x for x in [_EXP_MIN, 0] (relative error < 1e-14), clamped below at _EXP_MIN.
+
+    Plain multiply-adds, so a row of pixels evaluates in SIMD lanes (a libm call per pixel was
+    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms), then
+    squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
     """
+    y = max(x, _EXP_MIN) * 0.03125
+    p = _TAYLOR[11]
+    for k in range(10, -1, -1):
+        p = p * y + _TAYLOR[k]
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _segment(surfel, g, c0, n, dy, alpha, depth):
+    """alpha and depth of n consecutive pixels (columns c0.., offset dy from the centre row).
+
+    surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
+            (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
+            (the z of the ray-splat intersection) or the centre depth (2DGS).
+    ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
+    alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
+    Returns whether any pixel of the segment has alpha > 0.
+    """
+    cx, log_o, z = g[GEOM_CX], g[GEOM_LOGO], g[GEOM_DEPTH]
+    hit = False
     if surfel:
-        hx = g[GEOM_A] + dx * g[GEOM_B] + dy * g[GEOM_C]
-        hy = g[GEOM_A + 1] + dx * g[GEOM_B + 1] + dy * g[GEOM_C + 1]
-        hz = g[GEOM_A + 2] + dx * g[GEOM_B + 2] + dy * g[GEOM_C + 2]
-        rho2d = LOWPASS_RHO_SCALE * (dx * dx + dy * dy)
-        a = hx * hx + hy * hy
-        if a < rho2d * (hz * hz):
-            inv_hz = 1.0 / hz
-            return a * inv_hz * inv_hz, g[GEOM_DET] * inv_hz, True, inv_hz, hx, hy, hz
-        return rho2d, g[GEOM_DEPTH], False, 0.0, hx, hy, hz
-    rho = g[GEOM_CONIC] * dx * dx + 2.0 * g[GEOM_CONIC + 1] * dx * dy + g[GEOM_CONIC + 2] * dy * dy
-    return rho, g[GEOM_DEPTH], False, 0.0, 0.0, 0.0, 0.0
+        a0, a1, a2 = g[GEOM_A] + dy * g[GEOM_C], g[GEOM_A + 1] + dy * g[GEOM_C + 1], g[GEOM_A + 2] + dy * g[GEOM_C + 2]
+        b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
+        r_dy = LOWPASS_RHO_SCALE * dy * dy
+        for j in range(n):
+            dx = c0 + j + 0.5 - cx
+            hx, hy, hz = a0 + dx * b0, a1 + dx * b1, a2 + dx * b2
+            rho2d = LOWPASS_RHO_SCALE * dx * dx + r_dy
+            q = hx * hx + hy * hy
+            use3d = q < rho2d * (hz * hz)
+            inv = 1.0 / (hz if use3d else 1.0)
+            log_alpha = log_o - 0.5 * (q * inv * inv if use3d else rho2d)
+            ok = log_alpha >= LOG_ALPHA_MIN
+            alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
+            depth[j] = det * inv if use3d else z
+            hit |= ok
+    else:
+        ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
+        for j in range(n):
+            dx = c0 + j + 0.5 - cx
+            log_alpha = log_o - 0.5 * (ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy)
+            ok = log_alpha >= LOG_ALPHA_MIN
+            alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
+            depth[j] = z
+            hit |= ok
+    return hit
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                      out_features, out_trans, out_depth, out_last, done):
+                      out_features, out_trans, out_depth, out_last):
     """Front-to-back alpha compositing of every tile (tiles in parallel).
 
     geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
     Writes out_features [H, W, 6], out_trans [H, W] (final transmittance), out_depth [H, W]
-    (blended depth), out_last [H, W] (1 + position in the tile list of the last blended Gaussian);
-    done [H, W] is scratch.
+    (blended depth) and out_last [H, W] (1 + position in the tile list of the last blended Gaussian).
     """
     n_tiles = tile_start.shape[0] - 1
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        for r in range(y0, y1):
-            for c in range(x0, x1):
-                out_trans[r, c] = 1.0
-                out_depth[r, c] = 0.0
-                out_last[r, c] = 0
-                done[r, c] = False
-                for f in range(FEATURES):
-                    out_features[r, c, f] = 0.0
+        # Tile-local pixel state, one row per pixel: features 0-5, depth, transmittance (negated
+        # once the pixel has stopped), so a pair touches one cache line.
+        state = np.zeros((tile * tile, FEATURES + 2))
+        state[:, FEATURES + 1] = 1.0
+        last = np.zeros(tile * tile, dtype=np.int64)
+        alpha = np.empty(tile)
+        depth = np.empty(tile)
         active = (x1 - x0) * (y1 - y0)
         start = tile_start[t]
         for k in range(start, tile_start[t + 1]):
@@ -404,59 +481,84 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
                 break  # every pixel of the tile has reached the transmittance floor
             m = tile_ids[k]
             g = geom[m]
-            cx, cy, log_o = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO]
-            feat = features[m]
+            f0, f1, f2, f3, f4, f5 = features[m, 0], features[m, 1], features[m, 2], features[m, 3], features[m, 4], features[m, 5]
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                dy = r + 0.5 - cy
-                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
-                    if done[r, c]:
+                if not _segment(surfel, g, c0, c1 - c0 + 1, r + 0.5 - g[GEOM_CY], alpha, depth):
+                    continue
+                base = (r - y0) * tile + c0 - x0
+                for j in range(c1 - c0 + 1):
+                    a = alpha[j]
+                    if a == 0.0:
                         continue
-                    rho, depth, _, _, _, _, _ = _pair_rho(surfel, g, c + 0.5 - cx, dy)
-                    log_alpha = log_o - 0.5 * rho
-                    if not log_alpha >= LOG_ALPHA_MIN:
-                        continue
-                    alpha = min(math.exp(log_alpha), ALPHA_MAX)
-                    T = out_trans[r, c]
-                    T_next = T * (1.0 - alpha)
+                    s = state[base + j]
+                    T = s[FEATURES + 1]
+                    if T < 0.0:
+                        continue  # stopped
+                    T_next = T * (1.0 - a)
                     # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
                     # ends the pixel and is itself not blended.
                     if T_next < TRANSMITTANCE_MIN:
-                        done[r, c] = True
+                        s[FEATURES + 1] = -T
                         active -= 1
                         continue
-                    w = alpha * T
-                    for f in range(FEATURES):
-                        out_features[r, c, f] += w * feat[f]
-                    out_depth[r, c] += w * depth
-                    out_trans[r, c] = T_next
-                    out_last[r, c] = k - start + 1
+                    w = a * T
+                    s[0] += w * f0
+                    s[1] += w * f1
+                    s[2] += w * f2
+                    s[3] += w * f3
+                    s[4] += w * f4
+                    s[5] += w * f5
+                    s[FEATURES] += w * depth[j]
+                    s[FEATURES + 1] = T_next
+                    last[base + j] = k - start + 1
+        for r in range(y0, y1):
+            for c in range(x0, x1):
+                p = (r - y0) * tile + c - x0
+                for f in range(FEATURES):
+                    out_features[r, c, f] = state[p, f]
+                out_depth[r, c] = state[p, FEATURES]
+                out_trans[r, c] = abs(state[p, FEATURES + 1])
+                out_last[r, c] = last[p]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                       trans_final, last, g_features, g_alpha, g_depth, work_trans, work_behind, grads):
+                       trans_final, last, g_features, g_alpha, g_depth, grads):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
       dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
     Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
     so nothing per pair is stored. g_features [H, W, 6], g_alpha [H, W], g_depth [H, W] are the
-    upstream gradients; work_trans, work_behind [H, W] are scratch; grads [threads, M, GRAD_SIZE]
-    receives per-Gaussian sums (zeroed by the caller), one slab per thread.
+    upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian sums (zeroed by the
+    caller), one slab per thread, so tiles never write to the same memory.
     """
     n_tiles = tile_start.shape[0] - 1
+    S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
     for t in prange(n_tiles):
         buf = grads[get_thread_id()]
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        # Tile-local pixel state: upstream dL/dfeatures (6), T (walked back), the weighted sum
+        # behind, dL/dT_out T_out, dL/ddepth.
+        state = np.zeros((tile * tile, FEATURES + 4))
+        last_px = np.zeros(tile * tile, dtype=np.int64)
         n_last = 0
         for r in range(y0, y1):
             for c in range(x0, x1):
-                work_trans[r, c] = trans_final[r, c]
-                work_behind[r, c] = 0.0
+                p = (r - y0) * tile + c - x0
+                for f in range(FEATURES):
+                    state[p, f] = g_features[r, c, f]
+                state[p, S_T] = trans_final[r, c]
+                state[p, S_GOUT] = -g_alpha[r, c] * trans_final[r, c]  # alpha = 1 - T_out
+                state[p, S_GDEPTH] = g_depth[r, c]
+                last_px[p] = last[r, c]
                 n_last = max(n_last, last[r, c])
-        start = tile_start[t]
+        alpha = np.empty(tile)
+        depth = np.empty(tile)
         acc = np.zeros(GRAD_SIZE)
+        start = tile_start[t]
         for k in range(start + n_last - 1, start - 1, -1):
             pos = k - start
             m = tile_ids[k]
@@ -465,42 +567,50 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
             feat = features[m]
             acc[:] = 0.0
             touched = False
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
                 dy = r + 0.5 - cy
-                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
-                    if pos >= last[r, c]:
-                        continue  # behind this pixel's last blended Gaussian
-                    dx = c + 0.5 - cx
-                    rho, depth, use3d, inv_hz, hx, hy, hz = _pair_rho(surfel, g, dx, dy)
-                    log_alpha = log_o - 0.5 * rho
-                    if not log_alpha >= LOG_ALPHA_MIN:
-                        continue
+                if not _segment(surfel, g, c0, c1 - c0 + 1, dy, alpha, depth):
+                    continue
+                base = (r - y0) * tile + c0 - x0
+                for j in range(c1 - c0 + 1):
+                    a = alpha[j]
+                    p = base + j
+                    if a == 0.0 or pos >= last_px[p]:
+                        continue  # below 1/255, or behind this pixel's last blended Gaussian
                     touched = True
-                    raw = math.exp(log_alpha)
-                    alpha = min(raw, ALPHA_MAX)
-                    one_minus = 1.0 - alpha
-                    T = work_trans[r, c] / one_minus
-                    work_trans[r, c] = T
-                    w = alpha * T
-                    g_w = g_depth[r, c] * depth
+                    s = state[p]
+                    one_minus = 1.0 - a
+                    T = s[S_T] / one_minus
+                    s[S_T] = T
+                    w = a * T
+                    d = depth[j]
+                    g_d = s[S_GDEPTH]
+                    g_w = g_d * d
                     for f in range(FEATURES):
-                        g_w += g_features[r, c, f] * feat[f]
-                        acc[GRAD_FEAT + f] += w * g_features[r, c, f]
-                    behind = work_behind[r, c]
-                    g_a = T * g_w - (behind - g_alpha[r, c] * trans_final[r, c]) / one_minus
-                    work_behind[r, c] = behind + w * g_w
+                        g_w += s[f] * feat[f]
+                        acc[GRAD_FEAT + f] += w * s[f]
+                    behind = s[S_BEHIND]
+                    g_a = T * g_w - (behind + s[S_GOUT]) / one_minus
+                    s[S_BEHIND] = behind + w * g_w
                     g_rho = 0.0
-                    if raw <= ALPHA_MAX:  # alpha = min(exp(log_alpha), 0.99): clamped pairs pass nothing
-                        g_log_alpha = g_a * alpha
+                    if a < ALPHA_MAX:  # alpha = min(exp(.), 0.99): a clamped pair passes nothing on
+                        g_log_alpha = g_a * a
                         acc[GRAD_LOGO] += g_log_alpha
                         g_rho = -0.5 * g_log_alpha
-                    g_dpair = w * g_depth[r, c]
+                    g_dpair = w * g_d
+                    dx = c0 + j + 0.5 - cx
                     if surfel:
-                        if use3d:
+                        hx = g[GEOM_A] + dx * g[GEOM_B] + dy * g[GEOM_C]
+                        hy = g[GEOM_A + 1] + dx * g[GEOM_B + 1] + dy * g[GEOM_C + 1]
+                        hz = g[GEOM_A + 2] + dx * g[GEOM_B + 2] + dy * g[GEOM_C + 2]
+                        q = hx * hx + hy * hy
+                        if q < LOWPASS_RHO_SCALE * (dx * dx + dy * dy) * (hz * hz):
                             # rho = (hx^2 + hy^2) / hz^2, depth = det / hz
-                            s = 2.0 * g_rho * inv_hz * inv_hz
-                            g_hx, g_hy = s * hx, s * hy
-                            g_hz = -2.0 * g_rho * rho * inv_hz - g_dpair * depth * inv_hz
+                            inv = 1.0 / hz
+                            sc = 2.0 * g_rho * inv * inv
+                            g_hx, g_hy = sc * hx, sc * hy
+                            g_hz = -(sc * q + g_dpair * d) * inv
                             acc[GRAD_H] += g_hx
                             acc[GRAD_H + 1] += g_hy
                             acc[GRAD_H + 2] += g_hz
@@ -510,12 +620,12 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                             acc[GRAD_HY] += dy * g_hx
                             acc[GRAD_HY + 1] += dy * g_hy
                             acc[GRAD_HY + 2] += dy * g_hz
-                            acc[GRAD_DET] += g_dpair * inv_hz
+                            acc[GRAD_DET] += g_dpair * inv
                         else:
                             # rho = 2 |p - c|^2, depth = centre depth
-                            s = 2.0 * LOWPASS_RHO_SCALE * g_rho
-                            acc[GRAD_CX] -= s * dx
-                            acc[GRAD_CY] -= s * dy
+                            sc = 2.0 * LOWPASS_RHO_SCALE * g_rho
+                            acc[GRAD_CX] -= sc * dx
+                            acc[GRAD_CY] -= sc * dy
                             acc[GRAD_DEPTH] += g_dpair
                     else:
                         ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
@@ -530,7 +640,7 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                     buf[m, j] += acc[j]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def sum_thread_grads(grads):
     """Sum over the thread axis of grads [threads, M, G] -> [M, G]."""
     out = np.empty((grads.shape[1], grads.shape[2]))
@@ -548,7 +658,7 @@ def sum_thread_grads(grads):
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
     """Chain rule of the surfel projection: writes dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
 
@@ -607,7 +717,7 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
     return gm02, gm12, gm22 + g_mu_z
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
     """Chain rule of the EWA projection: writes dL/dSigma (world) into g_cov, returns dL/dmu.
 
@@ -672,7 +782,7 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
     return g0, g1, g2 + gr[GRAD_DEPTH]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def project_backward(surfel, order, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center,
                      K, geom, flip, grads, g_means, g_rotations, g_scales, g_opacities, g_sh, g_covariances,
                      scratch, cov_scratch):
@@ -755,26 +865,26 @@ def project_backward(surfel, order, means, rotations, scales, opacities, sh, cov
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, height, tile, tiles_x):
     """Number of (pixel, Gaussian) pairs with alpha >= 1/255, ignoring early termination.
 
-    A property of the scene and the view (the benchmark's work measure), not of a backend.
+    A property of the scene and the view (the benchmark's measure of work), not of a backend.
     """
     n_tiles = tile_start.shape[0] - 1
     per_tile = np.zeros(n_tiles, dtype=np.int64)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        alpha = np.empty(tile)
+        depth = np.empty(tile)
         n = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             m = tile_ids[k]
-            g = geom[m]
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                dy = r + 0.5 - g[GEOM_CY]
-                for c in range(max(box[m, 0], x0), min(box[m, 1], x1 - 1) + 1):
-                    rho, _, _, _, _, _, _ = _pair_rho(surfel, g, c + 0.5 - g[GEOM_CX], dy)
-                    if g[GEOM_LOGO] - 0.5 * rho >= LOG_ALPHA_MIN:
-                        n += 1
+                if _segment(surfel, geom[m], c0, c1 - c0 + 1, r + 0.5 - geom[m, GEOM_CY], alpha, depth):
+                    for j in range(c1 - c0 + 1):
+                        n += alpha[j] > 0.0
         per_tile[t] = n
     return per_tile.sum()
