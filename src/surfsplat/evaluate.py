@@ -384,7 +384,9 @@ def evaluate(
             keep = errors.num_valid > 0
             if bool(keep.any()):
                 depth_rows[sample.key] = {m: float(getattr(errors, m)[keep].double().mean()) for m in DEPTH_METRICS}
-    report = evaluator.report()  # raises when no entry was evaluated
+    if not forward:
+        raise SurfSplatInputError("evaluation: no index entry had its scene in the data (check --data and --index)")
+    report = evaluator.report()
     n = len(forward)
     if device.type == "cuda":
         peak, kind = int(torch.cuda.max_memory_allocated(device)), "CUDA memory allocated (peak of this evaluation)"

@@ -1,0 +1,202 @@
+"""`surfsplat export PLY --cameras CAMS`: PLY, mesh and videos from a reconstruction saved earlier.
+
+    surfsplat export out/surfels.ply --cameras out/cameras.json --formats mesh video --out out/export
+
+`export_reconstruction` is also what `reconstruct` and `demo` call, so every command writes the
+same files:
+    surfels.ply            the surfels (2DGS layout: two scales per surfel)
+    surfels_3dgs.ply       the same surfels as thin 3D Gaussians (3DGS layout, for 3DGS-only viewers)
+    cameras.json           the context cameras (JSON camera file)
+    renders/               colour, depth and normal PNGs of every context view
+    path/                  frames of the interpolated camera path; path.mp4, turntable.mp4
+    mesh.ply               TSDF fusion of rendered depth, marching cubes
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from ..checks import SurfSplatInputError
+
+FORMATS = ("ply", "renders", "video", "mesh")
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """What `export_reconstruction` writes and how."""
+
+    formats: tuple[str, ...] = FORMATS  # any of ply, renders, video, mesh
+    scale: float = 1.0  # render resolution factor for images and videos (K scaled by it)
+    path_frames: int = 48  # frames of the interpolated camera path (video and mesh views)
+    turntable_frames: int = 48  # frames of the turntable video
+    turntable_degrees: float = 30.0  # total sweep of the turntable
+    fps: float = 24.0  # frame rate of both videos
+    mesh_resolution: int = 128  # TSDF voxels along the longest side
+    mode: Literal["surfel", "ewa"] = "surfel"  # rasterization
+    alpha_threshold: float | None = 0.001  # forced alpha blending tau (None: plain compositing)
+    progress: bool = True  # tqdm bars over frames
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.formats) - set(FORMATS))
+        if unknown:
+            raise SurfSplatInputError(f"formats: unknown {unknown}, expected any of {FORMATS}")
+        if not self.scale > 0:
+            raise SurfSplatInputError(f"scale: expected a positive factor, got {self.scale}")
+        if self.path_frames < 2 or self.turntable_frames < 2:
+            raise SurfSplatInputError("path_frames and turntable_frames: expected at least 2 frames")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("ply", type=Path, help="surfels written by reconstruct (surfels.ply)")
+    parser.add_argument("--cameras", type=Path, required=True,
+                        help="the reconstruction's cameras.json, another JSON camera file, a COLMAP model or a scene folder")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: beside the PLY)")
+    parser.add_argument("--formats", nargs="+", choices=FORMATS, default=["ply", "video", "mesh"], help="what to write")
+    add_export_arguments(parser)
+
+
+def add_export_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by reconstruct and export."""
+    group = parser.add_argument_group("renders, videos and mesh")
+    group.add_argument("--scale", type=float, default=1.0, help="render resolution factor for images and videos")
+    group.add_argument("--frames", type=int, default=48, help="frames of the interpolated path and of the turntable")
+    group.add_argument("--degrees", type=float, default=30.0, help="total sweep of the turntable")
+    group.add_argument("--fps", type=float, default=24.0)
+    group.add_argument("--mesh-resolution", type=int, default=128, help="TSDF voxels along the longest side")
+    group.add_argument("--mode", choices=("surfel", "ewa"), default=None, help="rasterization (default: surfel; ewa for 3DGS-layout files)")
+    group.add_argument("--no-progress", action="store_true")
+
+
+def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: str) -> ExportOptions:
+    return ExportOptions(
+        formats=formats, scale=args.scale, path_frames=args.frames, turntable_frames=args.frames,
+        turntable_degrees=args.degrees, fps=args.fps, mesh_resolution=args.mesh_resolution,
+        mode=args.mode or mode, progress=not args.no_progress,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..export.paths import load_cameras
+    from ..export.ply import load_ply
+
+    if not args.ply.is_file():
+        raise FileNotFoundError(f"{args.ply}: no such PLY file")
+    cams = load_cameras(args.cameras)
+    gaussians = load_ply(args.ply)
+    mode = "ewa" if gaussians.explicit_covariances is not None else "surfel"
+    options = options_from_args(args, tuple(args.formats), mode)
+    out = args.out or args.ply.parent
+    written = export_reconstruction(gaussians, cams.cameras.to(torch.float32), cams.width, cams.height, out, options,
+                                    names=cams.names, near=cams.near, far=cams.far, write_surfels="ply" in options.formats)
+    print_written(written)
+    return 0
+
+
+def print_written(written: dict[str, Path]) -> None:
+    width = max(len(k) for k in written)
+    for key, path in written.items():
+        print(f"  {key.ljust(width)}  {path}")
+
+
+def export_reconstruction(
+    gaussians,  # unbatched surfsplat.Gaussians
+    cameras,  # the context cameras (surfsplat.Cameras), K in pixels of width x height
+    width: int,
+    height: int,
+    out_dir: str | Path,
+    options: ExportOptions = ExportOptions(),
+    *,
+    names: list[str] | None = None,
+    near: float | None = None,
+    far: float | None = None,
+    write_surfels: bool = True,
+) -> dict[str, Path]:
+    """Write what people look at for one reconstruction; returns {what: path}. Each file is written
+    under a temporary name and renamed, so an interrupted export leaves no half-written file."""
+    from ..export.images import colorize_depth, normal_to_rgb, write_png
+    from ..export.mesh import mesh_from_renders, save_mesh, TsdfConfig
+    from ..export.paths import focus_point, interpolate_cameras, save_cameras, turntable
+    from ..export.ply import save_ply
+    from ..export.video import video_unavailable, write_video
+
+    out = Path(out_dir)
+    written: dict[str, Path] = {}
+    if "video" in options.formats:
+        reason = video_unavailable()
+        if reason is not None:  # fail before any work, not after minutes of rendering
+            raise SurfSplatInputError(f"--formats video: {reason}")
+    if write_surfels and "ply" in options.formats:
+        written["surfels (2DGS PLY)"] = save_ply(gaussians, out / "surfels.ply")
+        thin = gaussians.with_explicit_covariances(gaussians.covariances)
+        written["surfels (3DGS PLY)"] = save_ply(thin, out / "surfels_3dgs.ply")
+    written["cameras"] = save_cameras(out / "cameras.json", cameras, width, height, names, near, far)
+
+    s = options.scale
+    w, h = max(1, round(width * s)), max(1, round(height * s))
+
+    def draw(cams, what: str):
+        return render_frames(gaussians, cams.scaled(s), w, h, options, what)
+
+    context = draw(cameras, "context views")
+    if "renders" in options.formats:
+        for i in range(len(cameras)):
+            tag = f"view{i:02d}"
+            write_png(out / "renders" / f"{tag}_color.png", context.color[i])
+            write_png(out / "renders" / f"{tag}_depth.png", colorize_depth(context.depth[i], context.alpha[i]))
+            write_png(out / "renders" / f"{tag}_normal.png", normal_to_rgb(context.normal[i]))
+        written["context renders"] = out / "renders"
+    need_path = "video" in options.formats or "mesh" in options.formats
+    path_cams = interpolate_cameras(cameras, options.path_frames) if need_path and len(cameras) >= 2 else None
+    path = draw(path_cams, "camera path") if path_cams is not None else None
+    if "video" in options.formats:
+        if path is not None:
+            for f in range(len(path_cams)):
+                write_png(out / "path" / f"frame{f:03d}.png", path.color[f])
+            written["path frames"] = out / "path"
+            written["path video"] = write_video(out / "path.mp4", path.color, options.fps)
+        focus = focus_point(context.depth, context.alpha, cameras)
+        spin = draw(turntable(cameras, focus, options.turntable_frames, options.turntable_degrees), "turntable")
+        written["turntable video"] = write_video(out / "turntable.mp4", spin.color, options.fps)
+    if "mesh" in options.formats:
+        views = [context] + ([path] if path is not None else [])
+        fuse_cams = cameras if path_cams is None else _cat_cameras(cameras, path_cams)
+        mesh = mesh_from_renders(
+            torch.cat([v.depth for v in views]), torch.cat([v.alpha for v in views]), torch.cat([v.color for v in views]),
+            fuse_cams.scaled(s), TsdfConfig(resolution=options.mesh_resolution),
+        )
+        written["mesh (TSDF fusion)"] = save_mesh(mesh, out / "mesh.ply")
+    return written
+
+
+@dataclass
+class Frames:
+    color: Tensor  # [F, 3, H, W]
+    alpha: Tensor  # [F, 1, H, W]
+    depth: Tensor  # [F, 1, H, W]
+    normal: Tensor  # [F, 3, H, W]
+
+
+@torch.no_grad()
+def render_frames(gaussians, cameras, width: int, height: int, options: ExportOptions, what: str) -> Frames:
+    """Render cameras one at a time (bounded memory) with a progress bar."""
+    from ..render import render
+
+    outs = []
+    for i in tqdm(range(len(cameras)), desc=f"render {what}", unit="frame", disable=not options.progress or len(cameras) < 4,
+                  dynamic_ncols=True, leave=False):
+        r = render(gaussians, cameras[i], width, height, mode=options.mode, alpha_threshold=options.alpha_threshold)
+        outs.append(r)
+    return Frames(*(torch.cat([getattr(r, k) for r in outs]).cpu() for k in ("color", "alpha", "depth", "normal")))
+
+
+def _cat_cameras(a, b):
+    from ..geometry.cameras import Cameras
+
+    return Cameras(torch.cat([a.c2w, b.c2w.to(a.c2w)]), torch.cat([a.K, b.K.to(a.K)]), validate=False)

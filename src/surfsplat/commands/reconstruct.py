@@ -1,0 +1,120 @@
+"""`surfsplat reconstruct`: posed photos -> surfels, renders, depth and normal maps, videos, a mesh.
+
+    surfsplat reconstruct --checkpoint runs/tiny --images a.png b.png --cameras cameras.json --out out/
+    surfsplat reconstruct --checkpoint depthsplat_small.ckpt --trust-pickle --preset small \\
+        --images scan24/images_4/000000.png scan24/images_4/000001.png --cameras scan24 --images-folder images_4
+
+CAMS is a JSON camera file (see `surfsplat.export.paths.load_cameras`), a COLMAP model folder, or a
+scene folder of any format `load_scene` reads (LLFF, DTU, transforms.json, COLMAP, RE10K); the
+images are matched to its cameras by file name. Images are rescaled and centre-cropped to a size
+the network accepts (multiples of 16; `--size` to choose), with K following exactly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from ..checks import SurfSplatInputError
+from .export import FORMATS, add_export_arguments, export_reconstruction, options_from_args, print_written
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", required=True,
+                        help="our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth")
+    parser.add_argument("--images", nargs="+", required=True, type=Path, help="two or more context images")
+    parser.add_argument("--cameras", required=True, type=Path, help="JSON camera file, COLMAP model or scene folder")
+    parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
+    parser.add_argument("--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)")
+    parser.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=None,
+                        help="network input size (multiples of 16; default: the largest crop of the images)")
+    parser.add_argument("--near", type=float, default=None, help="nearest scene depth (default: from the cameras, else 0.5)")
+    parser.add_argument("--far", type=float, default=None, help="farthest scene depth (default: from the cameras, else 100)")
+    parser.add_argument("--preset", default="small", help="encoder preset of a release checkpoint")
+    parser.add_argument("--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
+    add_export_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..data.images import read_image
+    from ..data.transforms import rescale_and_crop
+    from ..evaluate import ModelSpec, load_model
+    from ..export.paths import load_cameras
+    from ..geometry.cameras import Cameras
+
+    # ---- validate every input before any heavy work
+    if len(args.images) < 2:
+        raise SurfSplatInputError(f"--images: the model matches views, expected at least 2 images, got {len(args.images)}")
+    for path in args.images:
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: image file not found")
+    cams = load_cameras(args.cameras, images=args.images_folder).select([p.name for p in args.images], str(args.cameras))
+    images = []
+    for path in args.images:
+        rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))
+        images.append(rgb)
+    sizes = {tuple(im.shape[1:]) for im in images}
+    if len(sizes) != 1:
+        raise SurfSplatInputError(f"--images: all images must have one size, got {sorted(sizes)}")
+    (height, width), = sizes
+    K = cams.resized(width, height, str(args.cameras)).K
+    near, far = _depth_range(args, cams)
+    device = _device(args.device)
+    model, label = load_model(ModelSpec(args.checkpoint, preset=args.preset, trust_pickle=args.trust_pickle), device)
+    m = model.cfg.encoder.size_multiple
+    shape = tuple(args.size) if args.size else (height // m * m, width // m * m)
+    if shape[0] < m or shape[1] < m or shape[0] % m or shape[1] % m:
+        raise SurfSplatInputError(f"--size: expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}")
+    stack, K, _ = rescale_and_crop(torch.stack(images), K.to(torch.float32), shape)
+    cameras = Cameras(cams.cameras.c2w.to(torch.float32), K)
+
+    # ---- reconstruct
+    start = time.perf_counter()
+    with torch.no_grad():
+        prediction = model(stack[None].clamp(0, 1).to(device), cameras.to(device), near, far)
+    seconds = time.perf_counter() - start
+    gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
+    print(f"{label}: {len(gaussians):,} surfels from {len(args.images)} views at {shape[1]}x{shape[0]} in {seconds:.2f} s")
+
+    from ..model.decoder import decoder_mode
+
+    mode = decoder_mode(model.cfg.adapter)
+    options = options_from_args(args, tuple(args.formats), mode)
+    options = dataclasses.replace(options, alpha_threshold=prediction.alpha_threshold)
+    written = export_reconstruction(gaussians, cameras, shape[1], shape[0], args.out, options,
+                                    names=[p.name for p in args.images], near=near, far=far)
+    from ..export.figures import write_text
+
+    summary = {
+        "checkpoint": str(args.checkpoint), "model": label, "images": [str(p) for p in args.images],
+        "size": list(shape), "near": near, "far": far, "surfels": len(gaussians), "seconds_forward": seconds,
+        "render_mode": mode, "alpha_threshold": prediction.alpha_threshold,
+        "files": {k: str(v) for k, v in written.items()},
+    }
+    written["summary"] = write_text(args.out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")
+    print(f"wrote {args.out}/:")
+    print_written(written)
+    return 0
+
+
+def _depth_range(args: argparse.Namespace, cams) -> tuple[float, float]:
+    near = args.near if args.near is not None else (cams.near if cams.near is not None else 0.5)
+    far = args.far if args.far is not None else (cams.far if cams.far is not None else 100.0)
+    if not 0 < near < far:
+        raise SurfSplatInputError(f"--near/--far: expected 0 < near < far, got {near}, {far}")
+    return float(near), float(far)
+
+
+def _device(choice: str) -> torch.device:
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise SurfSplatInputError("--device cuda: no CUDA device is available")
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(choice)
