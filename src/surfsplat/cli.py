@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("surfsplat.commands.render", "render a saved PLY from cameras at any scale"),
     "export": ("surfsplat.commands.export", "PLY, mesh (TSDF) and videos from a saved reconstruction"),
     "view": ("surfsplat.commands.view", "interactive browser viewer of a PLY on localhost"),
+    "train": ("surfsplat.commands.train", "train a SurfSplat model (single process or torchrun data-parallel)"),
     "convert": ("surfsplat.commands.convert", "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks"),
 }
 
