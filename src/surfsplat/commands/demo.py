@@ -37,7 +37,7 @@ class DemoConfig:
     """The demo's budget; `quick()` is the reduced one."""
 
     image_size: int = 64  # square training and evaluation images (a multiple of 16)
-    train_scenes: int = 48  # distinct procedural training rooms (cached after first use)
+    train_scenes: int = 24  # distinct procedural training rooms (each ray-cast once, then cached)
     steps: int | None = None  # optimizer steps; None = as many as fit train_seconds
     train_seconds: float = 210.0  # training time budget when steps is None
     min_steps: int = 30  # never fewer steps than this, whatever the budget says
