@@ -1,0 +1,119 @@
+"""fit(): reports, checkpoints, the LPIPS term, start-up errors, and learning on synthetic rooms."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from surfsplat.checks import SurfSplatInputError
+from surfsplat.metrics import LpipsUnavailable, try_load_lpips
+from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
+from surfsplat.model.checkpoint import load_checkpoint
+from surfsplat.train import build_model, fit, train_preset
+from surfsplat.train.checkpoint import latest_checkpoint, verify_checkpoint
+from surfsplat.train.config import override
+from surfsplat.train.data import build_validation_samples
+from surfsplat.train.distributed import DistributedContext
+from surfsplat.train.validation import validate
+
+
+def _quick(out: Path, **changes):
+    """The tiny preset cut down to seconds: 32x32 rooms, one target view, two steps."""
+    base = {
+        "out_dir": str(out), "steps": 2, "log_every": 1, "checkpoint_every": 2, "val_every": 2, "image_every": 2,
+        "progress": False, "val_factors": [1, 2], "data.image_shape": [32, 32], "data.num_target_views": 1,
+        "data.synthetic_length": 2, "data.val_samples": 1,
+    }
+    base.update(changes)
+    return override(train_preset("tiny"), base)
+
+
+@pytest.fixture(scope="module")
+def lpips_files(tmp_path_factory) -> tuple[Path, Path]:
+    """Random LPIPS weights in torchvision's and the lpips package's layouts (wiring only)."""
+    g = torch.Generator().manual_seed(0)
+    folder = tmp_path_factory.mktemp("lpips")
+    torch.save({k: 0.1 * torch.randn(s, generator=g) for k, s in vgg_shapes().items()}, folder / VGG16_FILENAME)
+    torch.save({k: torch.rand(s, generator=g) for k, s in lin_shapes().items()}, folder / "vgg.pth")
+    return folder / VGG16_FILENAME, folder / "vgg.pth"
+
+
+def test_fit_reports_checkpoints_and_lpips_term(tmp_path: Path, lpips_files) -> None:
+    vgg, lin = lpips_files
+    config = _quick(tmp_path / "run", **{"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(vgg), "loss.lpips_lin_path": str(lin)})
+    result = fit(config)
+    assert (result.start_step, result.step, [s for s, _ in result.losses]) == (0, 2, [0, 1])
+
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    train_rows = [r for r in rows if "loss/total" in r]
+    assert [r["step"] for r in train_rows] == [1, 2]
+    for r in train_rows:  # Eq. 12: MSE + 0.05 LPIPS, both logged
+        assert r["loss/total"] == pytest.approx(r["loss/mse"] + 0.05 * r["loss/lpips"], rel=1e-5)
+        assert r["loss/lpips"] > 0
+    assert [r["loss/total"] for r in train_rows] == pytest.approx([v for _, v in result.losses], rel=1e-6)
+    val = result.validation[2]
+    assert {"x1/psnr", "x1/ssim", "x1/lpips", "x2/psnr", "x2/ssim", "x2/lpips"} <= val.keys()
+    assert val["num_images"] == 1 and 5 < val["x1/psnr"] < 50 and 0 < val["x1/ssim"] < 1
+    assert any("val/x2/psnr" in r for r in rows)
+
+    checkpoint = latest_checkpoint(tmp_path / "run")
+    assert checkpoint == result.checkpoint and checkpoint.name == "step-00000002"
+    verify_checkpoint(checkpoint)
+    model = load_checkpoint(checkpoint / "model")  # the model part loads without the training code
+    assert model.cfg.encoder == build_model(config).cfg.encoder
+    assert (tmp_path / "run" / "config.json").is_file()
+    assert len(list((tmp_path / "run" / "tensorboard").glob("events.out.tfevents.*"))) == 1
+
+    with pytest.raises(SurfSplatInputError, match="nothing left"):
+        fit(config, resume=True)
+    more = fit(override(config, {"steps": 3}), resume=True)  # extending a finished run
+    assert (more.start_step, more.step) == (2, 3)
+
+
+def test_missing_lpips_weights_stop_before_anything_is_written(tmp_path: Path) -> None:
+    config = _quick(tmp_path / "run", **{"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(tmp_path / "none.pth")})
+    with pytest.raises(LpipsUnavailable, match="or set lpips_weight to 0"):
+        fit(config)
+    assert not (tmp_path / "run").exists()
+
+
+def test_resume_needs_a_checkpoint(tmp_path: Path) -> None:
+    with pytest.raises(SurfSplatInputError, match="resume: no checkpoint"):
+        fit(_quick(tmp_path / "empty"), resume=True)
+
+
+def test_command_errors_are_one_line(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "surfsplat.train", "--preset", "tiny", "--out", str(tmp_path), "--set", "optim.lr=-1"],
+        capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "surfsplat train: error: optim.lr: expected a learning rate >= 0, got -1.0"
+
+
+# Held-out PSNR of the tiny preset (64x64 synthetic rooms) measured on this project's 2-core CPU:
+# 19.89 dB untrained, 22.09 dB after 50 steps, 22.32 dB after 200 steps. The test trains 60 steps
+# and asks for a clear part of that gain.
+MIN_PSNR_GAIN_DB = 1.5
+
+
+@pytest.mark.slow
+def test_tiny_training_beats_the_untrained_model_on_held_out_rooms(tmp_path: Path) -> None:
+    config = train_preset(
+        "tiny", out_dir=str(tmp_path), steps=60, val_every=60, checkpoint_every=60, val_factors=(1,), progress=False
+    )
+    torch.manual_seed(config.seed)  # fit() initialises the model from the same seed
+    untrained = build_model(config)
+    ctx = DistributedContext(rank=0, world_size=1, local_rank=0, device=torch.device("cpu"))
+    samples = build_validation_samples(config.data, 0, 1, config.seed)
+    before = validate(untrained, samples, ctx, mode="surfel", lpips=try_load_lpips(), factors=(1,))
+    after = fit(config).validation[60]
+    assert after["num_images"] == before["num_images"] == 2 * config.data.val_samples
+    assert after["x1/psnr"] > before["x1/psnr"] + MIN_PSNR_GAIN_DB, (before, after)
+    assert after["x1/ssim"] > before["x1/ssim"]
