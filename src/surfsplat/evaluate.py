@@ -191,17 +191,27 @@ def iter_index_samples(
     256x256 this way), with K following exactly; None keeps the stored size.
     `counts` (optional) is filled in as the iteration proceeds.
     """
+    # Inputs are checked here, eagerly; the generator below only reads.
     if not roots:
         raise SurfSplatInputError("data: expected at least one chunk folder")
     if not 0 < near < far:
         raise SurfSplatInputError(f"near/far: expected 0 < near < far, got {near}, {far}")
-    counts = counts if counts is not None else SampleCounts()
-    found: set[str] = set()
-    produced = 0
+    folders = []
     for root in roots:
         chunks = list_chunks(root)
         if not chunks:
             raise SurfSplatInputError(f"{root}: no .torch chunks in this folder")
+        folders.append(chunks)
+    return _samples(folders, index, image_shape, near, far, max_entries, counts if counts is not None else SampleCounts())
+
+
+def _samples(
+    folders: list[list[Path]], index: EvaluationIndex, image_shape: tuple[int, int] | None, near: float, far: float,
+    max_entries: int | None, counts: SampleCounts,
+) -> Iterator[EvalSample]:
+    found: set[str] = set()
+    produced = 0
+    for chunks in folders:
         for chunk in chunks:
             for example in read_chunk(chunk):
                 entries = index.lookup(example["key"])
@@ -267,6 +277,7 @@ class ScenePrediction:
     renders: dict[int, RenderOutput]  # factor -> target renders at s times the resolution
     seconds_forward: float
     seconds_render: dict[int, float]
+    alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
 
 
 @torch.no_grad()
@@ -297,7 +308,7 @@ def predict_sample(
         renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
         _sync(device)
         seconds[s] = time.perf_counter() - start
-    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds)
+    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau)
 
 
 def _sync(device: torch.device) -> None:

@@ -30,6 +30,8 @@ from torch import Tensor
 from ..checks import SurfSplatInputError
 
 EVAL_SEED = 90210  # held-out evaluation rooms (training rooms are drawn from the preset's seed)
+CHECKPOINT_EVERY = 10  # training steps between checkpoints (what a deadline stop can lose)
+DEADLINE_SLACK = 1.25  # training is stopped at this multiple of its time budget
 
 
 @dataclass(frozen=True)
@@ -199,9 +201,15 @@ def eval_targets(config: DemoConfig) -> list[int]:
 
 # ----------------------------------------------------------------------------------------------- training
 def train_tiny(config: DemoConfig, folder: Path) -> dict:
-    """fit() on the tiny preset; the step count is config.steps or what the measured step time
-    allows within config.train_seconds."""
-    from ..train import fit, override, train_preset
+    """fit() on the tiny preset, in a child process with a hard deadline.
+
+    The step count (and so the learning-rate schedule) is config.steps, or what the step time
+    measured on this machine allows within config.train_seconds. The machine may get busier while
+    training runs, so the child is also stopped at the deadline (budget x DEADLINE_SLACK); training
+    checkpoints are published atomically every few steps, so the newest one is then a complete,
+    consistent model and the demo goes on with it, saying at which step it stopped.
+    """
+    from ..train import override, train_preset
 
     size = config.image_size
     base = train_preset("tiny", out_dir=str(folder), seed=config.seed, val_every=0, image_every=0, steps=max(config.max_steps, 1))
@@ -217,20 +225,74 @@ def train_tiny(config: DemoConfig, folder: Path) -> dict:
         steps = max(config.min_steps, min(config.max_steps, steps))
         _say(f"measured {per_step:.2f} s per training step and {first_sample:.2f} s per new room: "
              f"{steps} steps fit the {config.train_seconds / 60:.1f}-minute budget (fix it with --steps)")
-    train_config = replace(base, steps=steps, checkpoint_every=steps, log_every=max(1, min(10, steps)))
+    every = max(1, min(CHECKPOINT_EVERY, steps))
+    train_config = replace(base, steps=steps, checkpoint_every=every, log_every=1, keep_checkpoints=2)
+    deadline = config.train_seconds * DEADLINE_SLACK
     _say(f"training the tiny preset for {steps} steps on {config.train_scenes} synthetic rooms at {size}x{size} "
-         f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed) -> {folder}")
+         f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed; stops at the latest {deadline / 60:.1f} min) -> {folder}")
     t0 = time.perf_counter()
-    result = fit(train_config)
+    stopped_early = _fit_with_deadline(train_config, deadline)
     seconds = time.perf_counter() - t0
-    if result.checkpoint is None:
-        raise SurfSplatInputError(f"{folder}: training wrote no checkpoint")
+    from ..train import latest_checkpoint
+
+    checkpoint = latest_checkpoint(folder)
+    if checkpoint is None:
+        raise SurfSplatInputError(f"{folder}: training wrote no checkpoint within {deadline:.0f} s; give a larger --train-minutes")
+    done = int(checkpoint.name.split("-")[1])
+    losses = read_losses(folder / "metrics.jsonl", done)
+    if stopped_early:
+        _say(f"the deadline stopped training after {seconds:.0f} s; continuing with the checkpoint of step {done} of {steps}")
     return {
-        "steps": result.step, "seconds": seconds, "seconds_per_step_measured_before": per_step,
-        "first_loss": result.losses[0][1] if result.losses else None,
-        "final_loss": result.losses[-1][1] if result.losses else None,
-        "losses": result.losses, "checkpoint": result.checkpoint, "image_size": size, "scenes": config.train_scenes,
+        "steps": done, "planned_steps": steps, "stopped_by_deadline": stopped_early, "seconds": seconds,
+        "seconds_per_step_measured_before": per_step,
+        "first_loss": losses[0][1] if losses else None, "final_loss": losses[-1][1] if losses else None,
+        "losses": losses, "checkpoint": checkpoint, "image_size": size, "scenes": config.train_scenes,
     }
+
+
+def _fit_with_deadline(train_config, deadline: float) -> bool:
+    """Run fit(train_config) in a spawned process; True when the deadline stopped it."""
+    import multiprocessing
+
+    process = multiprocessing.get_context("spawn").Process(target=_fit_child, args=(train_config,), daemon=True)
+    process.start()
+    try:
+        process.join(timeout=deadline)
+        stopped = process.is_alive()
+        if stopped:
+            process.terminate()
+            process.join()
+    finally:
+        if process.is_alive():  # interrupted while waiting: take the child down too
+            process.terminate()
+            process.join()
+    if not stopped and process.exitcode != 0:
+        raise SurfSplatInputError(f"training failed (exit code {process.exitcode}); its error is printed above")
+    return stopped
+
+
+def _fit_child(train_config) -> None:
+    from ..train import fit
+
+    fit(train_config)
+
+
+def read_losses(path: Path, last_step: int) -> list[tuple[int, float]]:
+    """(step index, loss) of every logged step up to the checkpoint's step, from metrics.jsonl."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the training run wrote no metrics")
+    losses = []
+    lines = path.read_text().splitlines()
+    for k, line in enumerate(lines):
+        try:
+            record = json.loads(line)
+        except ValueError:
+            if k == len(lines) - 1:
+                break  # a run stopped at its deadline may have been writing its last line
+            raise SurfSplatInputError(f"{path}: line {k + 1} is not JSON") from None
+        if "loss/total" in record and record["step"] <= last_step:
+            losses.append((record["step"] - 1, float(record["loss/total"])))
+    return losses
 
 
 def measure_step_seconds(config) -> tuple[float, float]:
@@ -361,18 +423,22 @@ def write_figures(config: DemoConfig, samples, predictions: dict, native, folder
         d_lo, d_hi = float(true_depth[true_depth > 0].min()), float(true_depth.max())
         grid_rows = []
         v = 0  # first target view
+        # Depth is shown wherever forced alpha blending normalised it (alpha >= tau), not only where
+        # alpha > 0.5: the coverage column of the table reports the gaps separately.
+        tau = pred.alpha_threshold if pred.alpha_threshold is not None else 0.5
+        shown = {s: (pred.renders[s].alpha >= tau)[v].float() for s in config.factors}
         for s in config.factors:
             r = pred.renders[s]
             files = {
                 "truth": write_png(folder / f"{tag}_x{s}_truth.png", native[k][s]["image"][v]),
                 "render": write_png(folder / f"{tag}_x{s}_render.png", r.color[v]),
-                "depth": write_png(folder / f"{tag}_x{s}_depth.png", colorize_depth(r.depth[v], r.alpha[v], near=d_lo, far=d_hi)),
+                "depth": write_png(folder / f"{tag}_x{s}_depth.png", colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi)),
                 "normal": write_png(folder / f"{tag}_x{s}_normal.png", normal_to_rgb(r.normal[v])),
                 "truth depth": write_png(folder / f"{tag}_x{s}_truth_depth.png", colorize_depth(native[k][s]["depth"][v], None, near=d_lo, far=d_hi)),
                 "truth normal": write_png(folder / f"{tag}_x{s}_truth_normal.png", normal_to_rgb(native[k][s]["normal"][v])),
             }
             entry["rows"].append({"factor": s, "size": r.color.shape[-1], **{key: str(p.relative_to(folder.parent)) for key, p in files.items()}})
-            grid_rows.append([native[k][s]["image"][v], r.color[v], colorize_depth(r.depth[v], r.alpha[v], near=d_lo, far=d_hi),
+            grid_rows.append([native[k][s]["image"][v], r.color[v], colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi),
                               normal_to_rgb(r.normal[v])])
         top = config.image_size * max(config.factors)
         entry["grid"] = str(write_png(folder / f"{tag}_grid.png", image_grid(grid_rows, size=(top, top))).relative_to(folder.parent))
@@ -412,6 +478,9 @@ def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: di
         "(HRRC, paper Sec. 3.6). Two ground truths: the x1 image upsampled bicubically (the paper's HRRC) and the "
         "scene ray-cast natively at the higher resolution (exact, available for synthetic scenes only)."
     )
+    if train["stopped_by_deadline"]:
+        report.paragraph(f"Training was stopped by its deadline at step {train['steps']} of the {train['planned_steps']} "
+                         "planned (the machine was slower than measured at the start).", note=True)
     if evaluation["lpips"] is not None:
         report.paragraph(evaluation["lpips"], note=True)
     report.heading("Metrics")
@@ -428,6 +497,9 @@ def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: di
         avg = up["average"]
         rows.append([name, "average", avg["psnr"], avg["ssim"], avg["lpips"], None, None, None])
     report.table("Standard and HRRC metrics (means over target views)", header, rows)
+    report.paragraph("Coverage is the share of pixels whose accumulated alpha exceeds 0.5. Forced alpha blending "
+                     "divides colour, depth and normals by alpha wherever alpha >= 0.001 (paper Sec. 3.4), so a "
+                     "render can look complete while its surfels leave gaps between them at higher resolutions.")
     report.paragraph("The same numbers in the paper's table layout:")
     report.preformatted(evaluation["table"])
 

@@ -76,13 +76,15 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--compare: model names must differ, got {names} (name them: NAME=CKPT)")
     lpips = try_load_lpips(args.lpips_vgg, args.lpips_lin, device=device)
 
-    results = {}
+    sample_sets = []  # one (checked) sample stream per model; chunk folders are validated before any model runs
     counts = SampleCounts()
+    for _ in models:
+        sample_sets.append(iter_index_samples(args.data, index, tuple(args.size) if args.size else None, args.near,
+                                              args.far, args.max_entries, counts))
+    results = {}
     non_null = sum(v is not None for v in index.entries.values())
     total = min(non_null, args.max_entries) if args.max_entries else non_null
-    for model, name in models:
-        samples = iter_index_samples(args.data, index, tuple(args.size) if args.size else None, args.near, args.far,
-                                     args.max_entries, counts)
+    for (model, name), samples in zip(models, sample_sets):
         results[name] = evaluate(model, samples, config, lpips=lpips, name=name, total=total)
     written = write_results(results, args.out, counts)
     print(format_results(results))

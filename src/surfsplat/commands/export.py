@@ -146,10 +146,13 @@ def export_reconstruction(
 
     context = draw(cameras, "context views")
     if "renders" in options.formats:
+        # Depth where forced alpha blending normalised it (alpha >= tau), else where alpha > 0.5.
+        tau = options.alpha_threshold if options.alpha_threshold is not None else 0.5
+        shown = (context.alpha >= tau).float()
         for i in range(len(cameras)):
             tag = f"view{i:02d}"
             write_png(out / "renders" / f"{tag}_color.png", context.color[i])
-            write_png(out / "renders" / f"{tag}_depth.png", colorize_depth(context.depth[i], context.alpha[i]))
+            write_png(out / "renders" / f"{tag}_depth.png", colorize_depth(context.depth[i], shown[i]))
             write_png(out / "renders" / f"{tag}_normal.png", normal_to_rgb(context.normal[i]))
         written["context renders"] = out / "renders"
     need_path = "video" in options.formats or "mesh" in options.formats

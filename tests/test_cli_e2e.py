@@ -1,0 +1,132 @@
+"""End to end (slow): the demo with a reduced budget, then its checkpoint on real DTU views through
+reconstruct, eval over chunks built from the shared data, render at x4, export and the viewer."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from surfsplat.cli import main
+from surfsplat.data.chunks import scene_to_example, write_chunks
+from surfsplat.data.load import load_scene
+
+pytestmark = pytest.mark.slow
+
+SURFEL_FIELDS = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"}
+CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--out", str(out), "--quick"]) == 0
+    return out
+
+
+def _nontrivial_image(path: Path) -> None:
+    pixels = iio.imread(path).astype(np.float64)
+    assert pixels.ndim == 3 and min(pixels.shape[:2]) >= 16, path
+    assert pixels[..., :3].std() > 5, f"{path} is (nearly) constant"
+
+
+def test_demo_writes_report_metrics_ply_videos_mesh(demo):
+    metrics = json.loads((demo / "metrics.json").read_text())
+    trained = metrics["evaluation"]["SurfSplat tiny (trained)"]
+    for s in ("x1", "x2", "x4"):
+        assert 5 < trained["vs_bicubic_upsampled_truth"]["mean"][s]["psnr"] < 60
+        assert 5 < trained["vs_native_truth"][s]["psnr"] < 60
+        assert trained["vs_bicubic_upsampled_truth"]["mean"][s]["lpips"] is None
+    assert metrics["lpips"].startswith("LPIPS unavailable: ")
+    assert metrics["train"]["steps"] >= 1 and metrics["wall_seconds"]["total"] > 0
+
+    html = (demo / "report.html").read_text()
+    sources = re.findall(r'<(?:img|video) src="([^"]+)"', html)
+    assert any(s.endswith("_grid.png") for s in sources) and any(s.endswith(".mp4") for s in sources)
+    assert any(s.endswith("training_curve.svg") for s in sources)
+    for src in sources:
+        path = demo / src
+        assert path.is_file(), src
+        if src.endswith(".png"):
+            _nontrivial_image(path)
+        elif src.endswith(".svg"):
+            assert "<polyline" in path.read_text()
+        else:
+            assert path.stat().st_size > 1000
+    assert "LPIPS unavailable" in html
+
+    ply = PlyData.read(str(demo / "scene" / "surfels.ply"))
+    assert SURFEL_FIELDS <= {p.name for p in ply["vertex"].properties}
+    assert len(ply["vertex"].data) == 2 * 32 * 32
+    mesh = PlyData.read(str(demo / "scene" / "mesh.ply"))
+    assert len(mesh["face"].data) > 10
+    frames = iio.imread(demo / "scene" / "turntable.mp4", plugin="FFMPEG")
+    assert frames.shape[0] == 8 and frames.std() > 5
+    assert not list(demo.rglob(".*tmp*"))  # nothing half-written left behind
+
+
+def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_path):
+    scan = data_dir / "dtu_scan24"
+    out = tmp_path / "dtu"
+    images = [str(scan / "images_4" / "000000.png"), str(scan / "images_4" / "000001.png")]
+    code = main(["reconstruct", "--checkpoint", str(demo / "train"), "--images", *images, "--cameras", str(scan),
+                 "--images-folder", "images_4", "--size", "96", "128", "--out", str(out), "--frames", "8",
+                 "--mesh-resolution", "48", "--no-progress"])
+    assert code == 0
+    ply = PlyData.read(str(out / "surfels.ply"))
+    assert SURFEL_FIELDS <= {p.name for p in ply["vertex"].properties}
+    assert len(ply["vertex"].data) == 2 * 96 * 128
+    summary = json.loads((out / "reconstruction.json").read_text())
+    assert summary["size"] == [96, 128]
+    assert 1.5 < summary["near"] < summary["far"] < 5  # DTU's bounds in the normalized sphere frame
+    for name in ("view00_color.png", "view00_depth.png", "view00_normal.png"):
+        _nontrivial_image(out / "renders" / name)
+    assert iio.imread(out / "path.mp4", plugin="FFMPEG").shape[0] == 8
+    assert len(PlyData.read(str(out / "mesh.ply"))["face"].data) > 0
+
+    # render at x4 from the saved reconstruction
+    code = main(["render", str(out / "surfels.ply"), "--cameras", str(out / "cameras.json"), "--scale", "4",
+                 "--views", "1", "--out", str(tmp_path / "x4")])
+    assert code == 0
+    assert iio.imread(tmp_path / "x4" / "000001_color.png").shape == (384, 512, 3)
+
+    if CHROMIUM is None:
+        pytest.skip("headless Chromium is not installed (apt-get install chromium)")
+    from surfsplat.viewer import ViewerServer
+
+    server = ViewerServer.from_ply(out / "surfels.ply", port=0).start()
+    try:
+        dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
+                              "--dump-dom", server.url], capture_output=True, text=True, timeout=180)
+    finally:
+        server.shutdown()
+    assert 'data-state="ready"' in dom.stdout and '<canvas id="view"' in dom.stdout
+
+
+def test_eval_over_chunks_built_from_dtu(demo, data_dir, tmp_path):
+    scene = load_scene(data_dir / "dtu_scan24", images="images_4").select([0, 1, 2, 3, 4])
+    write_chunks([scene_to_example(scene, key="scan24", image_format="png")], tmp_path / "chunks")
+    index = {"scan24": {"context": [0, 2], "target": [1, 3]}, "scan1": None, "scan99": {"context": [0, 1], "target": [2]}}
+    (tmp_path / "index.json").write_text(json.dumps(index))
+    near, far = float(scene.near.min()), float(scene.far.max())
+    code = main(["eval", "--compare", f"demo={demo / 'train'}", f"demo w/o FAB={demo / 'train'}:opacity_max=1.0",
+                 "--data", str(tmp_path / "chunks"), "--index", str(tmp_path / "index.json"), "--size", "96", "128",
+                 "--near", str(near), "--far", str(far), "--out", str(tmp_path / "eval"), "--no-progress"])
+    assert code == 0
+    document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 1, "scenes_not_in_index": 0, "missing_from_data": 1}
+    full, ablated = document["models"]["demo"], document["models"]["demo w/o FAB"]
+    assert full["num_images"] == 2 and set(full["mean"]) == {"x1", "x2", "x4"}
+    assert full["mean"]["x1"]["psnr"] != ablated["mean"]["x1"]["psnr"]  # alpha normalization changes the render
+    table = (tmp_path / "eval" / "table.txt").read_text()
+    assert "96x128 (Standard)" in table and "192x256 (HRRC)" in table and "384x512 (HRRC)" in table
+    assert "LPIPS unavailable" in table
+    rows = (tmp_path / "eval" / "per_scene.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2 * 3  # header + models x factors (one entry)

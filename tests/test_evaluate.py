@@ -1,0 +1,167 @@
+"""Evaluation over an index: sample selection and counts, metrics equal to the metric functions
+applied by hand, adapter ablations, checkpoint resolution, result files."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import pytest
+import torch
+
+from surfsplat.checks import SurfSplatInputError
+from surfsplat.data.eval_index import EvaluationIndex
+from surfsplat.data.synthetic import write_synthetic_chunks
+from surfsplat.evaluate import (
+    EvalConfig,
+    ModelSpec,
+    SampleCounts,
+    evaluate,
+    iter_index_samples,
+    load_model,
+    per_scene_csv,
+    predict_sample,
+    resolve_checkpoint,
+    with_adapter,
+    write_results,
+)
+from surfsplat.metrics import psnr, ssim, upsample_ground_truth
+from surfsplat.metrics.lpips import LpipsUnavailable
+from surfsplat.model import SurfSplat, save_checkpoint
+
+SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def chunks(tmp_path_factory):
+    root = tmp_path_factory.mktemp("chunks")
+    keys = write_synthetic_chunks(root, 2, seed=5, image_shape=(SIZE, SIZE), num_frames=4, supersample=1)
+    return root, sorted(keys)
+
+
+@pytest.fixture(scope="module")
+def index(chunks):
+    _, keys = chunks
+    return EvaluationIndex.from_dict(
+        {keys[0]: {"context": [0, 3], "target": [1, 2]}, keys[1]: None, "absent-scene": {"context": [0, 1], "target": [2]}},
+        "test index",
+    )
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    torch.manual_seed(0)
+    model = SurfSplat.from_preset("tiny")
+    weights, _ = save_checkpoint(model, tmp_path_factory.mktemp("ckpt") / "model")
+    return weights
+
+
+def test_samples_follow_the_index_and_count_every_skip(chunks, index):
+    root, keys = chunks
+    counts = SampleCounts()
+    samples = list(iter_index_samples([root], index, near=0.5, far=15.0, counts=counts))
+    assert [s.key for s in samples] == [keys[0]]
+    s = samples[0]
+    assert s.context_views == (0, 3) and s.target_views == (1, 2)
+    assert s.context_images.shape == (2, 3, SIZE, SIZE) and s.target_images.shape == (2, 3, SIZE, SIZE)
+    assert s.context_depths is not None and float(s.context_depths.min()) > 0  # synthetic chunks carry depth
+    assert (counts.evaluated, counts.excluded, counts.not_in_index, counts.missing) == (1, 1, 0, ["absent-scene"])
+
+
+def test_rescale_to_a_size_keeps_k_consistent(chunks, index):
+    root, _ = chunks
+    full = next(iter_index_samples([root], index, near=0.5, far=15.0))
+    half = next(iter_index_samples([root], index, image_shape=(16, 16), near=0.5, far=15.0))
+    assert half.target_images.shape[-2:] == (16, 16) and half.context_depths.shape[-2:] == (16, 16)
+    torch.testing.assert_close(half.target_cameras.K[:, :2], full.target_cameras.K[:, :2] / 2)
+
+
+def test_index_entry_beyond_the_scene_is_an_error(chunks):
+    root, keys = chunks
+    bad = EvaluationIndex.from_dict({keys[0]: {"context": [0, 9], "target": [1]}})
+    with pytest.raises(SurfSplatInputError, match="uses view 9 but the scene has 4 views"):
+        list(iter_index_samples([root], bad, near=0.5, far=15.0))
+
+
+def test_metrics_equal_the_metric_functions_on_the_renders(chunks, index, model_path):
+    root, _ = chunks
+    model, name = load_model(ModelSpec(str(model_path), name="tiny"))
+    samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
+    result = evaluate(model, samples, EvalConfig(progress=False), lpips=LpipsUnavailable("no weights here"), name=name)
+    pred = predict_sample(model, samples[0], (1, 2, 4))
+    target = samples[0].target_images
+    for s in (1, 2, 4):
+        truth = upsample_ground_truth(target, s, "bicubic")
+        want_psnr = float(psnr(pred.renders[s].color, truth).double().mean())
+        want_ssim = float(ssim(pred.renders[s].color.double(), truth.double()).mean())
+        got = result.report.mean[s]
+        assert got["psnr"] == pytest.approx(want_psnr, abs=1e-5)
+        assert got["ssim"] == pytest.approx(want_ssim, abs=1e-6)
+        assert got["lpips"] is None
+    assert result.report.lpips_unavailable == "LPIPS unavailable: no weights here"
+    assert result.depth is not None and result.depth["abs_rel"] > 0
+    assert result.seconds_forward > 0 and all(t > 0 for t in result.seconds_render.values())
+    assert result.peak_memory_bytes > 0
+
+
+def test_bilinear_upsampling_changes_only_the_hrrc_columns(chunks, index, model_path):
+    root, _ = chunks
+    model, _ = load_model(ModelSpec(str(model_path)))
+    samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
+    unavailable = LpipsUnavailable("no weights here")
+    cubic = evaluate(model, samples, EvalConfig(progress=False), lpips=unavailable).report.mean
+    linear = evaluate(model, samples, EvalConfig(upsample="bilinear", progress=False), lpips=unavailable).report.mean
+    assert cubic[1]["psnr"] == pytest.approx(linear[1]["psnr"], abs=1e-9)
+    assert cubic[2]["psnr"] != pytest.approx(linear[2]["psnr"], abs=1e-4)
+
+
+def test_without_fab_ablation_turns_alpha_normalization_off(model_path):
+    model, _ = load_model(ModelSpec(str(model_path)))
+    ablated = with_adapter(model, {"opacity_max": 1.0})
+    assert model.adapter.alpha_threshold() == 0.001 and ablated.eval().adapter.alpha_threshold() is None
+    for key, value in model.state_dict().items():
+        assert torch.equal(ablated.state_dict()[key], value)
+    with pytest.raises(SurfSplatInputError, match="unknown fields"):
+        with_adapter(model, {"opacity": 1.0})
+
+
+def test_model_spec_parsing():
+    spec = ModelSpec.parse("w/o FAB=runs/x:opacity_max=1.0,prior=none")
+    assert spec.name == "w/o FAB" and spec.checkpoint == "runs/x"
+    assert spec.adapter_overrides == (("opacity_max", 1.0), ("prior", "none"))
+    assert ModelSpec.parse("runs/x").label() == "x"
+    with pytest.raises(SurfSplatInputError, match="is not field=value"):
+        ModelSpec.parse("runs/x:opacity")
+
+
+def test_checkpoint_resolution(tmp_path, model_path):
+    step = tmp_path / "run" / "checkpoints" / "step-00000010"
+    step.mkdir(parents=True)
+    (step / "model.json").write_text("{}")
+    (tmp_path / "run" / "checkpoints" / "step-00000002").mkdir()
+    assert resolve_checkpoint(tmp_path / "run") == step / "model.safetensors"
+    assert resolve_checkpoint(step) == step / "model.safetensors"
+    assert resolve_checkpoint(model_path) == model_path
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        resolve_checkpoint(tmp_path / "nothing")
+    with pytest.raises(FileNotFoundError, match="without model.json"):
+        resolve_checkpoint(tmp_path)
+
+
+def test_result_files(tmp_path, chunks, index, model_path):
+    root, keys = chunks
+    model, _ = load_model(ModelSpec(str(model_path)))
+    samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
+    config = EvalConfig(factors=(1, 2), progress=False)
+    results = {name: evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name=name) for name in ("a", "b")}
+    counts = SampleCounts(evaluated=2, excluded=2, missing=["absent-scene"])
+    paths = write_results(results, tmp_path, counts)
+    document = json.loads(paths["metrics"].read_text())
+    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 2, "scenes_not_in_index": 0, "missing_from_data": 1}
+    assert document["models"]["a"]["mean"]["x2"]["psnr"] == pytest.approx(results["a"].report.mean[2]["psnr"])
+    rows = list(csv.DictReader(io.StringIO(per_scene_csv(results))))
+    assert len(rows) == 2 * 1 * 2  # models x entries x factors
+    assert {r["entry"] for r in rows} == {keys[0]} and rows[0]["lpips"] == ""
+    table = paths["table"].read_text()
+    assert "32x32 (Standard)" in table and "64x64 (HRRC)" in table and "LPIPS unavailable: none" in table
