@@ -11,15 +11,18 @@ from pathlib import Path
 import pytest
 import torch
 
+from surfsplat import Cameras
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import LpipsUnavailable, try_load_lpips
 from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
 from surfsplat.model.checkpoint import load_checkpoint
+from surfsplat.model.surfsplat import SurfSplat
 from surfsplat.train import build_model, fit, train_preset
 from surfsplat.train.checkpoint import latest_checkpoint, verify_checkpoint
 from surfsplat.train.config import override
 from surfsplat.train.data import build_validation_samples
 from surfsplat.train.distributed import DistributedContext
+from surfsplat.train.loop import keep_adapter_in_float32, resolve_precision
 from surfsplat.train.validation import validate
 
 
@@ -117,3 +120,26 @@ def test_tiny_training_beats_the_untrained_model_on_held_out_rooms(tmp_path: Pat
     assert after["num_images"] == before["num_images"] == 2 * config.data.val_samples
     assert after["x1/psnr"] > before["x1/psnr"] + MIN_PSNR_GAIN_DB, (before, after)
     assert after["x1/ssim"] > before["x1/ssim"]
+
+
+def test_precision_rules_and_float32_adapter_under_autocast() -> None:
+    cpu = torch.device("cpu")
+    assert resolve_precision(train_preset("tiny"), cpu) is None  # auto: full precision on CPU
+    with pytest.raises(SurfSplatInputError, match="mixed precision needs a CUDA device"):
+        resolve_precision(train_preset("tiny", precision="bf16"), cpu)
+
+    torch.manual_seed(0)
+    model = SurfSplat.from_preset("tiny")
+    seen: list[tuple[bool, torch.dtype]] = []
+    keep_adapter_in_float32(model, "cpu")
+    model.adapter.register_forward_pre_hook(lambda m, args: seen.append((torch.is_autocast_enabled("cpu"), args[0].dtype)))
+    images = torch.rand(1, 2, 3, 32, 32)
+    c2w = torch.eye(4).repeat(2, 1, 1)
+    c2w[1, 0, 3] = 0.2
+    cams = Cameras(c2w, torch.tensor([[30.0, 0, 16], [0, 30.0, 16], [0, 0, 1]]).repeat(2, 1, 1))
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        prediction = model(images, cams, 0.5, 20.0)
+        assert torch.is_autocast_enabled("cpu")  # restored after the adapter
+    # The geometry ran in float32 with autocast off, on the bf16 encoder's depths cast up.
+    assert seen == [(False, torch.float32)]
+    assert prediction.gaussians.means.dtype == torch.float32

@@ -32,6 +32,7 @@ from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
 from ..model.decoder import decoder_mode, render_views
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
+from ..render.types import RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
 from .checkpoint import (
     TrainingState,
@@ -45,7 +46,7 @@ from .config import TrainConfig, config_from_dict
 from .data import TrainBatch, augment, build_train_batches, build_validation_samples
 from .distributed import DistributedContext, all_gather_objects, all_reduce_mean, barrier, init_distributed, shutdown
 from .events import EventWriter
-from .losses import ImageLoss, cascade_loss
+from .losses import ImageLoss, LossTerms, cascade_loss
 from .schedule import learning_rate
 from .validation import validate
 
@@ -226,6 +227,57 @@ def _changed_settings(saved: dict[str, Any], current: dict[str, Any], prefix: st
     return out
 
 
+# ------------------------------------------------------------------------------------------ one step
+@dataclass
+class StepOutput:
+    loss: Tensor  # the optimised scalar (cascade-weighted sum)
+    terms: list[LossTerms]  # per render, coarse to final
+    grad_norm: Tensor  # global gradient norm before clipping
+    renders: list[Tensor]  # [B, V, 3, H, W] per render, coarse to final
+
+
+def training_step(
+    net: nn.Module,
+    model: SurfSplat,
+    batch: TrainBatch,
+    loss_fn: ImageLoss,
+    optimizer: torch.optim.Optimizer,
+    *,
+    mode: RenderMode,
+    amp_dtype: torch.dtype | None = None,
+    scaler: torch.amp.GradScaler | None = None,
+    grad_clip: float = 0.5,
+    cascade: bool = False,
+) -> StepOutput:
+    """One optimizer step on `batch` (already on the device). `net` is `model` or its DDP wrapper."""
+    context, target = batch.context, batch.target
+    _, _, h, w = target.shape
+    device_type = context.images.device.type
+    with torch.autocast(device_type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
+        prediction = net(context.images, context.cameras(), context.near, context.far, return_intermediates=cascade)
+    # Coarse cascade surfels first, the final ones last (the order cascade_loss weights); the
+    # renderer always works in float32, at the training tau_alpha the adapter reports.
+    coarse = intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far)
+    renders = [
+        render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold).color
+        for g in [*coarse, prediction.gaussians]
+    ]
+    loss, terms = cascade_loss(loss_fn, renders, target.images)
+    if scaler is not None:
+        scaler.scale(loss).backward()
+        scaler.unscale_(optimizer)  # clip the true gradients, not the scaled ones
+    else:
+        loss.backward()
+    grad_norm = nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
+    if scaler is not None:
+        scaler.step(optimizer)
+        scaler.update()
+    else:
+        optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders)
+
+
 # ------------------------------------------------------------------------------------------ the loop
 def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResult:
     """Train per `config`; `resume` = True (newest checkpoint of out_dir), "auto" (newest if any),
@@ -299,7 +351,6 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         # Last thing before the loop: whatever start-up drew from the generators is overwritten.
         restore_rng(rng_state)
     result = TrainResult(out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step)
-    h, w = config.data.image_shape
     pending: list[Tensor] = []  # per-step [total, mse, lpips] not yet reduced over ranks
     started = time.perf_counter()
     window_start, window_steps = started, 0
@@ -309,28 +360,11 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
             batch: TrainBatch = augment(source.next(step), config.data.flip_probability, config.seed).to(device)
             context, target = batch.context, batch.target
 
-            with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
-                prediction = net(context.images, context.cameras(), context.near, context.far, return_intermediates=cascade)
-            # Coarse cascade surfels first, the final ones last (the order cascade_loss weights).
-            scenes = [*intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far), prediction.gaussians]
-            renders = [
-                render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold).color
-                for g in scenes
-            ]
-            loss, terms = cascade_loss(loss_fn, renders, target.images)
-
-            if scaler is not None:
-                scaler.scale(loss).backward()
-                scaler.unscale_(optimizer)
-            else:
-                loss.backward()
-            grad_norm = nn.utils.clip_grad_norm_(model.parameters(), config.optim.grad_clip if config.optim.grad_clip > 0 else math.inf)
-            if scaler is not None:
-                scaler.step(optimizer)
-                scaler.update()
-            else:
-                optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
+            out = training_step(
+                net, model, batch, loss_fn, optimizer,
+                mode=mode, amp_dtype=amp_dtype, scaler=scaler, grad_clip=config.optim.grad_clip, cascade=cascade,
+            )
+            loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
 
             final = terms[-1]
             pending.append(torch.stack([
