@@ -161,6 +161,16 @@ def test_window_attention_matches_the_release_loop(num_neighbours, shift):
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
 
 
+def test_window_attention_gradients_float64():
+    torch.manual_seed(0)
+    layer = AttentionLayer(4, ffn=True).double()
+    mask = release_cross_view_mask(shifted_window_mask(4, 4, 2, "cpu"), 2)[None].double()
+    source = torch.randn(1, 4, 4, 4, dtype=torch.float64, requires_grad=True)
+    keys = torch.randn(1, 4, 8, 4, dtype=torch.float64, requires_grad=True)
+    values = torch.randn(1, 4, 8, 4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s, k, v: layer(s, k, v, mask), (source, keys, values), fast_mode=True)
+
+
 def test_release_cross_view_mask_is_misaligned_for_several_neighbours():
     mask = shifted_window_mask(8, 8, 2, "cpu")
     assert torch.equal(release_cross_view_mask(mask, 1), mask)
@@ -224,6 +234,20 @@ def test_cost_volume_chunking_does_not_change_the_result(monkeypatch):
     monkeypatch.setattr(cv, "WARP_CHUNK_BYTES", 1)  # one depth candidate at a time
     chunked = cv.plane_sweep_cost_volume(ref, src, K, ref_c2w, src_c2w, inv)
     torch.testing.assert_close(chunked, whole, rtol=0, atol=1e-6)
+
+
+def test_cost_volume_gradients_float64():
+    torch.manual_seed(2)
+    ref = torch.randn(1, 3, 4, 5, dtype=torch.float64, requires_grad=True)
+    src = torch.randn(1, 2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
+    K = torch.tensor([[4.0, 0, 2.5], [0, 4.0, 2], [0, 0, 1]], dtype=torch.float64)[None]
+    ref_c2w = torch.eye(4, dtype=torch.float64)[None]
+    src_c2w = torch.eye(4, dtype=torch.float64).repeat(1, 2, 1, 1)
+    src_c2w[..., 0, 3] = torch.tensor([0.3, -0.2], dtype=torch.float64)
+    inv = torch.tensor([[0.2, 0.45, 0.9]], dtype=torch.float64)
+    assert torch.autograd.gradcheck(
+        lambda r, s: cv.plane_sweep_cost_volume(r, s, K, ref_c2w, src_c2w, inv), (ref, src), fast_mode=True
+    )
 
 
 def test_depth_candidates_are_linear_in_inverse_depth():
