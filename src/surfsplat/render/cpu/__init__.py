@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING
 from .settings import CpuRenderSettings
 
 if TYPE_CHECKING:
-    from .backend import render_cpu
+    from .backend import contributing_pairs, render_cpu
 
-__all__ = ["backend_unavailable", "CpuRenderSettings", "render_cpu"]
+__all__ = ["backend_unavailable", "CpuRenderSettings", "contributing_pairs", "render_cpu"]
 
 
 def backend_unavailable() -> str | None:
@@ -27,8 +27,8 @@ def backend_unavailable() -> str | None:
 
 
 def __getattr__(name: str):
-    if name == "render_cpu":
-        from .backend import render_cpu
+    if name in ("render_cpu", "contributing_pairs"):
+        from . import backend
 
-        return render_cpu
+        return getattr(backend, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

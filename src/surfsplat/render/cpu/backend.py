@@ -22,7 +22,9 @@ from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
-_SCRATCH = 64  # per-thread work space of the projection kernels (SH basis and its gradient)
+_SCRATCH = 64 + kernels.GRAD_SIZE  # per-thread work space of the projection kernels (SH basis, gradient row)
+_NP_DTYPES = {torch.float64: np.float64, torch.float32: np.float32, torch.float16: np.float16,
+              torch.bfloat16: np.float32}
 
 
 @dataclass
@@ -39,8 +41,9 @@ class _Camera:
 
 @dataclass
 class _Plan:
-    """What the forward pass leaves for the backward pass."""
+    """Survivors of culling, front to back, and their tile lists: the work of one camera."""
 
+    rotations: np.ndarray  # [N, 3, 3] from the quaternions
     order: np.ndarray  # [M] input index of each survivor, front to back
     geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
@@ -48,13 +51,20 @@ class _Plan:
     flip: np.ndarray  # [N] +-1: the sign given to each normal
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] positions in `order`, per tile front to back
-    trans: np.ndarray  # [H, W] final transmittance
-    last: np.ndarray  # [H, W] 1 + tile-list position of each pixel's last blended Gaussian
     tiles_x: int
 
 
 def _np64(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+    # NumPy casts single-threaded; a torch cast would wake torch's thread pool for every tensor.
+    t = t.detach()
+    if t.dtype == torch.bfloat16:  # NumPy has no bfloat16
+        t = t.float()
+    return np.ascontiguousarray(t.numpy(), dtype=np.float64)
+
+
+def _tensor(a: np.ndarray, dtype: torch.dtype) -> Tensor:
+    out = torch.from_numpy(np.ascontiguousarray(a, dtype=_NP_DTYPES[dtype]))
+    return out if out.dtype == dtype else out.to(dtype)
 
 
 def _inputs(means, quats, scales, opacities, sh, covariances):
@@ -64,86 +74,97 @@ def _inputs(means, quats, scales, opacities, sh, covariances):
     )
 
 
+def _cameras(cameras: Cameras, width: int, height: int) -> list[_Camera]:
+    w2c = _np64(cameras.w2c)
+    K = _np64(cameras.K)
+    centers = _np64(cameras.centers)
+    return [
+        _Camera(np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height)
+        for c in range(len(cameras))
+    ]
+
+
+def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSettings) -> _Plan:
+    """Rotations, projection, culling, depth sort and tile lists (the kernels' first half)."""
+    x, q, sc, op, shc, cov = inputs
+    n = x.shape[0]
+    threads = numba.get_num_threads()
+    rot = np.empty((n, 3, 3))
+    kernels.quats_to_rotations(q, rot)
+    geom = np.empty((n, kernels.GEOM_SIZE))
+    box = np.empty((n, 4), dtype=np.int64)
+    keep = np.empty(n, dtype=np.bool_)
+    depth = np.empty(n)
+    features = np.empty((n, kernels.FEATURES))
+    flip = np.empty(n)
+    kernels.project(
+        surfel, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K, camera.width,
+        camera.height, settings.near_plane, settings.far_plane, geom, box, keep, depth, features, flip,
+        np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
+    )
+    tile = settings.tile_size
+    tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
+    order, tile_start, tile_ids = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
+    return _Plan(
+        rot, order, kernels.gather_rows(geom, order), kernels.gather_rows(box, order),
+        kernels.gather_rows(features, order), flip, tile_start, tile_ids, tiles_x,
+    )
+
+
 class _Rasterize(torch.autograd.Function):
     """Render one camera; backward = compositing backward then the projection's chain rule.
 
     Inputs: means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, 3, B],
     covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
-    Outputs (un-normalized, the means' dtype): colour and normal [H, W, 6], alpha [H, W], depth [H, W].
+    Outputs (un-normalized, the means' dtype): colour [3, H, W], alpha [1, H, W], depth [1, H, W],
+    normal [3, H, W].
     """
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, sh, covariances, surfel: bool, camera: _Camera,
                 settings: CpuRenderSettings):
-        x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
-        n = x.shape[0]
-        rot = np.empty((n, 3, 3))
-        kernels.quats_to_rotations(q, rot)
-        W, H, tile = camera.width, camera.height, settings.tile_size
-        threads = numba.get_num_threads()
-        geom = np.empty((n, kernels.GEOM_SIZE))
-        box = np.empty((n, 4), dtype=np.int64)
-        keep = np.empty(n, dtype=np.bool_)
-        depth = np.empty(n)
-        features = np.empty((n, kernels.FEATURES))
-        flip = np.empty(n)
-        kernels.project(
-            surfel, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K, W, H,
-            settings.near_plane, settings.far_plane, geom, box, keep, depth, features, flip,
-            np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
-        )
-        tiles_x, tiles_y = -(-W // tile), -(-H // tile)
-        order, tile_start, tile_ids = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
-        geom, box, features = kernels.gather_rows(geom, order), kernels.gather_rows(box, order), kernels.gather_rows(
-            features, order
-        )
-        out_feat = np.empty((H, W, kernels.FEATURES))
-        out_trans = np.empty((H, W))
-        out_depth = np.empty((H, W))
-        out_last = np.empty((H, W), dtype=np.int64)
+        plan = _prepare(surfel, _inputs(means, quats, scales, opacities, sh, covariances), camera, settings)
+        W, H = camera.width, camera.height
+        color, normal = np.empty((3, H, W)), np.empty((3, H, W))
+        depth, trans = np.empty((1, H, W)), np.empty((1, H, W))
+        last = np.empty((H, W), dtype=np.int64)
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_forward(
-                surfel, geom, features, box, tile_start, tile_ids, W, H, tile, tiles_x,
-                out_feat, out_trans, out_depth, out_last,
+                surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
+                settings.tile_size, plan.tiles_x, color, normal, depth[0], trans[0], last,
             )
         ctx.surfel, ctx.camera, ctx.settings = surfel, camera, settings
-        ctx.plan = _Plan(order, geom, box, features, flip, tile_start, tile_ids, out_trans, out_last, tiles_x)
+        ctx.plan, ctx.trans, ctx.last = plan, trans[0], last
         ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)
         dtype = means.dtype
-        return (
-            torch.from_numpy(out_feat).to(dtype),
-            torch.from_numpy(1.0 - out_trans).to(dtype),
-            torch.from_numpy(out_depth).to(dtype),
-        )
+        return _tensor(color, dtype), _tensor(1.0 - trans, dtype), _tensor(depth, dtype), _tensor(normal, dtype)
 
     @staticmethod
-    def backward(ctx, g_feat, g_alpha, g_depth):
+    def backward(ctx, g_color, g_alpha, g_depth, g_normal):
         plan: _Plan = ctx.plan
         camera: _Camera = ctx.camera
         settings: CpuRenderSettings = ctx.settings
         means, quats, scales, opacities, sh, covariances = ctx.saved_tensors
         W, H = camera.width, camera.height
-        M = plan.order.shape[0]
         threads = numba.get_num_threads()
-        g_feat_np = np.zeros((H, W, kernels.FEATURES)) if g_feat is None else _np64(g_feat)
-        g_alpha_np = np.zeros((H, W)) if g_alpha is None else _np64(g_alpha)
-        g_depth_np = np.zeros((H, W)) if g_depth is None else _np64(g_depth)
-        per_thread = np.zeros((threads, M, kernels.GRAD_SIZE))
+        per_thread = np.zeros((threads, plan.order.shape[0], kernels.GRAD_SIZE))
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_backward(
                 ctx.surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
-                settings.tile_size, plan.tiles_x, plan.trans, plan.last, g_feat_np, g_alpha_np, g_depth_np, per_thread,
+                settings.tile_size, plan.tiles_x, ctx.trans, ctx.last,
+                np.zeros((3, H, W)) if g_color is None else _np64(g_color),
+                np.zeros((3, H, W)) if g_normal is None else _np64(g_normal),
+                np.zeros((H, W)) if g_alpha is None else _np64(g_alpha[0]),
+                np.zeros((H, W)) if g_depth is None else _np64(g_depth[0]),
+                per_thread,
             )
-        grads = kernels.sum_thread_grads(per_thread)
         x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
         n = x.shape[0]
-        rot = np.empty((n, 3, 3))
-        kernels.quats_to_rotations(q, rot)
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
         kernels.project_backward(
-            ctx.surfel, plan.order, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K,
-            plan.geom, plan.flip, grads, g_means, g_rot, g_scales, g_opac, g_sh, g_cov,
+            ctx.surfel, plan.order, x, plan.rotations, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center,
+            camera.K, plan.geom, plan.flip, per_thread, g_means, g_rot, g_scales, g_opac, g_sh, g_cov,
             np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
         )
         g_quats = np.empty((n, 4))
@@ -152,12 +173,21 @@ class _Rasterize(torch.autograd.Function):
         def out(grad: np.ndarray, like: Tensor | None, index: int) -> Tensor | None:
             if like is None or not ctx.needs_input_grad[index]:
                 return None
-            return torch.from_numpy(grad).to(like.dtype)
+            return _tensor(grad, like.dtype)
 
         return (
             out(g_means, means, 0), out(g_quats, quats, 1), out(g_scales, scales, 2), out(g_opac, opacities, 3),
             out(g_sh, sh, 4), out(g_cov, covariances, 5), None, None, None,
         )
+
+
+def _check(gaussians: Gaussians, cameras: Cameras) -> None:
+    if gaussians.means.device.type != "cpu":
+        raise SurfSplatInputError(
+            f"backend: 'cpu' renders tensors on the CPU, got Gaussians on {gaussians.means.device}"
+        )
+    if cameras.c2w.requires_grad or cameras.K.requires_grad:
+        raise SurfSplatInputError("cameras: the 'cpu' backend does not differentiate cameras; use backend='torch'")
 
 
 def render_cpu(
@@ -171,24 +201,35 @@ def render_cpu(
     """
     settings = settings or CpuRenderSettings()
     g = gaussians
-    if g.means.device.type != "cpu":
-        raise SurfSplatInputError(f"backend: 'cpu' renders tensors on the CPU, got Gaussians on {g.means.device}")
-    if cameras.c2w.requires_grad or cameras.K.requires_grad:
-        raise SurfSplatInputError("cameras: the 'cpu' backend does not differentiate cameras; use backend='torch'")
+    _check(g, cameras)
     covariances = g.explicit_covariances if mode == "ewa" else None
-    w2c = _np64(cameras.w2c.to(g.means))
-    K = _np64(cameras.K.to(g.means))
-    centers = _np64(cameras.centers.to(g.means))
-    outs = []
-    for c in range(len(cameras)):
-        camera = _Camera(
-            np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height
-        )
-        outs.append(
-            _Rasterize.apply(g.means, g.quats, g.scales, g.opacities, g.sh, covariances, mode == "surfel", camera, settings)
-        )
-    color = torch.stack([o[0][..., 0:3] for o in outs]).permute(0, 3, 1, 2)
-    normal = torch.stack([o[0][..., 3:6] for o in outs]).permute(0, 3, 1, 2)
-    alpha = torch.stack([o[1] for o in outs])[:, None]
-    depth = torch.stack([o[2] for o in outs])[:, None]
-    return color, alpha, depth, normal
+    outs = [
+        _Rasterize.apply(g.means, g.quats, g.scales, g.opacities, g.sh, covariances, mode == "surfel", cam, settings)
+        for cam in _cameras(cameras, width, height)
+    ]
+    if len(outs) == 1:  # the common case: views, no copy
+        return tuple(o[None] for o in outs[0])
+    return tuple(torch.stack(maps) for maps in zip(*outs))
+
+
+def contributing_pairs(
+    gaussians: Gaussians, cameras: Cameras, width: int, height: int, mode: RenderMode,
+    settings: CpuRenderSettings | None = None,
+) -> list[int]:
+    """Per camera, the number of (pixel, Gaussian) pairs with alpha >= 1/255 (termination ignored).
+
+    The renderer's work measure, independent of any backend: benchmarks report pairs per second.
+    """
+    settings = settings or CpuRenderSettings()
+    g = gaussians
+    _check(g, cameras)
+    inputs = _inputs(g.means, g.quats, g.scales, g.opacities, g.sh,
+                     g.explicit_covariances if mode == "ewa" else None)
+    counts = []
+    for cam in _cameras(cameras, width, height):
+        plan = _prepare(mode == "surfel", inputs, cam, settings)
+        counts.append(int(kernels.count_contributing_pairs(
+            mode == "surfel", plan.geom, plan.box, plan.tile_start, plan.tile_ids, width, height,
+            settings.tile_size, plan.tiles_x,
+        )))
+    return counts

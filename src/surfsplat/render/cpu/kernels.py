@@ -59,7 +59,7 @@ _QUAT_NORM_MIN = 1e-300  # quaternion norms are floored here before dividing (Ga
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _surfel_matrix(mu, R, s0, s1, R_cw, K):
     """Rows of T = K [R_cw R e1 s0, R_cw R e2 s1, mu] (2DGS Eq. 9 with the camera-frame mean mu)."""
     u0 = (R_cw[0, 0] * R[0, 0] + R_cw[0, 1] * R[1, 0] + R_cw[0, 2] * R[2, 0]) * s0
@@ -81,13 +81,13 @@ def _surfel_matrix(mu, R, s0, s1, R_cw, K):
     return tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _opacity_extent(opacity):
     """k^2 with o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
     return 2.0 * math.log(max(opacity / ALPHA_MIN, 1.0))
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _pixel_range(lo, hi, size):
     """Inclusive pixel indices whose centres i + 0.5 lie in [lo, hi], clamped to the image."""
     first = min(max(math.ceil(lo - 0.5), 0.0), float(size))
@@ -131,7 +131,7 @@ def quats_backward(quats, g_rotations, g_quats):
         g_quats[i, 3] = (gz - z * dot) / norm
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _camera_point(x, R_cw, t_cw):
     """mu = R_cw x + t (the torch backend's camera-frame mean, float64)."""
     return (
@@ -141,7 +141,7 @@ def _camera_point(x, R_cw, t_cw):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _ewa_cov2d(mu, cov, R_cw, K):
     """J W Sigma W^T J^T (3DGS Eq. 5) with the affine Jacobian J at the camera-frame mean mu.
 
@@ -170,7 +170,7 @@ def _ewa_cov2d(mu, cov, R_cw, K):
     return a, b, c, p0, p1, p2, q0, q1, q2, z
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _thin_covariance(R, s0, s1, out):
     """out = R diag(s0^2, s1^2, THIN_SCALE^2) R^T: the surfel as a thin 3D Gaussian (Gaussians.covariances)."""
     v0, v1, v2 = s0 * s0, s1 * s1, THIN_SCALE * THIN_SCALE
@@ -179,7 +179,7 @@ def _thin_covariance(R, s0, s1, out):
             out[r, c] = R[r, 0] * v0 * R[c, 0] + R[r, 1] * v1 * R[c, 1] + R[r, 2] * v2 * R[c, 2]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _sh_basis(x, y, z, n_bases, Y):
     """Real SH basis of 3DGS (geometry/sh.py) at the unit direction (x, y, z), first n_bases terms."""
     Y[0] = SH_C0
@@ -202,7 +202,7 @@ def _sh_basis(x, y, z, n_bases, Y):
         Y[15] = SH_C3[6] * x * (xx - 3.0 * yy)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _sh_basis_grad(x, y, z, n_bases, GX, GY, GZ):
     """Partial derivatives of `_sh_basis` with respect to x, y, z (first n_bases terms)."""
     for k in range(n_bases):
@@ -231,7 +231,7 @@ def _sh_basis_grad(x, y, z, n_bases, GX, GY, GZ):
         GX[15], GY[15] = SH_C3[6] * (3.0 * xx - 3.0 * yy), -6.0 * SH_C3[6] * x * y
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _view_direction(x, cam_center):
     """Unit direction from the camera centre to x (F.normalize: divided by max(|v|, 1e-12))."""
     v0, v1, v2 = x[0] - cam_center[0], x[1] - cam_center[1], x[2] - cam_center[2]
@@ -248,7 +248,7 @@ def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, 
     covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
     Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N], depth [N] (camera
     z, the sort key), features [N, 6] (colour, normal facing the camera) and flip [N] (+-1, the
-    normal's sign). scratch [threads, 64], cov_scratch [threads, 2, 3, 3] are per-thread work space.
+    normal's sign). scratch [threads, >= 16], cov_scratch [threads, 2, 3, 3] are per-thread work space.
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
@@ -394,6 +394,8 @@ _TAYLOR = (
 )
 
 
+# Numba's IR-level inlining is used for this one pure scalar function only, so that the row loop
+# of `_segment` vectorizes; it miscompiled larger array-writing helpers inside prange bodies.
 @njit(cache=True, inline="always", error_model="numpy")
 def _exp_nonpositive(x):
     """e^x for x in [_EXP_MIN, 0] (relative error < 1e-14), clamped below at _EXP_MIN.
@@ -413,7 +415,7 @@ def _exp_nonpositive(x):
     return p * p
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _segment(surfel, g, c0, n, dy, alpha, depth):
     """alpha and depth of n consecutive pixels (columns c0.., offset dy from the centre row).
 
@@ -456,12 +458,13 @@ def _segment(surfel, g, c0, n, dy, alpha, depth):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                      out_features, out_trans, out_depth, out_last):
+                      out_color, out_normal, out_depth, out_trans, out_last):
     """Front-to-back alpha compositing of every tile (tiles in parallel).
 
     geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
-    Writes out_features [H, W, 6], out_trans [H, W] (final transmittance), out_depth [H, W]
-    (blended depth) and out_last [H, W] (1 + position in the tile list of the last blended Gaussian).
+    Writes the blended out_color [3, H, W], out_normal [3, H, W], out_depth [H, W], the final
+    transmittance out_trans [H, W] and out_last [H, W] (1 + position in the tile list of the last
+    blended Gaussian).
     """
     n_tiles = tile_start.shape[0] - 1
     for t in prange(n_tiles):
@@ -515,8 +518,9 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
         for r in range(y0, y1):
             for c in range(x0, x1):
                 p = (r - y0) * tile + c - x0
-                for f in range(FEATURES):
-                    out_features[r, c, f] = state[p, f]
+                for f in range(3):
+                    out_color[f, r, c] = state[p, f]
+                    out_normal[f, r, c] = state[p, 3 + f]
                 out_depth[r, c] = state[p, FEATURES]
                 out_trans[r, c] = abs(state[p, FEATURES + 1])
                 out_last[r, c] = last[p]
@@ -524,14 +528,14 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                       trans_final, last, g_features, g_alpha, g_depth, grads):
+                       trans_final, last, g_color, g_normal, g_alpha, g_depth, grads):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
       dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
     Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
-    so nothing per pair is stored. g_features [H, W, 6], g_alpha [H, W], g_depth [H, W] are the
-    upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian sums (zeroed by the
+    so nothing per pair is stored. g_color [3, H, W], g_normal [3, H, W], g_alpha [H, W] and
+    g_depth [H, W] are the upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian sums (zeroed by the
     caller), one slab per thread, so tiles never write to the same memory.
     """
     n_tiles = tile_start.shape[0] - 1
@@ -548,8 +552,9 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
         for r in range(y0, y1):
             for c in range(x0, x1):
                 p = (r - y0) * tile + c - x0
-                for f in range(FEATURES):
-                    state[p, f] = g_features[r, c, f]
+                for f in range(3):
+                    state[p, f] = g_color[f, r, c]
+                    state[p, 3 + f] = g_normal[f, r, c]
                 state[p, S_T] = trans_final[r, c]
                 state[p, S_GOUT] = -g_alpha[r, c] * trans_final[r, c]  # alpha = 1 - T_out
                 state[p, S_GDEPTH] = g_depth[r, c]
@@ -640,25 +645,12 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                     buf[m, j] += acc[j]
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
-def sum_thread_grads(grads):
-    """Sum over the thread axis of grads [threads, M, G] -> [M, G]."""
-    out = np.empty((grads.shape[1], grads.shape[2]))
-    for m in prange(grads.shape[1]):
-        for j in range(grads.shape[2]):
-            s = 0.0
-            for th in range(grads.shape[0]):
-                s += grads[th, m, j]
-            out[m, j] = s
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # Projection backward
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
     """Chain rule of the surfel projection: writes dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
 
@@ -717,7 +709,7 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
     return gm02, gm12, gm22 + g_mu_z
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
     """Chain rule of the EWA projection: writes dL/dSigma (world) into g_cov, returns dL/dmu.
 
@@ -786,10 +778,11 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
 def project_backward(surfel, order, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center,
                      K, geom, flip, grads, g_means, g_rotations, g_scales, g_opacities, g_sh, g_covariances,
                      scratch, cov_scratch):
-    """Chain rule from the survivors' compositing gradients grads [M, GRAD_SIZE] (rows in `order`)
-    to the Gaussian parameters. Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
+    """Chain rule from the survivors' compositing gradients to the Gaussian parameters.
+
+    grads [threads, M, GRAD_SIZE] are the per-thread sums of `composite_backward` (rows in `order`). Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
     g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
-    [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64], cov_scratch
+    [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
     """
     n_bases = sh.shape[2]
@@ -797,7 +790,12 @@ def project_backward(surfel, order, means, rotations, scales, opacities, sh, cov
     for m in prange(order.shape[0]):
         i = order[m]
         tid = get_thread_id()
-        gr = grads[m]
+        gr = scratch[tid, 64 : 64 + GRAD_SIZE]
+        for j in range(GRAD_SIZE):
+            total = 0.0
+            for th in range(grads.shape[0]):
+                total += grads[th, m, j]
+            gr[j] = total
         R = rotations[i]
         mu = _camera_point(means[i], R_cw, t_cw)
         if surfel:
