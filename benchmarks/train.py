@@ -32,6 +32,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def measure(preset: str, size: int, targets: int, batch: int, repeats: int, device: str, precision: str) -> dict:
     """Time `repeats` training steps after one warm-up step, in this process."""
+    from torch.utils.data import default_collate
+
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
     from surfsplat.model.decoder import decoder_mode
     from surfsplat.train import build_model, build_optimizer, train_preset
@@ -39,7 +41,6 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
     from surfsplat.train.data import to_train_batch
     from surfsplat.train.loop import resolve_precision, training_step
     from surfsplat.train.losses import ImageLoss
-    from torch.utils.data import default_collate
 
     config = override(train_preset(preset), {
         "data.image_shape": [size, size], "data.num_target_views": targets, "loss.lpips_weight": 0.0,
@@ -52,7 +53,9 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
     loss_fn = ImageLoss(config.loss).to(dev)
     amp = resolve_precision(config, dev)
     scaler = torch.amp.GradScaler(dev.type) if amp == torch.float16 else None
-    dataset = SyntheticDataset(SyntheticDatasetConfig(length=batch, image_shape=(size, size), num_target_views=targets, supersample=1))
+    dataset = SyntheticDataset(
+        SyntheticDatasetConfig(length=batch, image_shape=(size, size), num_target_views=targets, supersample=1)
+    )
     sample = to_train_batch(default_collate([dataset[i] for i in range(batch)]), list(range(batch))).to(dev)
     mode = decoder_mode(model.cfg.adapter)
     cascade = model.cfg.encoder.num_scales > 1
@@ -128,7 +131,8 @@ def main() -> None:
             cmd += ["--threads", str(args.threads)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
-            rows.append({"preset": preset, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"})
+            lines = proc.stderr.strip().splitlines()
+            rows.append({"preset": preset, "error": lines[-1] if lines else f"exit {proc.returncode}"})
         else:
             rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
         r = rows[-1]

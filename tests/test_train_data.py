@@ -82,7 +82,8 @@ def test_augmentation_is_a_function_of_the_sample_key() -> None:
         again = augment(batch, 0.5, seed=5)
         assert torch.equal(out.context.images, again.context.images)
         flipped = [not torch.equal(out.context.images[i], views.images[i]) for i in range(2)]
-        assert flipped == [not torch.equal(out.target.images[i], views.images[i]) for i in range(2)]  # context and target together
+        # Context and target views of a sample flip together.
+        assert flipped == [not torch.equal(out.target.images[i], views.images[i]) for i in range(2)]
         flips += flipped
     assert 40 <= sum(flips) <= 88  # about half of 128 coins
     assert augment(batch, 0.0, seed=5) is batch
@@ -93,7 +94,9 @@ def test_synthetic_batches_match_the_dataset() -> None:
                         synthetic_supersample=1, cache_samples=True)
     source = build_train_batches(config, global_batch=2, rank=1, world_size=2, seed=4, start_step=2)
     batch = source.next(2)
-    dataset = SyntheticDataset(SyntheticDatasetConfig(length=3, image_shape=(16, 16), num_target_views=1, supersample=1, with_depth=False))
+    dataset = SyntheticDataset(
+        SyntheticDatasetConfig(length=3, image_shape=(16, 16), num_target_views=1, supersample=1, with_depth=False)
+    )
     position = 2 * 2 + 1  # step 2, global batch 2, rank 1's single sample
     order = torch.randperm(3, generator=torch.Generator().manual_seed(mix_seed(4, position // 3))).tolist()
     expected = dataset[order[position % 3]]

@@ -49,7 +49,8 @@ def lpips_files(tmp_path_factory) -> tuple[Path, Path]:
 
 def test_fit_reports_checkpoints_and_lpips_term(tmp_path: Path, lpips_files) -> None:
     vgg, lin = lpips_files
-    config = _quick(tmp_path / "run", **{"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(vgg), "loss.lpips_lin_path": str(lin)})
+    lpips_settings = {"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(vgg), "loss.lpips_lin_path": str(lin)}
+    config = _quick(tmp_path / "run", **lpips_settings)
     result = fit(config)
     assert (result.start_step, result.step, [s for s, _ in result.losses]) == (0, 2, [0, 1])
 

@@ -65,7 +65,9 @@ def intermediate_gaussians(
             "call the model with return_intermediates=True"
         )
     if count != 1:
-        raise SurfSplatInputError(f"model: intermediate supervision is implemented for two-scale cascades, got {count + 1} scales")
+        raise SurfSplatInputError(
+            f"model: intermediate supervision is implemented for two-scale cascades, got {count + 1} scales"
+        )
     b, v, _, height, width = images.shape
     inv = coarse_inverse_depth(inter[_LOGITS], near.reshape(-1), far.reshape(-1))
     inv = F.interpolate(inv, scale_factor=MATCHING_STRIDE, mode="bilinear", align_corners=True)

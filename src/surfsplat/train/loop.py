@@ -12,15 +12,16 @@ metrics.jsonl and the progress bar; every number it reports is first reduced ove
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
+import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
@@ -57,7 +58,7 @@ VIT_PREFIX = "encoder.vit."  # parameters of the pretrained monocular ViT (their
 
 @dataclass
 class TrainResult:
-    """What a run did (identical on every rank)."""
+    """What a run did (the same on every rank but `rank` and `checkpoint`, which rank 0 alone writes)."""
 
     out_dir: Path
     rank: int  # this process's rank (0 reports)
@@ -65,7 +66,7 @@ class TrainResult:
     step: int  # optimizer steps completed
     losses: list[tuple[int, float]] = field(default_factory=list)  # (step, loss averaged over ranks)
     validation: dict[int, dict[str, float]] = field(default_factory=dict)  # step -> metrics
-    checkpoint: Path | None = None  # the last checkpoint written
+    checkpoint: Path | None = None  # the newest checkpoint of the run (written, or resumed from)
     seconds: float = 0.0  # wall time of the loop
 
 
@@ -216,6 +217,17 @@ def _resume_path(config: TrainConfig, resume: bool | str | Path) -> Path | None:
     return Path(resume)
 
 
+def _stop_if_diverged(losses: Tensor, first_step: int, checkpoint: Path | None) -> None:
+    """Raise at the first non-finite loss: continuing would only spread NaN into the weights."""
+    bad = (~torch.isfinite(losses)).nonzero()
+    if len(bad):
+        step = first_step + int(bad[0])
+        raise FloatingPointError(
+            f"training diverged: loss {float(losses[int(bad[0])])} at step {step}; last good checkpoint: "
+            f"{checkpoint or 'none'} (lower optim.lr or optim.grad_clip, or check the data)"
+        )
+
+
 def _changed_settings(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
     out = []
     for key in sorted(set(saved) | set(current)):
@@ -282,6 +294,8 @@ def training_step(
 def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResult:
     """Train per `config`; `resume` = True (newest checkpoint of out_dir), "auto" (newest if any),
     or a checkpoint folder. Works alone or under torchrun (one process per device)."""
+    if not isinstance(config, TrainConfig):
+        raise SurfSplatInputError(f"config: expected a TrainConfig, got {type(config).__name__}")
     config = config_from_dict(config.to_dict())  # validates every field
     ctx = init_distributed(config.device)
     try:
@@ -309,7 +323,10 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     cascade = num_intermediate_depths(model) > 0
 
     start_step, data_state, rng_state, extra = 0, None, None, {}
-    torch.manual_seed(mix_seed(config.seed, ctx.rank) & 0x7FFF_FFFF_FFFF_FFFF)
+    rank_seed = mix_seed(config.seed, ctx.rank)
+    torch.manual_seed(rank_seed)
+    np.random.seed(rank_seed & 0xFFFF_FFFF)
+    random.seed(rank_seed)
     if resume_from is not None:
         state = load_training_checkpoint(resume_from, model, map_location=device)
         changes = _changed_settings(state.config, json.loads(json.dumps(config.to_dict())))
@@ -340,9 +357,14 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         config.data, config.batch_size, ctx.rank, ctx.world_size, config.seed, start_step, stream_state
     )
     val_samples = build_validation_samples(config.data, ctx.rank, ctx.world_size, config.seed) if config.val_every else []
-    val_lpips: Lpips | LpipsUnavailable = (
-        loss_fn.lpips if loss_fn.lpips is not None else try_load_lpips(config.loss.lpips_vgg_path, config.loss.lpips_lin_path)
-    )
+    val_lpips: Lpips | LpipsUnavailable = LpipsUnavailable("no validation scenes")
+    if val_samples:
+        # The loss's LPIPS when it has one (loaded once), else whatever the standard locations hold.
+        lpips_model = loss_fn.lpips
+        if lpips_model is not None:
+            val_lpips = lpips_model
+        else:
+            val_lpips = try_load_lpips(config.loss.lpips_vgg_path, config.loss.lpips_lin_path)
     reporter = _Reporter(config, ctx, start_step)
     if isinstance(val_lpips, LpipsUnavailable) and val_samples:
         reporter.message(f"validation without LPIPS: {val_lpips}")
@@ -350,8 +372,10 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     if rng_state is not None:
         # Last thing before the loop: whatever start-up drew from the generators is overwritten.
         restore_rng(rng_state)
-    result = TrainResult(out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step)
-    pending: list[Tensor] = []  # per-step [total, mse, lpips] not yet reduced over ranks
+    result = TrainResult(
+        out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step, checkpoint=resume_from
+    )
+    pending: list[Tensor] = []  # per-step [total, mse, lpips, grad norm] not yet reduced over ranks
     started = time.perf_counter()
     window_start, window_steps = started, 0
     try:
@@ -384,6 +408,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 now = time.perf_counter()
                 seconds_per_step = (now - window_start) / window_steps
                 last = reduced[-1]
+                _stop_if_diverged(reduced[:, 0], first, result.checkpoint)
                 values = {
                     "loss/total": float(last[0]), "loss/mse": float(last[1]), "train/grad_norm": float(last[3]),
                     "train/lr": lr, "train/samples_per_second": config.batch_size / seconds_per_step,
@@ -413,6 +438,8 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 reporter.message(f"step {done}: validation {shown}")
 
             if done % config.checkpoint_every == 0 or is_last:
+                if pending:  # never publish weights that a non-finite loss has already updated
+                    _stop_if_diverged(torch.stack(pending)[:, 0].cpu(), done - len(pending), result.checkpoint)
                 rng = all_gather_objects(capture_rng(), ctx)
                 positions = all_gather_objects(source.state(), ctx)
                 if ctx.is_main:
@@ -445,8 +472,3 @@ def read_checkpoint_config(path: str | Path) -> TrainConfig:
     except ValueError as err:
         raise SurfSplatInputError(f"{document_path}: not valid JSON ({err})") from None
     return config_from_dict(document.get("config"))
-
-
-def replace_config(config: TrainConfig, **changes: Any) -> TrainConfig:
-    """dataclasses.replace with validation (for callers composing configs programmatically)."""
-    return config_from_dict(dataclasses.replace(config, **changes).to_dict())
