@@ -416,14 +416,16 @@ def _exp_nonpositive(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _segment(surfel, g, c0, n, dy, alpha, depth):
-    """alpha and depth of n consecutive pixels (columns c0.., offset dy from the centre row).
+def _segment(surfel, g, c0, n, dy, alpha, depth, inv_hz):
+    """alpha, depth and 1 / hz of n consecutive pixels (columns c0.., offset dy from the centre row).
 
     surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
             (the z of the ray-splat intersection) or the centre depth (2DGS).
     ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
+    inv_hz is 1 / hz on the ray-splat branch and 0 on the filter branch (and for ewa), so the
+    backward pass takes the very branch the forward pass took.
     Returns whether any pixel of the segment has alpha > 0.
     """
     cx, log_o, z = g[GEOM_CX], g[GEOM_LOGO], g[GEOM_DEPTH]
@@ -443,6 +445,7 @@ def _segment(surfel, g, c0, n, dy, alpha, depth):
             ok = log_alpha >= LOG_ALPHA_MIN
             alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
             depth[j] = det * inv if use3d else z
+            inv_hz[j] = inv if use3d else 0.0
             hit |= ok
     else:
         ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
@@ -452,6 +455,7 @@ def _segment(surfel, g, c0, n, dy, alpha, depth):
             ok = log_alpha >= LOG_ALPHA_MIN
             alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
             depth[j] = z
+            inv_hz[j] = 0.0
             hit |= ok
     return hit
 
@@ -475,8 +479,7 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
         state = np.zeros((tile * tile, FEATURES + 2))
         state[:, FEATURES + 1] = 1.0
         last = np.zeros(tile * tile, dtype=np.int64)
-        alpha = np.empty(tile)
-        depth = np.empty(tile)
+        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
         active = (x1 - x0) * (y1 - y0)
         start = tile_start[t]
         for k in range(start, tile_start[t + 1]):
@@ -487,7 +490,7 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
             f0, f1, f2, f3, f4, f5 = features[m, 0], features[m, 1], features[m, 2], features[m, 3], features[m, 4], features[m, 5]
             c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                if not _segment(surfel, g, c0, c1 - c0 + 1, r + 0.5 - g[GEOM_CY], alpha, depth):
+                if not _segment(surfel, g, c0, c1 - c0 + 1, r + 0.5 - g[GEOM_CY], alpha, depth, inv_hz):
                     continue
                 base = (r - y0) * tile + c0 - x0
                 for j in range(c1 - c0 + 1):
@@ -535,8 +538,8 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
       dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
     Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
     so nothing per pair is stored. g_color [3, H, W], g_normal [3, H, W], g_alpha [H, W] and
-    g_depth [H, W] are the upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian sums (zeroed by the
-    caller), one slab per thread, so tiles never write to the same memory.
+    g_depth [H, W] are the upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian
+    sums (zeroed by the caller), one slab per thread, so tiles never write to the same memory.
     """
     n_tiles = tile_start.shape[0] - 1
     S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
@@ -560,23 +563,28 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                 state[p, S_GDEPTH] = g_depth[r, c]
                 last_px[p] = last[r, c]
                 n_last = max(n_last, last[r, c])
-        alpha = np.empty(tile)
-        depth = np.empty(tile)
-        acc = np.zeros(GRAD_SIZE)
+        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
         start = tile_start[t]
         for k in range(start + n_last - 1, start - 1, -1):
             pos = k - start
             m = tile_ids[k]
             g = geom[m]
-            cx, cy, log_o = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO]
-            feat = features[m]
-            acc[:] = 0.0
+            cx, cy = g[GEOM_CX], g[GEOM_CY]
+            f0, f1, f2, f3, f4, f5 = features[m, 0], features[m, 1], features[m, 2], features[m, 3], features[m, 4], features[m, 5]
+            b0, b1, b2 = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2]
+            ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
+            # Per-Gaussian sums kept in registers (GRAD_* columns).
+            s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = 0.0  # surfel h; ewa conic in s_h
+            s_cx = s_cy = s_det = s_depth = s_logo = 0.0
+            s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = 0.0
             touched = False
             c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
                 dy = r + 0.5 - cy
-                if not _segment(surfel, g, c0, c1 - c0 + 1, dy, alpha, depth):
+                if not _segment(surfel, g, c0, c1 - c0 + 1, dy, alpha, depth, inv_hz):
                     continue
+                # h at the row start, grouped as in `_segment` so every bit matches the forward pass.
+                a0, a1, a2 = g[GEOM_A] + dy * g[GEOM_C], g[GEOM_A + 1] + dy * g[GEOM_C + 1], g[GEOM_A + 2] + dy * g[GEOM_C + 2]
                 base = (r - y0) * tile + c0 - x0
                 for j in range(c1 - c0 + 1):
                     a = alpha[j]
@@ -585,64 +593,83 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                         continue  # below 1/255, or behind this pixel's last blended Gaussian
                     touched = True
                     s = state[p]
-                    one_minus = 1.0 - a
-                    T = s[S_T] / one_minus
+                    inv_one_minus = 1.0 / (1.0 - a)
+                    T = s[S_T] * inv_one_minus
                     s[S_T] = T
                     w = a * T
                     d = depth[j]
                     g_d = s[S_GDEPTH]
-                    g_w = g_d * d
-                    for f in range(FEATURES):
-                        g_w += s[f] * feat[f]
-                        acc[GRAD_FEAT + f] += w * s[f]
+                    u0, u1, u2, u3, u4, u5 = s[0], s[1], s[2], s[3], s[4], s[5]
+                    g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+                    s_f0 += w * u0
+                    s_f1 += w * u1
+                    s_f2 += w * u2
+                    s_f3 += w * u3
+                    s_f4 += w * u4
+                    s_f5 += w * u5
                     behind = s[S_BEHIND]
-                    g_a = T * g_w - (behind + s[S_GOUT]) / one_minus
+                    g_a = T * g_w - (behind + s[S_GOUT]) * inv_one_minus
                     s[S_BEHIND] = behind + w * g_w
                     g_rho = 0.0
                     if a < ALPHA_MAX:  # alpha = min(exp(.), 0.99): a clamped pair passes nothing on
                         g_log_alpha = g_a * a
-                        acc[GRAD_LOGO] += g_log_alpha
+                        s_logo += g_log_alpha
                         g_rho = -0.5 * g_log_alpha
                     g_dpair = w * g_d
                     dx = c0 + j + 0.5 - cx
                     if surfel:
-                        hx = g[GEOM_A] + dx * g[GEOM_B] + dy * g[GEOM_C]
-                        hy = g[GEOM_A + 1] + dx * g[GEOM_B + 1] + dy * g[GEOM_C + 1]
-                        hz = g[GEOM_A + 2] + dx * g[GEOM_B + 2] + dy * g[GEOM_C + 2]
-                        q = hx * hx + hy * hy
-                        if q < LOWPASS_RHO_SCALE * (dx * dx + dy * dy) * (hz * hz):
+                        inv = inv_hz[j]
+                        if inv != 0.0:
                             # rho = (hx^2 + hy^2) / hz^2, depth = det / hz
-                            inv = 1.0 / hz
+                            hx, hy, hz = a0 + dx * b0, a1 + dx * b1, a2 + dx * b2
                             sc = 2.0 * g_rho * inv * inv
                             g_hx, g_hy = sc * hx, sc * hy
-                            g_hz = -(sc * q + g_dpair * d) * inv
-                            acc[GRAD_H] += g_hx
-                            acc[GRAD_H + 1] += g_hy
-                            acc[GRAD_H + 2] += g_hz
-                            acc[GRAD_HX] += dx * g_hx
-                            acc[GRAD_HX + 1] += dx * g_hy
-                            acc[GRAD_HX + 2] += dx * g_hz
-                            acc[GRAD_HY] += dy * g_hx
-                            acc[GRAD_HY + 1] += dy * g_hy
-                            acc[GRAD_HY + 2] += dy * g_hz
-                            acc[GRAD_DET] += g_dpair * inv
+                            g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
+                            s_h0 += g_hx
+                            s_h1 += g_hy
+                            s_h2 += g_hz
+                            s_x0 += dx * g_hx
+                            s_x1 += dx * g_hy
+                            s_x2 += dx * g_hz
+                            s_y0 += dy * g_hx
+                            s_y1 += dy * g_hy
+                            s_y2 += dy * g_hz
+                            s_det += g_dpair * inv
                         else:
                             # rho = 2 |p - c|^2, depth = centre depth
                             sc = 2.0 * LOWPASS_RHO_SCALE * g_rho
-                            acc[GRAD_CX] -= sc * dx
-                            acc[GRAD_CY] -= sc * dy
-                            acc[GRAD_DEPTH] += g_dpair
+                            s_cx -= sc * dx
+                            s_cy -= sc * dy
+                            s_depth += g_dpair
                     else:
-                        ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
-                        acc[GRAD_CONIC] += g_rho * dx * dx
-                        acc[GRAD_CONIC + 1] += 2.0 * g_rho * dx * dy
-                        acc[GRAD_CONIC + 2] += g_rho * dy * dy
-                        acc[GRAD_CX] -= 2.0 * g_rho * (ca * dx + cb * dy)
-                        acc[GRAD_CY] -= 2.0 * g_rho * (cb * dx + cc * dy)
-                        acc[GRAD_DEPTH] += g_dpair
+                        s_h0 += g_rho * dx * dx
+                        s_h1 += 2.0 * g_rho * dx * dy
+                        s_h2 += g_rho * dy * dy
+                        s_cx -= 2.0 * g_rho * (ca * dx + cb * dy)
+                        s_cy -= 2.0 * g_rho * (cb * dx + cc * dy)
+                        s_depth += g_dpair
             if touched:
-                for j in range(GRAD_SIZE):
-                    buf[m, j] += acc[j]
+                row = buf[m]
+                row[GRAD_H] += s_h0
+                row[GRAD_H + 1] += s_h1
+                row[GRAD_H + 2] += s_h2
+                row[GRAD_HX] += s_x0
+                row[GRAD_HX + 1] += s_x1
+                row[GRAD_HX + 2] += s_x2
+                row[GRAD_HY] += s_y0
+                row[GRAD_HY + 1] += s_y1
+                row[GRAD_HY + 2] += s_y2
+                row[GRAD_CX] += s_cx
+                row[GRAD_CY] += s_cy
+                row[GRAD_DET] += s_det
+                row[GRAD_DEPTH] += s_depth
+                row[GRAD_LOGO] += s_logo
+                row[GRAD_FEAT] += s_f0
+                row[GRAD_FEAT + 1] += s_f1
+                row[GRAD_FEAT + 2] += s_f2
+                row[GRAD_FEAT + 3] += s_f3
+                row[GRAD_FEAT + 4] += s_f4
+                row[GRAD_FEAT + 5] += s_f5
 
 
 # ---------------------------------------------------------------------------------------------
@@ -874,14 +901,13 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        alpha = np.empty(tile)
-        depth = np.empty(tile)
+        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
         n = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             m = tile_ids[k]
             c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                if _segment(surfel, geom[m], c0, c1 - c0 + 1, r + 0.5 - geom[m, GEOM_CY], alpha, depth):
+                if _segment(surfel, geom[m], c0, c1 - c0 + 1, r + 0.5 - geom[m, GEOM_CY], alpha, depth, inv_hz):
                     for j in range(c1 - c0 + 1):
                         n += alpha[j] > 0.0
         per_tile[t] = n
