@@ -3,15 +3,18 @@
 For each backend, mode and resolution it measures the forward time, the forward+backward time
 (median of repeats after a warm-up) and the peak resident memory of a fresh process, and counts
 the contributing (Gaussian, pixel) pairs (alpha >= 1/255). Writes JSON and prints a table.
+Each row also carries the process CPU time (all threads) and the 1-minute load average: on a
+shared machine wall time alone says little.
 
-    python benchmarks/render.py                       # torch backend, surfel + ewa, 256/512/1024
-    python benchmarks/render.py --backends torch --modes surfel --resolutions 256
+    python benchmarks/render.py                       # every backend that runs here, surfel + ewa, 256/512/1024
+    python benchmarks/render.py --backends cpu --modes surfel --resolutions 256
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import statistics
@@ -67,6 +70,18 @@ def contributing_pairs(gaussians, cameras, width: int, height: int, mode: str) -
     return total
 
 
+def available_backends() -> list[str]:
+    """torch always; the compiled CPU backend when it loads; gsplat with CUDA."""
+    from surfsplat.render import cpu_backend_unavailable, gsplat_available
+
+    names = ["torch"]
+    if cpu_backend_unavailable() is None:
+        names.append("cpu")
+    if torch.cuda.is_available() and gsplat_available(torch.device("cuda")):
+        names.append("gsplat")
+    return names
+
+
 def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads: int) -> dict:
     torch.set_num_threads(threads)
     from surfsplat import Gaussians
@@ -77,31 +92,39 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads
     cam = scene.target.scaled(res / 256)
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    def run_once() -> float:
+    if backend == "cpu":
+        import numba
+
+        numba.set_num_threads(threads)
+
+    def run_once() -> tuple[float, float]:
         if passes == "forward":
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             with torch.no_grad():
                 render(g, cam, res, res, mode=mode, backend=backend)
-            return time.perf_counter() - t
+            return time.perf_counter() - t, time.process_time() - c
         params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")}
-        t = time.perf_counter()
-        out = render(Gaussians(**params), cam, res, res, mode=mode, backend=backend)
+        gaussians = Gaussians(**params)  # input validation is not renderer work: outside the timer
+        t, c = time.perf_counter(), time.process_time()
+        out = render(gaussians, cam, res, res, mode=mode, backend=backend)
         (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
-        return time.perf_counter() - t
+        return time.perf_counter() - t, time.process_time() - c
 
-    warm = run_once()
-    times = [run_once() for _ in range(repeats)]
+    warm = run_once()[0]  # includes compiling (or loading the compiled cache of) the cpu kernels
+    runs = [run_once() for _ in range(repeats)]
+    times = [r[0] for r in runs]
     peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {
         "backend": backend, "mode": mode, "resolution": res, "passes": passes,
         "seconds": statistics.median(times), "seconds_all": times, "warmup_seconds": warm,
+        "cpu_seconds": statistics.median(r[1] for r in runs), "load_average": os.getloadavg()[0],
         "peak_rss_mb": peak_rss, "scene_rss_mb": base_rss, "threads": threads,
     }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--backends", nargs="+", default=["torch"])
+    parser.add_argument("--backends", nargs="+", default=None, help="default: every backend that runs here")
     parser.add_argument("--modes", nargs="+", default=["surfel", "ewa"])
     parser.add_argument("--resolutions", nargs="+", type=int, default=[256, 512, 1024])
     parser.add_argument("--passes", nargs="+", default=["forward", "forward_backward"])
@@ -117,6 +140,7 @@ def main() -> None:
         return
 
     torch.set_num_threads(args.threads)
+    args.backends = args.backends or available_backends()
     scene = _scene()
     rows = []
     for mode in args.modes:
@@ -153,7 +177,8 @@ def _format_row(r: dict) -> str:
     head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16}"
     if "error" in r:
         return f"{head}  ERROR {r['error']}"
-    return (f"{head}  {r['seconds']:8.3f} s  peak {r['peak_rss_mb']:7.0f} MB  "
+    return (f"{head}  {r['seconds']:8.3f} s  (cpu {r['cpu_seconds']:7.3f} s, load {r['load_average']:4.1f})  "
+            f"peak {r['peak_rss_mb']:7.0f} MB  "
             f"pairs {r['contributing_pairs'] / 1e6:6.2f} M  {r['pairs_per_second'] / 1e6:6.2f} M pairs/s")
 
 
