@@ -113,7 +113,8 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
 def test_eval_over_chunks_built_from_dtu(demo, data_dir, tmp_path):
     scene = load_scene(data_dir / "dtu_scan24", images="images_4").select([0, 1, 2, 3, 4])
     write_chunks([scene_to_example(scene, key="scan24", image_format="png")], tmp_path / "chunks")
-    index = {"scan24": {"context": [0, 2], "target": [1, 3]}, "scan1": None, "scan99": {"context": [0, 1], "target": [2]}}
+    # MVSplat's DTU index style: several entries per scene as key_NN (one of them excluded with null).
+    index = {"scan24_00": {"context": [0, 2], "target": [1, 3]}, "scan24_01": None, "scan99": {"context": [0, 1], "target": [2]}}
     (tmp_path / "index.json").write_text(json.dumps(index))
     near, far = float(scene.near.min()), float(scene.far.max())
     code = main(["eval", "--compare", f"demo={demo / 'train'}", f"demo w/o FAB={demo / 'train'}:opacity_max=1.0",

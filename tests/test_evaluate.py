@@ -155,13 +155,29 @@ def test_result_files(tmp_path, chunks, index, model_path):
     samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
     config = EvalConfig(factors=(1, 2), progress=False)
     results = {name: evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name=name) for name in ("a", "b")}
-    counts = SampleCounts(evaluated=2, excluded=2, missing=["absent-scene"])
+    counts = SampleCounts(evaluated=1, excluded=1, missing=["absent-scene"])
     paths = write_results(results, tmp_path, counts)
     document = json.loads(paths["metrics"].read_text())
-    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 2, "scenes_not_in_index": 0, "missing_from_data": 1}
+    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 1, "scenes_not_in_index": 0, "missing_from_data": 1}
     assert document["models"]["a"]["mean"]["x2"]["psnr"] == pytest.approx(results["a"].report.mean[2]["psnr"])
     rows = list(csv.DictReader(io.StringIO(per_scene_csv(results))))
     assert len(rows) == 2 * 1 * 2  # models x entries x factors
     assert {r["entry"] for r in rows} == {keys[0]} and rows[0]["lpips"] == ""
     table = paths["table"].read_text()
     assert "32x32 (Standard)" in table and "64x64 (HRRC)" in table and "LPIPS unavailable: none" in table
+
+
+def test_release_lightning_checkpoint_loads_into_the_official_adapter(tmp_path):
+    from surfsplat.model import export_release_state_dict
+
+    torch.manual_seed(1)
+    source = SurfSplat.from_preset("tiny", adapter="official")
+    state = {f"encoder.{k}": v for k, v in export_release_state_dict(source).items()}
+    state["decoder.background"] = torch.zeros(3)  # Lightning files also hold modules that are not the encoder
+    torch.save({"state_dict": state, "global_step": 10}, tmp_path / "release.ckpt")
+    model, name = load_model(ModelSpec(str(tmp_path / "release.ckpt"), preset="tiny"))
+    assert name == "release.ckpt" and model.cfg.adapter.mode == "official"
+    for key, value in source.state_dict().items():
+        assert torch.equal(model.state_dict()[key], value), key
+    with pytest.raises(SurfSplatInputError, match="does not match"):
+        load_model(ModelSpec(str(tmp_path / "release.ckpt"), preset="small"))

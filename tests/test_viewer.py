@@ -10,7 +10,6 @@ import urllib.request
 
 import numpy as np
 import pytest
-import torch
 
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.export.ply import save_ply

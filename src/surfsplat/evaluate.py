@@ -461,14 +461,15 @@ def per_scene_csv(results: dict[str, EvaluationResult]) -> str:
 
 
 def write_results(results: dict[str, EvaluationResult], out_dir: str | Path, counts: SampleCounts | None = None) -> dict[str, Path]:
-    """metrics.json (every number), per_scene.csv and table.txt in out_dir; each written atomically."""
+    """metrics.json (every number), per_scene.csv and table.txt in out_dir; each written atomically.
+    `counts`: what happened to the index entries for one model (every model sees the same entries)."""
     from .export.figures import write_text
 
     out = Path(out_dir)
     document = {"models": {n: r.to_json() for n, r in results.items()}}
     if counts is not None:
         document["entries"] = {
-            "evaluated_per_model": counts.evaluated // max(1, len(results)),
+            "evaluated_per_model": counts.evaluated,
             "excluded_null": counts.excluded,
             "scenes_not_in_index": counts.not_in_index,
             "missing_from_data": len(counts.missing),

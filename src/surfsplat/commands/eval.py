@@ -76,21 +76,24 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--compare: model names must differ, got {names} (name them: NAME=CKPT)")
     lpips = try_load_lpips(args.lpips_vgg, args.lpips_lin, device=device)
 
-    sample_sets = []  # one (checked) sample stream per model; chunk folders are validated before any model runs
-    counts = SampleCounts()
-    for _ in models:
-        sample_sets.append(iter_index_samples(args.data, index, tuple(args.size) if args.size else None, args.near,
-                                              args.far, args.max_entries, counts))
+    # One (checked) sample stream per model, each with its own counts; the folders are validated here,
+    # before any model runs.
+    counts = [SampleCounts() for _ in models]
+    sample_sets = [
+        iter_index_samples(args.data, index, tuple(args.size) if args.size else None, args.near, args.far, args.max_entries, c)
+        for c in counts
+    ]
     results = {}
     non_null = sum(v is not None for v in index.entries.values())
     total = min(non_null, args.max_entries) if args.max_entries else non_null
     for (model, name), samples in zip(models, sample_sets):
         results[name] = evaluate(model, samples, config, lpips=lpips, name=name, total=total)
-    written = write_results(results, args.out, counts)
+    first = counts[0]
+    written = write_results(results, args.out, first)
     print(format_results(results))
     print(
-        f"entries: {counts.evaluated // len(models)} evaluated, {counts.excluded // len(models)} excluded by the index (null), "
-        f"{len(counts.missing)} in the index but not in the data, {counts.not_in_index // len(models)} data scenes not in the index"
+        f"entries: {first.evaluated} evaluated, {first.excluded} excluded by the index (null), "
+        f"{len(first.missing)} in the index but not in the data, {first.not_in_index} data scenes not in the index"
     )
     for key, path in written.items():
         print(f"  {key}: {path}")
