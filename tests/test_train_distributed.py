@@ -29,7 +29,9 @@ _RUN = [
     "--preset", "tiny", "--image-shape", "32", "32", "--val-every", "0", "--log-every", "1", "--no-progress",
     "--set", "data.synthetic_length=6", "--set", "data.num_target_views=1", "--set", "keep_checkpoints=0",
 ]
-_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+# One thread everywhere: bit-identity needs a fixed summation order, and the compiled CPU
+# renderer sums per-thread gradient partials whose grouping depends on thread scheduling.
+_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 
 
 def _train(out: Path, *options: str, ranks: int = 1) -> subprocess.CompletedProcess:
