@@ -30,6 +30,7 @@ _FIELDS: dict[str, str] = {
     "seed": "seed",
     "precision": "precision",
     "device": "device",
+    "cpu_threads": "cpu_threads",
     "dataset": "data.dataset",
     "roots": "data.roots",
     "val_roots": "data.val_roots",
@@ -65,6 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--seed", type=int)
     common.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"))
     common.add_argument("--device", choices=("auto", "cpu", "cuda"))
+    common.add_argument("--cpu-threads", type=int, help="CPU threads per rank (torch and the compiled renderer; 0: defaults)")
     common.add_argument("--dataset", choices=("synthetic", "chunks"))
     common.add_argument("--roots", nargs="+", help="training chunk folders")
     common.add_argument("--val-roots", nargs="+", help="held-out chunk folders for validation")

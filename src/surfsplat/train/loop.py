@@ -12,11 +12,14 @@ metrics.jsonl and the progress bar; every number it reports is first reduced ove
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import math
 import random
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -299,9 +302,30 @@ def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResul
     config = config_from_dict(config.to_dict())  # validates every field
     ctx = init_distributed(config.device)
     try:
-        return _fit(config, ctx, _resume_path(config, resume))
+        with cpu_threads(config.cpu_threads):
+            return _fit(config, ctx, _resume_path(config, resume))
     finally:
         shutdown(ctx)
+
+
+@contextmanager
+def cpu_threads(threads: int) -> Iterator[None]:
+    """Use `threads` CPU threads in torch and in the compiled (numba) renderer while inside;
+    0 changes nothing. The previous counts come back on exit."""
+    if threads <= 0:
+        yield
+        return
+    numba = importlib.import_module("numba") if importlib.util.find_spec("numba") is not None else None
+    before = (torch.get_num_threads(), numba.get_num_threads() if numba is not None else 0)
+    torch.set_num_threads(threads)
+    if numba is not None:
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        if numba is not None:
+            numba.set_num_threads(before[1])
 
 
 def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None) -> TrainResult:
