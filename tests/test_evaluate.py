@@ -84,11 +84,18 @@ def test_index_entry_beyond_the_scene_is_an_error(chunks):
         list(iter_index_samples([root], bad, near=0.5, far=15.0))
 
 
-def test_metrics_equal_the_metric_functions_on_the_renders(chunks, index, model_path):
+@pytest.fixture(scope="module")
+def evaluated(chunks, index, model_path):
+    """(model, samples, result) of one bicubic evaluation, shared by the tests below."""
     root, _ = chunks
     model, name = load_model(ModelSpec(str(model_path), name="tiny"))
     samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
     result = evaluate(model, samples, EvalConfig(progress=False), lpips=LpipsUnavailable("no weights here"), name=name)
+    return model, samples, result
+
+
+def test_metrics_equal_the_metric_functions_on_the_renders(evaluated):
+    model, samples, result = evaluated
     pred = predict_sample(model, samples[0], (1, 2, 4))
     target = samples[0].target_images
     for s in (1, 2, 4):
@@ -105,13 +112,11 @@ def test_metrics_equal_the_metric_functions_on_the_renders(chunks, index, model_
     assert result.peak_memory_bytes > 0
 
 
-def test_bilinear_upsampling_changes_only_the_hrrc_columns(chunks, index, model_path):
-    root, _ = chunks
-    model, _ = load_model(ModelSpec(str(model_path)))
-    samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
-    unavailable = LpipsUnavailable("no weights here")
-    cubic = evaluate(model, samples, EvalConfig(progress=False), lpips=unavailable).report.mean
-    linear = evaluate(model, samples, EvalConfig(upsample="bilinear", progress=False), lpips=unavailable).report.mean
+def test_bilinear_upsampling_changes_only_the_hrrc_columns(evaluated):
+    model, samples, result = evaluated
+    cubic = result.report.mean
+    config = EvalConfig(upsample="bilinear", progress=False)
+    linear = evaluate(model, samples, config, lpips=LpipsUnavailable("no weights here")).report.mean
     assert cubic[1]["psnr"] == pytest.approx(linear[1]["psnr"], abs=1e-9)
     assert cubic[2]["psnr"] != pytest.approx(linear[2]["psnr"], abs=1e-4)
 
@@ -149,13 +154,16 @@ def test_checkpoint_resolution(tmp_path, model_path):
         resolve_checkpoint(tmp_path)
 
 
-def test_result_files(tmp_path, chunks, index, model_path):
-    root, keys = chunks
-    model, _ = load_model(ModelSpec(str(model_path)))
-    samples = list(iter_index_samples([root], index, near=0.5, far=15.0))
+def test_result_files(tmp_path, chunks, evaluated):
+    _, keys = chunks
+    model, samples, result = evaluated
     config = EvalConfig(factors=(1, 2), progress=False)
-    results = {name: evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name=name) for name in ("a", "b")}
+    results = {"a": evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name="a"), "b": result}
     counts = SampleCounts(evaluated=1, excluded=1, missing=["absent-scene"])
+    with pytest.raises(SurfSplatInputError, match="same factors"):
+        write_results(results, tmp_path, counts)  # one table needs one set of factors
+    assert list(tmp_path.iterdir()) == []  # and nothing was written
+    results["b"] = evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name="b")
     paths = write_results(results, tmp_path, counts)
     document = json.loads(paths["metrics"].read_text())
     assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 1, "scenes_not_in_index": 0, "missing_from_data": 1}

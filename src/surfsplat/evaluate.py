@@ -474,11 +474,13 @@ def write_results(results: dict[str, EvaluationResult], out_dir: str | Path, cou
             "scenes_not_in_index": counts.not_in_index,
             "missing_from_data": len(counts.missing),
         }
-    return {
-        "metrics": write_text(out / "metrics.json", json.dumps(_finite(document), indent=2)),
-        "per_scene": write_text(out / "per_scene.csv", per_scene_csv(results)),
-        "table": write_text(out / "table.txt", format_results(results) + "\n"),
+    # Every text first, then the files: an error (e.g. reports of different factors) writes nothing.
+    texts = {
+        "metrics": ("metrics.json", json.dumps(_finite(document), indent=2)),
+        "per_scene": ("per_scene.csv", per_scene_csv(results)),
+        "table": ("table.txt", format_results(results) + "\n"),
     }
+    return {key: write_text(out / name, text) for key, (name, text) in texts.items()}
 
 
 def _finite(value: object) -> object:
