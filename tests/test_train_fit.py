@@ -144,3 +144,19 @@ def test_precision_rules_and_float32_adapter_under_autocast() -> None:
     # The geometry ran in float32 with autocast off, on the bf16 encoder's depths cast up.
     assert seen == [(False, torch.float32)]
     assert prediction.gaussians.means.dtype == torch.float32
+
+
+@pytest.mark.slow
+def test_base_preset_adds_the_coarse_cascade_render_to_the_loss(tmp_path: Path) -> None:
+    """base/large refine depth in two scales; the release also renders the coarse depth's surfels
+    and adds 0.9 x their loss, so the logged total exceeds the final render's MSE."""
+    config = override(train_preset("base"), {
+        "out_dir": str(tmp_path), "steps": 1, "log_every": 1, "val_every": 0, "progress": False, "batch_size": 1,
+        "cpu_threads": 1, "loss.lpips_weight": 0.0, "data.dataset": "synthetic", "data.image_shape": [32, 32],
+        "data.num_target_views": 1, "data.synthetic_length": 1, "data.synthetic_supersample": 1,
+    })
+    fit(config)
+    (row,) = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    # total = 0.9 * MSE(coarse render) + MSE(final render), both MSEs of the same images in (0, 1).
+    assert row["loss/mse"] < row["loss/total"] < row["loss/mse"] + 0.9 * 1.0
+    assert row["loss/total"] - row["loss/mse"] > 0.1 * row["loss/mse"]
