@@ -194,6 +194,25 @@ def test_transformer_swapping_two_views_swaps_the_outputs():
     assert not torch.allclose(out[:, 0], out[:, 1])
 
 
+def test_transformer_attends_only_to_the_selected_neighbours():
+    """With four views each view sees its two nearest cameras; a one-layer transformer's output for
+    view 0 must ignore the far view 3 and react to its neighbour view 1."""
+    torch.manual_seed(0)
+    tr = MultiViewTransformer(dim=16, num_layers=1, splits=2).eval()
+    centers = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0]]])
+    nb = select_neighbours(centers, 2)
+    assert nb[0, 0].tolist() == [1, 2]
+    x = torch.randn(1, 4, 16, 8, 8)
+    with torch.no_grad():
+        base = tr(x, nb)
+        far = x.clone()
+        far[:, 3] = torch.randn(16, 8, 8)
+        near = x.clone()
+        near[:, 1] = torch.randn(16, 8, 8)
+        torch.testing.assert_close(tr(far, nb)[:, 0], base[:, 0], rtol=0, atol=0)
+        assert not torch.allclose(tr(near, nb)[:, 0], base[:, 0], atol=1e-3)
+
+
 def test_neighbours_are_the_others_up_to_three_views_then_the_nearest_cameras():
     centers = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [5, 0, 0]]])
     assert select_neighbours(centers, 2).tolist() == [[[1, 2], [0, 2], [0, 1]]]
