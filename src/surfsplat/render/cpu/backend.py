@@ -79,7 +79,8 @@ def _cameras(cameras: Cameras, width: int, height: int) -> list[_Camera]:
     K = _np64(cameras.K)
     centers = _np64(cameras.centers)
     return [
-        _Camera(np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height)
+        _Camera(np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c],
+                width, height)
         for c in range(len(cameras))
     ]
 

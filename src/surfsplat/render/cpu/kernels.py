@@ -3,19 +3,21 @@
 The kernels compute the function of the torch reference (`render/torch_backend.py`) pair by pair,
 the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
 
-* `project_surfels` / `project_ewa`: one pass over the Gaussians (parallel) giving each one's
-  per-pixel coefficients, its opacity-aware pixel box and whether it survives culling.
+* `quats_to_rotations`, `project`: one pass over the Gaussians (parallel) giving each one's
+  camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
+  and camera-facing normal.
 * `sort_and_bin`: stable depth sort of the survivors, then a counting sort into tiles, so every
   tile lists its Gaussians front to back (no global key sort).
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
-  each, only over the pixels of its box, so a pair outside the footprint costs nothing. Pixels
-  stop by the 3DGS rule and the tile stops once all of its pixels have.
+  each, only over the pixels of its box, one row segment at a time: alpha for the whole segment in
+  SIMD lanes (`_segment`), then front-to-back blending into tile-local pixel state. Pixels stop by
+  the 3DGS rule and the tile stops once all of its pixels have.
 * `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
   what lies behind, so no per-pair state is stored. Per-Gaussian gradients go to a buffer per
-  thread, summed afterwards (no atomics).
-* `surfel_project_backward` / `ewa_project_backward`: the chain rule from those per-Gaussian
-  gradients back to camera-frame means, rotations (or covariances), scales and opacities.
+  thread (no atomics), summed by the next kernel.
+* `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
+  means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
 Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
   surfel: projected centre c, log opacity, centre depth mu_z, det T, and the cross product
@@ -102,9 +104,10 @@ def quats_to_rotations(quats, out):
         q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
         w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
-        out[i, 0, 0], out[i, 0, 1], out[i, 0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
-        out[i, 1, 0], out[i, 1, 1], out[i, 1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
-        out[i, 2, 0], out[i, 2, 1], out[i, 2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+        R = out[i]
+        R[0, 0], R[0, 1], R[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
+        R[1, 0], R[1, 1], R[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
+        R[2, 0], R[2, 1], R[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -289,7 +292,9 @@ def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, 
             qx, qy, qz = tw1 * tx2 - tw2 * tx1, tw2 * tx0 - tw0 * tx2, tw0 * tx1 - tw1 * tx0
             g[GEOM_DEPTH] = tw2
             g[GEOM_DET] = tw0 * ax + tw1 * ay + tw2 * az
-            g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2] = ax + cx * bx + cy * qx, ay + cx * by + cy * qy, az + cx * bz + cy * qz
+            g[GEOM_A] = ax + cx * bx + cy * qx
+            g[GEOM_A + 1] = ay + cx * by + cy * qy
+            g[GEOM_A + 2] = az + cx * bz + cy * qz
             g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2] = bx, by, bz
             g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2] = qx, qy, qz
         else:
@@ -487,7 +492,8 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
                 break  # every pixel of the tile has reached the transmittance floor
             m = tile_ids[k]
             g = geom[m]
-            f0, f1, f2, f3, f4, f5 = features[m, 0], features[m, 1], features[m, 2], features[m, 3], features[m, 4], features[m, 5]
+            f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
+            f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
             c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
                 if not _segment(surfel, g, c0, c1 - c0 + 1, r + 0.5 - g[GEOM_CY], alpha, depth, inv_hz):
@@ -570,7 +576,8 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
             m = tile_ids[k]
             g = geom[m]
             cx, cy = g[GEOM_CX], g[GEOM_CY]
-            f0, f1, f2, f3, f4, f5 = features[m, 0], features[m, 1], features[m, 2], features[m, 3], features[m, 4], features[m, 5]
+            f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
+            f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
             b0, b1, b2 = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2]
             ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
             # Per-Gaussian sums kept in registers (GRAD_* columns).
@@ -584,7 +591,9 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                 if not _segment(surfel, g, c0, c1 - c0 + 1, dy, alpha, depth, inv_hz):
                     continue
                 # h at the row start, grouped as in `_segment` so every bit matches the forward pass.
-                a0, a1, a2 = g[GEOM_A] + dy * g[GEOM_C], g[GEOM_A + 1] + dy * g[GEOM_C + 1], g[GEOM_A + 2] + dy * g[GEOM_C + 2]
+                a0 = g[GEOM_A] + dy * g[GEOM_C]
+                a1 = g[GEOM_A + 1] + dy * g[GEOM_C + 1]
+                a2 = g[GEOM_A + 2] + dy * g[GEOM_C + 2]
                 base = (r - y0) * tile + c0 - x0
                 for j in range(c1 - c0 + 1):
                     a = alpha[j]
@@ -792,7 +801,11 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
     z2, z3 = z * z, z * z * z
     g0 = -gj02 * fx / z2
     g1 = -gj02 * skew / z2 - gj12 * fy / z2
-    g2 = -(gj00 * fx + gj01 * skew + gj11 * fy) / z2 + 2.0 * gj02 * (fx * m0 + skew * m1) / z3 + 2.0 * gj12 * fy * m1 / z3
+    g2 = (
+        -(gj00 * fx + gj01 * skew + gj11 * fy) / z2
+        + 2.0 * gj02 * (fx * m0 + skew * m1) / z3
+        + 2.0 * gj12 * fy * m1 / z3
+    )
     # Centre (fx m0 / z + s m1 / z + cx, fy m1 / z + cy).
     g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
     g0 += g_cx * fx / z
@@ -807,7 +820,8 @@ def project_backward(surfel, order, means, rotations, scales, opacities, sh, cov
                      scratch, cov_scratch):
     """Chain rule from the survivors' compositing gradients to the Gaussian parameters.
 
-    grads [threads, M, GRAD_SIZE] are the per-thread sums of `composite_backward` (rows in `order`). Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
+    grads [threads, M, GRAD_SIZE] are the per-thread sums of `composite_backward` (rows in `order`).
+    Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
     g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
