@@ -61,7 +61,8 @@ def contributing_pairs(gaussians, cameras, width: int, height: int, mode: str) -
             offset = (origin[:, None] - proj.center[gi]).float()
             log_o = torch.where(valid, torch.log(proj.opacity[gi]), -torch.inf)
             coef, depth_params = tb._pair_coefficients(mode, proj.geometry.float()[gi], offset)
-            st = tb._block_state(coef, depth_params, log_o, torch.ones(chunk.shape[0], tile * tile), basis)
+            ones = torch.ones(chunk.shape[0], tile * tile)
+            st = tb._block_state(coef, depth_params, log_o, ones, torch.zeros_like(ones, dtype=torch.bool), basis)
             # Only pixels inside the image count.
             px = (origin[:, None, 0] + basis[1][None]).long()
             py = (origin[:, None, 1] + basis[2][None]).long()

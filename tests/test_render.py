@@ -18,6 +18,9 @@ from surfsplat.geometry.sh import sh_basis, sh_to_color
 from surfsplat.render import TorchRenderSettings, render
 from surfsplat.scenes import frame_from_normal
 
+# The pure-PyTorch reference and the compiled CPU backend must both pass the closed-form checks.
+BACKENDS = ["torch", "cpu"]
+
 
 def pinhole(f: float, width: int, height: int, c2w: torch.Tensor | None = None, dtype=torch.float32) -> Cameras:
     K = torch.tensor([[[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]]], dtype=dtype)
@@ -55,13 +58,14 @@ def random_scene(n: int, seed: int, dtype=torch.float32, sh_degree: int = 1, beh
 
 
 @pytest.mark.parametrize("scale", [1, 4])
-def test_fronto_parallel_surfel_renders_closed_form_gaussian(scale):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_fronto_parallel_surfel_renders_closed_form_gaussian(scale, backend):
     W, H, f = 48, 40, 60.0
     cam = pinhole(f, W, H)
     mean = torch.tensor([0.07, -0.04, 2.0])
     su, sv, o = 0.09, 0.05, 0.8
     g = Gaussians(mean[None], torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[su, sv]]), torch.tensor([o]), torch.zeros(1, 3, 1))
-    out = render(g, cam.scaled(scale), W * scale, H * scale, alpha_threshold=None)
+    out = render(g, cam.scaled(scale), W * scale, H * scale, alpha_threshold=None, backend=backend)
     xx, yy = pixel_centres(W * scale, H * scale)
     # Back-project pixel centres of the scaled camera onto the plane z = 2.
     X = (xx - W * scale / 2) / (f * scale) * 2.0
@@ -96,12 +100,13 @@ def tilted_plane(spacing: float, tilt_deg: float, extent: float, opacity: float 
 
 
 @pytest.mark.parametrize("scale", [1, 2, 4])
-def test_tilted_plane_renders_analytic_depth_and_normal(scale):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tilted_plane_renders_analytic_depth_and_normal(scale, backend):
     W, H, f = 40, 32, 40.0
     # Surfels stay wider than a pixel everywhere at x1: for sub-pixel surfels 2DGS's screen-space
     # filter wins and reports the centre depth instead of the ray-splat intersection.
     g, normal, R = tilted_plane(spacing=0.15, tilt_deg=30, extent=2.4)
-    out = render(g, pinhole(f, W, H).scaled(scale), W * scale, H * scale)
+    out = render(g, pinhole(f, W, H).scaled(scale), W * scale, H * scale, backend=backend)
     xx, yy = pixel_centres(W * scale, H * scale)
     rays = torch.stack(((xx - W * scale / 2) / (f * scale), (yy - H * scale / 2) / (f * scale), torch.ones_like(xx)), -1)
     p0 = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
@@ -141,13 +146,14 @@ def test_surfel_and_ewa_agree_on_camera_facing_surfels_larger_than_a_pixel():
 
 @pytest.mark.parametrize("mode", ["surfel", "ewa"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_tile_renderer_matches_brute_force_reference(mode, seed):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tile_renderer_matches_brute_force_reference(mode, seed, backend):
     g = random_scene(40, seed, sh_degree=seed, behind=3, edge_on=4)
     W, H = 37, 29  # not multiples of the tile size
     c2w = torch.eye(4)
     c2w[:3, 3] = torch.tensor([0.05, -0.03, 0.1])
     cam = pinhole(30.0, W, H, c2w)
-    out = render(g, cam, W, H, mode=mode, alpha_threshold=None)
+    out = render(g, cam, W, H, mode=mode, alpha_threshold=None, backend=backend)
     color, alpha, depth, normal = reference_render(g, cam, W, H, mode)
     assert alpha.max() > 0.5
     for ours, ref in ((out.color, color), (out.alpha, alpha), (out.depth, depth), (out.normal, normal)):
@@ -254,13 +260,14 @@ def K_project(cam: Cameras, point: torch.Tensor) -> tuple[int, int]:
 
 @pytest.mark.parametrize("mode", ["surfel", "ewa"])
 @pytest.mark.parametrize("threshold", [None, 0.001])
-def test_gradcheck_float64(mode, threshold):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradcheck_float64(mode, threshold, backend):
     g0 = random_scene(6, 11, dtype=torch.float64, sh_degree=1)
     cam = pinhole(14.0, 12, 10, dtype=torch.float64)
 
     def fn(means, quats, scales, opacities, sh):
         out = render(Gaussians(means, quats, scales, opacities, sh), cam, 12, 10, mode=mode,
-                     alpha_threshold=threshold, background=[0.1, 0.2, 0.3])
+                     alpha_threshold=threshold, background=[0.1, 0.2, 0.3], backend=backend)
         return out.color, out.alpha, out.depth, out.normal
 
     inputs = tuple(t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh))
@@ -340,3 +347,26 @@ def test_gradcheck_float64_full_jacobian(mode):
 
     inputs = tuple(t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh))
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_termination_holds_across_depth_blocks():
+    # 300 stacked faint layers (alpha 0.07) end every pixel after ~127 layers; a bright layer just
+    # behind that point, and far behind it, must stay invisible even when the depth axis is split
+    # into blocks (a pixel that stopped in one block must not restart in the next).
+    dt = torch.float64
+    n = 300
+    z = 2.0 + 0.01 * torch.arange(n, dtype=dt)
+    means = torch.stack((torch.zeros(n, dtype=dt), torch.zeros(n, dtype=dt), z), dim=-1)
+    sh = torch.full((n, 3, 1), -1.0, dtype=dt)
+    opac = torch.full((n,), 0.07, dtype=dt)
+    for bright in (128, 256):
+        sh[bright] = 3.0
+        opac[bright] = 0.02
+    g = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]], dtype=dt).expand(n, 4), torch.full((n, 2), 1e3, dtype=dt), opac, sh)
+    cam = pinhole(10.0, 4, 4, dtype=dt)
+    ref = reference_render(g, cam, 4, 4)
+    for depth_block in (512, 128, 50, 7):
+        out = render(g, cam, 4, 4, alpha_threshold=None, backend="torch",
+                     settings=TorchRenderSettings(max_block_depth=depth_block))
+        assert torch.allclose(out.color, ref[0], atol=1e-12), depth_block
+        assert torch.allclose(out.alpha, ref[1], atol=1e-12), depth_block

@@ -273,7 +273,9 @@ def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tu
     return coef, None
 
 
-def _block_state(coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor, transmittance: Tensor, basis: Tensor):
+def _block_state(
+    coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor, transmittance: Tensor, done: Tensor, basis: Tensor
+):
     """Everything [n, k, P]-sized for one block, computed with in-place ops (no autograd).
 
     Returns a dict with alpha, one_minus, trans_excl, weight, keep, saturated (alpha clamped),
@@ -304,12 +306,14 @@ def _block_state(coef: Tensor, depth_params: Tensor | None, log_opacity: Tensor,
     one_minus = 1 - alpha
     trans_incl = torch.cumprod(one_minus, dim=1).mul_(transmittance[:, None, :])
     # 3DGS/2DGS rule: a Gaussian that would push transmittance below the floor ends the pixel and
-    # is itself not blended; transmittance only falls, so `keep` is a prefix along the depth axis.
-    keep = trans_incl >= TRANSMITTANCE_MIN
+    # is itself not blended, nor is anything behind it (`done` carries that across depth blocks);
+    # transmittance only falls, so `keep` is a prefix along the depth axis.
+    keep = (trans_incl >= TRANSMITTANCE_MIN).logical_and_(~done[:, None, :])
     trans_excl = trans_incl.div_(one_minus)  # transmittance in front of each Gaussian
     weight = (alpha * trans_excl).masked_fill_(~keep, 0.0)
     st.update(alpha=alpha, saturated=saturated, one_minus=one_minus, trans_excl=trans_excl, keep=keep, weight=weight)
     st["trans_out"] = transmittance - weight.sum(1)
+    st["done_out"] = ~keep[:, -1, :]
     return st
 
 
@@ -324,18 +328,19 @@ class _CompositeBlock(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, coef, depth_params, log_opacity, features, transmittance, basis):
-        st = _block_state(coef, depth_params, log_opacity, transmittance, basis)
+    def forward(ctx, coef, depth_params, log_opacity, features, transmittance, done, basis):
+        st = _block_state(coef, depth_params, log_opacity, transmittance, done, basis)
         feats = st["weight"].transpose(1, 2) @ features  # [n, P, F]
         depth = (st["weight"] * st["depth"]).sum(1) if depth_params is not None else torch.zeros_like(transmittance)
-        ctx.save_for_backward(coef, depth_params, log_opacity, features, transmittance, basis, st["trans_out"])
-        return st["trans_out"], feats, depth
+        ctx.save_for_backward(coef, depth_params, log_opacity, features, transmittance, done, basis, st["trans_out"])
+        ctx.mark_non_differentiable(st["done_out"])
+        return st["trans_out"], st["done_out"], feats, depth
 
     @staticmethod
-    def backward(ctx, g_trans, g_feats, g_depth):
-        coef, depth_params, log_opacity, features, transmittance, basis, trans_out = ctx.saved_tensors
+    def backward(ctx, g_trans, _g_done, g_feats, g_depth):
+        coef, depth_params, log_opacity, features, transmittance, done, basis, trans_out = ctx.saved_tensors
         surfel = depth_params is not None
-        st = _block_state(coef, depth_params, log_opacity, transmittance, basis)
+        st = _block_state(coef, depth_params, log_opacity, transmittance, done, basis)
         w, alpha = st["weight"], st["alpha"]
         # Gradient of the loss with respect to each blending weight w_i.
         g_w = features @ g_feats.transpose(1, 2)  # [n, k, P]
@@ -355,7 +360,7 @@ class _CompositeBlock(torch.autograd.Function):
         n, k = log_opacity.shape
         if not surfel:
             g_coef = (g_rho.reshape(n * k, -1) @ basis.T).reshape(coef.shape)
-            return g_coef, None, g_log_opacity, g_features, g_transmittance, None
+            return g_coef, None, g_log_opacity, g_features, g_transmittance, None, None
         use3d, inv_hz, hx, hy, hz = st["use3d"], st["inv_hz"], st["hx"], st["hy"], st["hz"]
         # rho = (hx^2 + hy^2) / hz^2 on the 3D branch, rho2d elsewhere; depth = det / hz or mu_z.
         g_depth_pair = w.mul_(g_depth[:, None, :])
@@ -370,7 +375,7 @@ class _CompositeBlock(torch.autograd.Function):
         g_planes[3].copy_(g_rho).masked_fill_(use3d, 0.0)
         g_coef = (g_planes.reshape(4, n * k, -1) @ basis.T).reshape(coef.shape)
         g_depth_params = torch.stack((g_det, g_mu_z), dim=-1)
-        return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None
+        return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None, None
 
 
 def composite(
@@ -416,6 +421,7 @@ def composite(
         tiles_y = group // bins.tiles_x
         origin = torch.stack((tiles_x * tile, tiles_y * tile), dim=-1).to(dtype)  # [n, 2]
         trans = torch.ones(group.shape[0], P, dtype=dtype, device=device)
+        done = torch.zeros(group.shape[0], P, dtype=torch.bool, device=device)
         feats = torch.zeros(group.shape[0], P, F_, dtype=dtype, device=device)
         depth = torch.zeros(group.shape[0], P, dtype=dtype, device=device)
         for k0 in range(0, k_max, kb):
@@ -429,10 +435,12 @@ def composite(
             offset = (origin[:, None, :] - rows[..., -4:-2]) - rows[..., -2:]
             log_opac = torch.where(valid, rows[..., G + F_], -math.inf)
             coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset)
-            trans, f_blk, d_blk = _CompositeBlock.apply(coef, depth_params, log_opac, rows[..., G : G + F_], trans, basis)
+            trans, done, f_blk, d_blk = _CompositeBlock.apply(
+                coef, depth_params, log_opac, rows[..., G : G + F_], trans, done, basis
+            )
             feats = feats + f_blk
             depth = depth + d_blk
-            if bool((trans < TRANSMITTANCE_MIN).all()):
+            if bool(done.all()):
                 break  # every pixel of the group is saturated: later blocks get zero weight (and gradient)
         results.append((group, feats, depth, trans))
 

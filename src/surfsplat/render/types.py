@@ -9,7 +9,7 @@ from typing import Literal
 from torch import Tensor
 
 RenderMode = Literal["surfel", "ewa"]
-Backend = Literal["auto", "torch", "gsplat"]
+Backend = Literal["auto", "torch", "cpu", "gsplat"]
 
 # Compositing constants shared with 3DGS/2DGS/gsplat so every backend computes the same function.
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian contributes to a pixel only if its alpha reaches this
