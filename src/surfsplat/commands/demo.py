@@ -1,7 +1,7 @@
 """`surfsplat demo [--out DIR]`: the whole product on a fresh machine, nothing downloaded.
 
     surfsplat demo --out outputs/demo            # about 5-9 minutes on a shared 2-core CPU
-    surfsplat demo --out /tmp/demo --quick       # a reduced budget (tests, smoke runs)
+    surfsplat demo --out outputs/quick --quick   # a reduced budget (tests, smoke runs)
 
 1. data:     procedural synthetic rooms (exact images and depth at any resolution); held-out
              evaluation scenes are written as chunks with an evaluation index, the same files
