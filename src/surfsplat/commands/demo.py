@@ -300,8 +300,9 @@ def read_losses(path: Path, last_step: int) -> list[tuple[int, float]]:
 
 
 def measure_step_seconds(config) -> tuple[float, float]:
-    """(seconds per training step, seconds to generate one room): two steps of the real model and
-    data on this machine, the faster one counted (the first pays one-time set-up costs)."""
+    """(seconds per training step, seconds to generate one room): three steps of the real model and
+    data on this machine, the fastest one counted (the first ones pay one-time costs: the compiled
+    renderer's kernels are built on first use when their cache is cold)."""
     from ..model.decoder import decoder_mode, render_views
     from ..train import build_model
     from ..train.data import build_train_batches
@@ -316,7 +317,7 @@ def measure_step_seconds(config) -> tuple[float, float]:
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     h, w = config.data.image_shape
     times = []
-    for _ in range(2):
+    for _ in range(3):
         t0 = time.perf_counter()
         prediction = model(batch.context.images, batch.context.cameras(), batch.context.near, batch.context.far)
         color = render_views(prediction.gaussians, batch.target.cameras(), w, h, mode=mode,
