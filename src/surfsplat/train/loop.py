@@ -48,7 +48,15 @@ from .checkpoint import (
 )
 from .config import TrainConfig, config_from_dict
 from .data import TrainBatch, augment, build_train_batches, build_validation_samples
-from .distributed import DistributedContext, all_gather_objects, all_reduce_mean, barrier, init_distributed, shutdown
+from .distributed import (
+    DistributedContext,
+    all_gather_objects,
+    all_reduce_mean,
+    all_reduce_sum,
+    barrier,
+    init_distributed,
+    shutdown,
+)
 from .events import EventWriter
 from .losses import ImageLoss, LossTerms, cascade_loss
 from .schedule import learning_rate
@@ -390,7 +398,10 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         else:
             val_lpips = try_load_lpips(config.loss.lpips_vgg_path, config.loss.lpips_lin_path)
     reporter = _Reporter(config, ctx, start_step)
-    if isinstance(val_lpips, LpipsUnavailable) and val_samples:
+    validating = config.val_every > 0 and float(all_reduce_sum(torch.tensor([len(val_samples)]), ctx)[0]) > 0
+    if config.val_every and not validating:
+        reporter.message("validation off: no held-out scenes (chunk datasets need data.val_roots)")
+    elif validating and isinstance(val_lpips, LpipsUnavailable):
         reporter.message(f"validation without LPIPS: {val_lpips}")
 
     if rng_state is not None:
@@ -453,7 +464,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 picture = _image_grid([context.images[0], target.images[0], renders[-1][0]])
                 reporter.image(done, "train/context_target_render", picture)
 
-            if config.val_every and (done % config.val_every == 0 or is_last):
+            if validating and (done % config.val_every == 0 or is_last):
                 metrics = validate(net.module if isinstance(net, DistributedDataParallel) else net, val_samples, ctx,
                                    mode=mode, lpips=val_lpips, factors=config.val_factors)
                 result.validation[done] = metrics
