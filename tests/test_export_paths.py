@@ -88,9 +88,9 @@ def test_turntable_keeps_the_focus_on_the_optical_axis():
 def test_focus_point_is_the_median_depth_along_the_mean_axis():
     cams = _cams([_rz(0.0), _rz(0.0)], [[0, 0, 0], [0.2, 0, 0]])
     depth = torch.tensor([1.0, 2.0, 3.0, 10.0]).reshape(1, 1, 2, 2).repeat(2, 1, 1, 1)
-    alpha = torch.ones_like(depth)
-    alpha[:, :, 1, 1] = 0  # the 10 is not covered
-    focus = focus_point(depth, alpha, cams)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    valid[:, :, 1, 1] = False  # the 10 is not covered
+    focus = focus_point(depth, valid, cams)
     torch.testing.assert_close(focus, torch.tensor([0.1, 0.0, 2.0], dtype=torch.float64))
 
 

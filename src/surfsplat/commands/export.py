@@ -71,6 +71,8 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fps", type=float, default=24.0)
     group.add_argument("--mesh-resolution", type=int, default=128, help="TSDF voxels along the longest side")
     group.add_argument("--mode", choices=("surfel", "ewa"), default=None, help="rasterization (default: surfel; ewa for 3DGS-layout files)")
+    group.add_argument("--alpha-threshold", type=float, default=0.001,
+                       help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off")
     group.add_argument("--no-progress", action="store_true")
 
 
@@ -79,6 +81,7 @@ def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: 
         formats=formats, scale=args.scale, path_frames=args.frames, turntable_frames=args.frames,
         turntable_degrees=args.degrees, fps=args.fps, mesh_resolution=args.mesh_resolution,
         mode=args.mode or mode, progress=not args.no_progress,
+        alpha_threshold=None if args.alpha_threshold < 0 else args.alpha_threshold,
     )
 
 
@@ -144,10 +147,11 @@ def export_reconstruction(
     def draw(cams, what: str):
         return render_frames(gaussians, cams.scaled(s), w, h, options, what)
 
+    # Depth is valid where forced alpha blending normalised it (alpha >= tau); without FAB, where
+    # the surfels cover the pixel (alpha >= 0.5).
+    tau = options.alpha_threshold if options.alpha_threshold is not None else 0.5
     context = draw(cameras, "context views")
     if "renders" in options.formats:
-        # Depth where forced alpha blending normalised it (alpha >= tau), else where alpha > 0.5.
-        tau = options.alpha_threshold if options.alpha_threshold is not None else 0.5
         shown = (context.alpha >= tau).float()
         for i in range(len(cameras)):
             tag = f"view{i:02d}"
@@ -164,7 +168,7 @@ def export_reconstruction(
                 write_png(out / "path" / f"frame{f:03d}.png", path.color[f])
             written["path frames"] = out / "path"
             written["path video"] = write_video(out / "path.mp4", path.color, options.fps)
-        focus = focus_point(context.depth, context.alpha, cameras)
+        focus = focus_point(context.depth, context.alpha >= tau, cameras)
         spin = draw(turntable(cameras, focus, options.turntable_frames, options.turntable_degrees), "turntable")
         written["turntable video"] = write_video(out / "turntable.mp4", spin.color, options.fps)
     if "mesh" in options.formats:
@@ -172,7 +176,7 @@ def export_reconstruction(
         fuse_cams = cameras if path_cams is None else _cat_cameras(cameras, path_cams)
         mesh = mesh_from_renders(
             torch.cat([v.depth for v in views]), torch.cat([v.alpha for v in views]), torch.cat([v.color for v in views]),
-            fuse_cams.scaled(s), TsdfConfig(resolution=options.mesh_resolution),
+            fuse_cams.scaled(s), TsdfConfig(resolution=options.mesh_resolution), min_alpha=tau,
         )
         written["mesh (TSDF fusion)"] = save_mesh(mesh, out / "mesh.ply")
     return written

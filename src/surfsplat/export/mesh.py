@@ -251,9 +251,10 @@ def mesh_from_renders(
     config: TsdfConfig = TsdfConfig(),
     min_alpha: float = 0.5,
 ) -> Mesh:
-    """TSDF fusion of rendered depth where the render is covered (alpha > min_alpha), then marching cubes."""
+    """TSDF fusion of rendered depth where the render is valid (alpha >= min_alpha), then marching
+    cubes. With forced alpha blending, depth is normalised wherever alpha >= tau_alpha, so pass tau."""
     check_tensor("alphas", alphas, tuple(depths.shape))
-    valid = alphas > min_alpha
+    valid = alphas >= min_alpha
     return extract_mesh(tsdf_fusion(depths, cameras, colors=colors, valid=valid, config=config))
 
 

@@ -127,14 +127,16 @@ def turntable(
     return Cameras(out_c2w.to(cameras.c2w.dtype), K.expand(num_frames, 3, 3).to(cameras.K.dtype).clone())
 
 
-def focus_point(depths: Tensor, alphas: Tensor, cameras: Cameras, min_alpha: float = 0.5) -> Tensor:
+def focus_point(depths: Tensor, valid: Tensor, cameras: Cameras) -> Tensor:
     """[3] a point to turn around: the mean camera's centre plus its viewing axis times the median
-    rendered depth of the covered pixels (depths, alphas [V, 1, H, W] rendered from `cameras`)."""
+    rendered depth of the valid pixels (depths [V, 1, H, W] rendered from `cameras`; valid: bool of
+    the same shape, e.g. alpha >= the forced-alpha-blending threshold)."""
     check_tensor("depths", depths, ("V", 1, "H", "W"))
-    check_tensor("alphas", alphas, tuple(depths.shape))
-    valid = (alphas > min_alpha) & (depths > 0)
+    if tuple(valid.shape) != tuple(depths.shape) or valid.dtype != torch.bool:
+        raise SurfSplatInputError(f"valid: expected a bool tensor of shape {tuple(depths.shape)}, got {valid.dtype} {tuple(valid.shape)}")
+    valid = valid & (depths > 0)
     if not bool(valid.any()):
-        raise SurfSplatInputError("depths: no pixel is covered (alpha > 0.5); nothing to turn around")
+        raise SurfSplatInputError("depths: no rendered pixel is valid (covered); nothing to turn around")
     distance = depths[valid].to(torch.float64).median()
     c2w, _ = mean_camera(cameras)
     return c2w[:3, 3] + distance * c2w[:3, 2]

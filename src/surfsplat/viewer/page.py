@@ -3,7 +3,8 @@
 Rendering is Canvas 2D: each frame projects the splats with a pinhole camera (OpenCV axes, as the
 package), orders them back to front with a counting sort on quantized depth (linear time, so 300k
 splats stay interactive), and alpha-blends a Gaussian footprint of each (two standard deviations
-wide) into a float buffer. Controls: drag to orbit, shift-drag or right-drag to pan, wheel to zoom,
+wide) into a float buffer, then applies forced alpha blending (colour divided by accumulated alpha
+wherever alpha >= tau, as the renderer does; tau null = plain compositing). Controls: drag to orbit, shift-drag or right-drag to pan, wheel to zoom,
 R to reset. When the first frame is drawn, `document.body.dataset.state` becomes "ready" and
 `data-splats` holds the number of splats drawn, which tests read.
 """
@@ -89,7 +90,9 @@ function draw() {
   const order = new Uint32Array(visible);
   for (let i = 0; i < n; i++) if (pz[i] >= 0) order[count[bin[i]]++] = i;
 
-  const rgb = new Float32Array(W * H * 3).fill(0.118);
+  // Composite on zero, then apply forced alpha blending (paper Sec. 3.4) as the renderer does:
+  // colour / alpha wherever alpha >= tau (such pixels count as opaque), background elsewhere.
+  const rgb = new Float32Array(W * H * 3), acc = new Float32Array(W * H);
   for (let k = 0; k < visible; k++) {
     const i = order[k], o = i * FLOATS;
     const u = px[i], v = py[i], r = pr[i], inv = 2 / (r * r), op = splats[o + 6];
@@ -102,14 +105,20 @@ function draw() {
         const ddx = x + 0.5 - u;
         const a = op * Math.exp(-(ddx * ddx + ddy * ddy) * inv);
         if (a < 1 / 255) continue;
-        const p = (y * W + x) * 3;
+        const q = y * W + x, p = q * 3;
         rgb[p] += a * (cr - rgb[p]); rgb[p + 1] += a * (cg - rgb[p + 1]); rgb[p + 2] += a * (cb - rgb[p + 2]);
+        acc[q] += a * (1 - acc[q]);
       }
     }
   }
-  const image = ctx.createImageData(W, H);
-  for (let p = 0, q = 0; p < W * H * 3; p += 3, q += 4) {
-    image.data[q] = rgb[p] * 255; image.data[q + 1] = rgb[p + 1] * 255; image.data[q + 2] = rgb[p + 2] * 255; image.data[q + 3] = 255;
+  const image = ctx.createImageData(W, H), tau = meta.alpha_threshold, bg = 0.118;
+  for (let k = 0; k < W * H; k++) {
+    const p = k * 3, a = acc[k];
+    let r, g, b;
+    if (tau !== null && a >= tau) { r = rgb[p] / a; g = rgb[p + 1] / a; b = rgb[p + 2] / a; }
+    else if (tau !== null) { r = g = b = bg; }
+    else { r = rgb[p] + (1 - a) * bg; g = rgb[p + 1] + (1 - a) * bg; b = rgb[p + 2] + (1 - a) * bg; }
+    image.data[4 * k] = r * 255; image.data[4 * k + 1] = g * 255; image.data[4 * k + 2] = b * 255; image.data[4 * k + 3] = 255;
   }
   ctx.putImageData(image, 0, 0);
   const ms = performance.now() - t0;

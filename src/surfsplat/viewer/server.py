@@ -2,7 +2,8 @@
 
 Routes:
     /            the page (surfsplat.viewer.page.PAGE)
-    /meta.json   {"count", "center", "radius", "camera": {"position", "target", "up", "fov_deg"}, "title"}
+    /meta.json   {"count", "center", "radius", "camera": {"position", "target", "up", "fov_deg"}, "title",
+                  "alpha_threshold"}
     /splats.bin  count x 8 little-endian float32: x, y, z, r, g, b, opacity, radius (world units)
 """
 
@@ -86,12 +87,15 @@ class ViewerServer:
     """Serves one scene on host:port (port 0 picks a free one) from a background thread."""
 
     def __init__(self, gaussians: Gaussians, host: str = "127.0.0.1", port: int = 8080, cameras=None,
-                 title: str = "surfsplat viewer", max_splats: int = 300_000) -> None:
+                 title: str = "surfsplat viewer", max_splats: int = 300_000, alpha_threshold: float | None = 0.001) -> None:
         if not 0 <= port <= 65535:
             raise SurfSplatInputError(f"port: expected 0..65535, got {port}")
+        if alpha_threshold is not None and not 0 < alpha_threshold <= 1:
+            raise SurfSplatInputError(f"alpha_threshold: expected a value in (0, 1] or None, got {alpha_threshold}")
         payload, meta = splat_buffer(gaussians, max_splats)
         meta["camera"] = initial_view(meta, cameras).__dict__
         meta["title"] = title
+        meta["alpha_threshold"] = alpha_threshold  # forced alpha blending tau (paper Sec. 3.4), None: off
         files = {
             "/": ("text/html; charset=utf-8", PAGE.encode("utf-8")),
             "/index.html": ("text/html; charset=utf-8", PAGE.encode("utf-8")),
@@ -126,8 +130,9 @@ class ViewerServer:
 
     @classmethod
     def from_ply(cls, path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras_path: str | Path | None = None,
-                 max_splats: int = 300_000) -> ViewerServer:
-        """A server for a PLY; the reconstruction's cameras.json beside it (or `cameras_path`) sets the first view."""
+                 max_splats: int = 300_000, alpha_threshold: float | None | str = "auto") -> ViewerServer:
+        """A server for a PLY; the reconstruction's cameras.json beside it (or `cameras_path`) sets the
+        first view, and its reconstruction.json the forced-alpha-blending tau ("auto"; else 0.001)."""
         from ..export.paths import load_cameras
         from ..export.ply import load_ply
 
@@ -136,7 +141,15 @@ class ViewerServer:
         beside = path.parent / "cameras.json"
         cams_file = Path(cameras_path) if cameras_path is not None else (beside if beside.is_file() else None)
         cameras = load_cameras(cams_file).cameras if cams_file is not None else None
-        return cls(gaussians, host, port, cameras, title=path.name, max_splats=max_splats)
+        if alpha_threshold == "auto":
+            alpha_threshold = 0.001
+            summary = path.parent / "reconstruction.json"
+            if summary.is_file():
+                try:
+                    alpha_threshold = json.loads(summary.read_text()).get("alpha_threshold", 0.001)
+                except ValueError:
+                    raise SurfSplatInputError(f"{summary}: not valid JSON") from None
+        return cls(gaussians, host, port, cameras, title=path.name, max_splats=max_splats, alpha_threshold=alpha_threshold)
 
     @property
     def url(self) -> str:
