@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 # Bytes of warped features held at once; the correlation is identical for any chunking.
-WARP_CHUNK_BYTES = 64 * 2**20
+WARP_CHUNK_BYTES = 16 * 2**20
 
 
 def linear_inverse_depth_candidates(inv_min: Tensor, inv_max: Tensor, count: int) -> Tensor:

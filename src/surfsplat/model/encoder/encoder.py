@@ -239,10 +239,27 @@ class SurfSplatEncoder(nn.Module):
         depth = 1.0 / inv_full  # [(B V), 1, H, W]
 
         # ---- per-pixel Gaussian parameters
-        features_full = self.feature_upsampler(mono_taps, cnn, mv_fine_first)
         confidence = F.interpolate(prob.max(dim=1, keepdim=True).values, size=(height, width), mode="nearest")
         images_flat = images.flatten(0, 1)
-        raw = self.gaussian_head(images_flat, depth, confidence, features_full)
+        # On CPU the full-resolution tail runs one image at a time: its tensors are the largest of
+        # the network, and smaller blocks are recycled by the allocator instead of being freshly
+        # page-faulted on every call. Images are independent here, so the result is the same.
+        step = 1 if images.device.type == "cpu" else b * v
+        raw = torch.cat(
+            [
+                self.gaussian_head(
+                    images_flat[i : i + step],
+                    depth[i : i + step],
+                    confidence[i : i + step],
+                    self.feature_upsampler(
+                        [t[i : i + step] for t in mono_taps],
+                        [t[i : i + step] for t in cnn],
+                        [t[i : i + step] for t in mv_fine_first],
+                    ),
+                )
+                for i in range(0, b * v, step)
+            ]
+        )
         if inter is not None:
             inter["mv_upsampler_coarse_invdepth"] = inv_depth
             inter["mv_upsampler_residual_invdepth"] = residual

@@ -123,7 +123,15 @@ class AttentionLayer(nn.Module):
         message = F.scaled_dot_product_attention(query, keys, values, attn_mask=mask)
         message = self.norm1(self.merge(message))
         if self.mlp is not None:
-            message = self.norm2(self.mlp(torch.cat((source, message), dim=-1)))
+            # view by view on CPU: the MLP's hidden layer is the transformer's largest tensor, and
+            # smaller blocks are recycled by the allocator instead of page-faulted on every call
+            step = 1 if source.device.type == "cpu" else source.shape[0]
+            message = torch.cat(
+                [
+                    self.norm2(self.mlp(torch.cat((s, m), dim=-1)))
+                    for s, m in zip(source.split(step), message.split(step))
+                ]
+            )
         return source + message
 
 
