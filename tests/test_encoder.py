@@ -443,6 +443,35 @@ def test_bad_cameras_and_planes_are_named_in_the_error():
         model(images, _cameras(2, 64), 0.5, torch.ones(2))
 
 
+def test_cpu_blocks_bound_the_largest_tensor():
+    from surfsplat.model.encoder.chunking import CPU_BLOCK_BYTES, items_per_block
+
+    cpu = torch.device("cpu")
+    assert items_per_block(2, 132 * 256 * 256 * 4, cpu) == 1  # one 256x256 head input is 34.6 MB
+    assert items_per_block(8, 4 * 2**20, cpu) == 7  # 7 * 4 MiB < 32 MiB <= 8 * 4 MiB
+    assert items_per_block(3, CPU_BLOCK_BYTES * 4, cpu) == 1
+    assert items_per_block(32, 1024, cpu) == 32
+    assert items_per_block(16, 2**30, torch.device("meta")) == 16  # other devices: whole batches
+
+
+def test_blockwise_cpu_evaluation_does_not_change_the_outputs(monkeypatch):
+    """Image-by-image (forced) and whole-batch evaluation of the tail and the MLP agree."""
+    import surfsplat.model.encoder.chunking as chunking
+
+    model = _tiny()
+    torch.manual_seed(6)
+    images = torch.rand(2, 2, 3, 64, 64)
+    cams = _cameras(2, 64)
+    both = Cameras(cams.c2w.repeat(2, 1, 1), cams.K.repeat(2, 1, 1))
+    with torch.no_grad():
+        whole = model(images, both, 0.5, 100.0)
+        monkeypatch.setattr(chunking, "CPU_BLOCK_BYTES", 1)
+        blocks = model(images, both, 0.5, 100.0)
+    torch.testing.assert_close(blocks.depths, whole.depths, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(blocks.gaussians.sh, whole.gaussians.sh, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(blocks.gaussians.means, whole.gaussians.means, rtol=1e-5, atol=1e-6)
+
+
 def test_vit_position_grid_is_used_unchanged_at_its_native_size():
     model = _tiny()
     vit = model.encoder.vit

@@ -22,6 +22,7 @@ from einops import rearrange
 from torch import Tensor, nn
 
 from ...checks import SurfSplatInputError
+from .chunking import items_per_block
 from .cnn import CNNEncoder
 from .cost_volume import linear_inverse_depth_candidates, local_inverse_depth_candidates, plane_sweep_cost_volume
 from .dpt import DPTHead, DPTLayout, FeaturePyramid
@@ -241,10 +242,9 @@ class SurfSplatEncoder(nn.Module):
         # ---- per-pixel Gaussian parameters
         confidence = F.interpolate(prob.max(dim=1, keepdim=True).values, size=(height, width), mode="nearest")
         images_flat = images.flatten(0, 1)
-        # On CPU the full-resolution tail runs one image at a time: its tensors are the largest of
-        # the network, and smaller blocks are recycled by the allocator instead of being freshly
-        # page-faulted on every call. Images are independent here, so the result is the same.
-        step = 1 if images.device.type == "cpu" else b * v
+        # the full-resolution tail holds the network's largest tensors (the head's input concat)
+        head_in = self.gaussian_head.head[0].in_channels
+        step = items_per_block(b * v, head_in * height * width * images.element_size(), images.device)
         raw = torch.cat(
             [
                 self.gaussian_head(

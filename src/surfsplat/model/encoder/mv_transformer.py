@@ -22,6 +22,8 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
+from .chunking import items_per_block
+
 
 def sine_position_code(height: int, width: int, channels: int, device, dtype) -> Tensor:
     """[channels, height, width] DETR-style sine code normalised to (0, 2 pi] over the grid."""
@@ -123,9 +125,9 @@ class AttentionLayer(nn.Module):
         message = F.scaled_dot_product_attention(query, keys, values, attn_mask=mask)
         message = self.norm1(self.merge(message))
         if self.mlp is not None:
-            # view by view on CPU: the MLP's hidden layer is the transformer's largest tensor, and
-            # smaller blocks are recycled by the allocator instead of page-faulted on every call
-            step = 1 if source.device.type == "cpu" else source.shape[0]
+            # the MLP's hidden layer is the transformer's largest tensor
+            hidden_bytes = source[0].numel() * self.mlp[0].out_features // source.shape[-1] * source.element_size()
+            step = items_per_block(source.shape[0], hidden_bytes, source.device)
             message = torch.cat(
                 [
                     self.norm2(self.mlp(torch.cat((s, m), dim=-1)))
