@@ -6,8 +6,8 @@
 1. data:     procedural synthetic rooms (exact images and depth at any resolution); held-out
              evaluation scenes are written as chunks with an evaluation index, the same files
              `surfsplat eval` reads;
-2. train:    the `tiny` preset (MSE only: lambda_lpips = 0, no VGG files needed) for as many
-             steps as fit the time budget (measured on this machine first), or exactly --steps;
+2. train:    the `tiny` preset (MSE only: lambda_lpips = 0, no VGG files needed) for 150 steps
+             (--steps), stopped at a hard time limit on a slow or busy machine (--train-minutes);
 3. evaluate: renders at x1, x2, x4 (K scaled) scored against the ground truth upsampled
              bicubically (the paper's HRRC) and against native high-resolution truth, which the
              synthetic scenes provide exactly; the untrained network is scored the same way;
@@ -32,10 +32,7 @@ from ..checks import SurfSplatInputError
 
 EVAL_SEED = 90210  # held-out evaluation rooms (training rooms are drawn from the preset's seed)
 CHECKPOINT_EVERY = 10  # training steps between checkpoints (what a deadline stop can lose)
-DEADLINE_SLACK = 1.15  # training is stopped at this multiple of its time budget (plus PROBE_SECONDS)
-PROBE_ITERATIONS = 6  # training steps timed to plan the step count
-PROBE_SECONDS = 60.0  # allowance for that measurement (and starting the training process)
-PLAN_FILE = "plan.json"  # the training process's chosen step count and measured step time
+START_SECONDS = 30.0  # allowance for starting the training process (imports) before its time limit counts
 # Rays per pixel per axis of the native high-resolution truth: at x4 one ray per pixel already samples
 # the scene 4x finer per axis than the x1 images, and ray casting is the evaluation's main cost.
 NATIVE_SUPERSAMPLE = 1
@@ -47,10 +44,8 @@ class DemoConfig:
 
     image_size: int = 64  # square training and evaluation images (a multiple of 16)
     train_scenes: int = 24  # distinct procedural training rooms (each ray-cast once, then cached)
-    steps: int | None = None  # optimizer steps; None = as many as fit train_seconds
-    train_seconds: float = 210.0  # training time budget when steps is None
-    min_steps: int = 30  # never fewer steps than this, whatever the budget says
-    max_steps: int = 400  # never more steps than this
+    steps: int = 150  # optimizer steps (the learning-rate schedule's length)
+    train_seconds: float = 240.0  # hard time limit of training: stopped there, with the newest checkpoint
     eval_scenes: int = 3  # held-out rooms
     eval_frames: int = 6  # frames per held-out room (context: first and last; targets: between them)
     eval_targets: int = 3  # target views scored per room
@@ -62,27 +57,28 @@ class DemoConfig:
 
     @staticmethod
     def quick() -> DemoConfig:
-        return DemoConfig(image_size=32, train_scenes=4, steps=6, min_steps=1, eval_scenes=1, eval_frames=4,
+        return DemoConfig(image_size=32, train_scenes=4, steps=6, eval_scenes=1, eval_frames=4,
                           eval_targets=2, figure_scenes=1, video_frames=8, mesh_resolution=40)
 
     def __post_init__(self) -> None:
         if self.image_size < 16 or self.image_size % 16:
             raise SurfSplatInputError(f"--image-size: expected a multiple of 16, got {self.image_size}")
-        if self.steps is not None and self.steps < 1:
+        if self.steps < 1:
             raise SurfSplatInputError(f"--steps: expected at least 1, got {self.steps}")
         if self.eval_frames < 3 or not 1 <= self.eval_targets <= self.eval_frames - 2:
             raise SurfSplatInputError("eval_frames >= 3 and 1 <= eval_targets <= eval_frames - 2 expected")
         if self.eval_scenes < 1 or self.train_scenes < 1:
             raise SurfSplatInputError("--eval-scenes and train_scenes: expected at least 1")
         if self.train_seconds <= 0:
-            raise SurfSplatInputError(f"--train-minutes: expected a positive budget, got {self.train_seconds / 60}")
+            raise SurfSplatInputError(f"--train-minutes: expected a positive limit, got {self.train_seconds / 60}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     parser.add_argument("--quick", action="store_true", help="a reduced budget (32 px, a few steps; for tests)")
-    parser.add_argument("--steps", type=int, default=None, help="training steps (default: what fits --train-minutes)")
-    parser.add_argument("--train-minutes", type=float, default=None, help="training time budget (default 3.5)")
+    parser.add_argument("--steps", type=int, default=None, help="training steps (default 150)")
+    parser.add_argument("--train-minutes", type=float, default=None,
+                        help="hard limit of training (default 4): stopped there, the newest checkpoint is used")
     parser.add_argument("--image-size", type=int, default=None, help="square image size, a multiple of 16 (default 64)")
     parser.add_argument("--eval-scenes", type=int, default=None, help="held-out rooms (default 3)")
 
@@ -208,53 +204,46 @@ def eval_targets(config: DemoConfig) -> list[int]:
 
 # ----------------------------------------------------------------------------------------------- training
 def train_tiny(config: DemoConfig, folder: Path) -> dict:
-    """fit() on the tiny preset, in a child process with a hard deadline.
+    """fit() on the tiny preset for config.steps, in a child process with a hard time limit.
 
-    The step count (and so the learning-rate schedule) is config.steps, or what fits
-    config.train_seconds at the step time measured by the training process itself just before it
-    trains (`plan_steps`; measured there because a warmed-up process is what trains). The machine may
-    get busier while training runs, so the child is also stopped at the deadline (budget x
-    DEADLINE_SLACK plus the measurement); training checkpoints are published atomically every few
-    steps, so the newest one is then a complete model and the demo goes on with it, saying so.
+    A shared machine can be many times slower than a quiet one, and the demo promises minutes, so
+    the training process is stopped at config.train_seconds (plus its start-up allowance) when it
+    has not finished. Training checkpoints are published atomically every few steps, so the newest
+    one is then a complete model; the demo goes on with it and says at which step it stopped (the
+    learning-rate schedule was then not finished).
     """
     from ..train import latest_checkpoint, override, train_preset
 
     size = config.image_size
-    base = train_preset("tiny", out_dir=str(folder), seed=config.seed, val_every=0, image_every=0,
-                        steps=max(config.max_steps, 1), log_every=1, keep_checkpoints=2)
-    base = override(base, {"data.image_shape": [size, size], "data.synthetic_length": config.train_scenes,
-                           "loss.lpips_weight": 0.0})
-    deadline = config.train_seconds * DEADLINE_SLACK + PROBE_SECONDS
-    what = f"{config.steps} steps" if config.steps is not None else f"as many steps as fit {config.train_seconds / 60:.1f} min"
-    _say(f"training the tiny preset for {what} on {config.train_scenes} synthetic rooms at {size}x{size} "
-         f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed; stopped at {deadline / 60:.1f} min at the latest) -> {folder}")
+    base = train_preset("tiny", out_dir=str(folder), seed=config.seed, val_every=0, image_every=0, steps=config.steps,
+                        log_every=1, keep_checkpoints=2, checkpoint_every=max(1, min(CHECKPOINT_EVERY, config.steps)))
+    train_config = override(base, {"data.image_shape": [size, size], "data.synthetic_length": config.train_scenes,
+                                   "loss.lpips_weight": 0.0})
+    limit = config.train_seconds + START_SECONDS
+    _say(f"training the tiny preset for {config.steps} steps on {config.train_scenes} synthetic rooms at {size}x{size} "
+         f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed; stopped after {limit / 60:.1f} min at the latest) -> {folder}")
     t0 = time.perf_counter()
-    stopped_early = _fit_with_deadline(base, config, deadline, folder / PLAN_FILE)
+    stopped_early = _fit_with_deadline(train_config, limit)
     seconds = time.perf_counter() - t0
     checkpoint = latest_checkpoint(folder)
     if checkpoint is None:
-        raise SurfSplatInputError(f"{folder}: training wrote no checkpoint within {deadline:.0f} s; give a larger --train-minutes")
-    plan_path = folder / PLAN_FILE
-    if not plan_path.is_file():
-        raise SurfSplatInputError(f"{plan_path}: the training process wrote no plan")
-    plan = json.loads(plan_path.read_text())
+        raise SurfSplatInputError(f"{folder}: training wrote no checkpoint within {limit:.0f} s; give a larger --train-minutes")
     done = int(checkpoint.name.split("-")[1])
     losses = read_losses(folder / "metrics.jsonl", done)
     if stopped_early:
-        _say(f"the deadline stopped training after {seconds:.0f} s; continuing with the checkpoint of step {done} of {plan['steps']}")
+        _say(f"the time limit stopped training after {seconds:.0f} s; continuing with the checkpoint of step {done} of {config.steps}")
     return {
-        "steps": done, "planned_steps": plan["steps"], "stopped_by_deadline": stopped_early, "seconds": seconds,
-        "seconds_per_step_measured_before": plan["seconds_per_step"],
+        "steps": done, "planned_steps": config.steps, "stopped_by_deadline": stopped_early, "seconds": seconds,
         "first_loss": losses[0][1] if losses else None, "final_loss": losses[-1][1] if losses else None,
         "losses": losses, "checkpoint": checkpoint, "image_size": size, "scenes": config.train_scenes,
     }
 
 
-def _fit_with_deadline(base, config: DemoConfig, deadline: float, plan_path: Path) -> bool:
-    """Plan and run fit in a spawned process; True when the deadline stopped it."""
+def _fit_with_deadline(train_config, deadline: float) -> bool:
+    """Run fit(train_config) in a spawned process; True when the deadline stopped it."""
     import multiprocessing
 
-    process = multiprocessing.get_context("spawn").Process(target=_train_child, args=(base, config, str(plan_path)), daemon=True)
+    process = multiprocessing.get_context("spawn").Process(target=_fit_child, args=(train_config,), daemon=True)
     process.start()
     try:
         process.join(timeout=deadline)
@@ -271,28 +260,10 @@ def _fit_with_deadline(base, config: DemoConfig, deadline: float, plan_path: Pat
     return stopped
 
 
-def _train_child(base, config: DemoConfig, plan_path: str) -> None:
-    """The training process: choose the step count (`plan_steps`), record it, train."""
-    from ..export.figures import write_text
+def _fit_child(train_config) -> None:
     from ..train import fit
 
-    steps, per_step = plan_steps(base, config)
-    write_text(plan_path, json.dumps({"steps": steps, "seconds_per_step": per_step}) + "\n")
-    every = max(1, min(CHECKPOINT_EVERY, steps))
-    fit(replace(base, steps=steps, checkpoint_every=every))
-
-
-def plan_steps(base, config: DemoConfig) -> tuple[int, float | None]:
-    """(steps, measured seconds per step or None): config.steps, or what fits the budget."""
-    if config.steps is not None:
-        return config.steps, None
-    per_step, per_room = measure_step_seconds(base)
-    # Budget: steps of the measured cost plus generating each training room once.
-    generation = per_room * min(config.train_scenes, config.max_steps)
-    steps = max(config.min_steps, min(config.max_steps, int((config.train_seconds - generation) / per_step)))
-    _say(f"measured {per_step:.2f} s per training step and {per_room:.2f} s per new room: "
-         f"{steps} steps fit the {config.train_seconds / 60:.1f}-minute budget (fix it with --steps)")
-    return steps, per_step
+    fit(train_config)
 
 
 def read_losses(path: Path, last_step: int) -> list[tuple[int, float]]:
@@ -311,37 +282,6 @@ def read_losses(path: Path, last_step: int) -> list[tuple[int, float]]:
         if "loss/total" in record and record["step"] <= last_step:
             losses.append((record["step"] - 1, float(record["loss/total"])))
     return losses
-
-
-def measure_step_seconds(config) -> tuple[float, float]:
-    """(seconds per training step, seconds to generate one room): PROBE_ITERATIONS steps of the
-    real model and data, the fastest one counted (the first ones pay one-time costs: kernels are
-    compiled or loaded on first use, thread pools and allocators warm up)."""
-    from ..model.decoder import decoder_mode, render_views
-    from ..train import build_model
-    from ..train.data import build_train_batches
-
-    torch.manual_seed(config.seed)
-    model = build_model(config)
-    model.train()
-    source = build_train_batches(config.data, config.batch_size, 0, 1, config.seed, 0)
-    rooms = []
-    for step in range(2):  # the second room shows the cost without first-call overheads
-        t0 = time.perf_counter()
-        batch = source.next(step)
-        rooms.append(time.perf_counter() - t0)
-    mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
-    h, w = config.data.image_shape
-    times = []
-    for _ in range(PROBE_ITERATIONS):
-        t0 = time.perf_counter()
-        prediction = model(batch.context.images, batch.context.cameras(), batch.context.near, batch.context.far)
-        color = render_views(prediction.gaussians, batch.target.cameras(), w, h, mode=mode,
-                             alpha_threshold=prediction.alpha_threshold).color
-        (color - batch.target.images).square().mean().backward()
-        model.zero_grad(set_to_none=True)
-        times.append(time.perf_counter() - t0)
-    return min(times), min(rooms) / max(1, config.batch_size)
 
 
 def write_training_curve(losses: list[tuple[int, float]], path: Path) -> Path:
@@ -500,8 +440,8 @@ def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: di
         "scene ray-cast natively at the higher resolution (exact, available for synthetic scenes only)."
     )
     if train["stopped_by_deadline"]:
-        report.paragraph(f"Training was stopped by its deadline at step {train['steps']} of the {train['planned_steps']} "
-                         "planned (the machine was slower than measured at the start).", note=True)
+        report.paragraph(f"Training was stopped by its time limit at step {train['steps']} of the {train['planned_steps']} "
+                         "planned (a slow or busy machine); the learning-rate schedule did not finish.", note=True)
     if evaluation["lpips"] is not None:
         report.paragraph(evaluation["lpips"], note=True)
     report.heading("Metrics")
