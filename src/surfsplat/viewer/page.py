@@ -171,7 +171,7 @@ async function main() {
     if (splats.length !== meta.count * FLOATS) throw new Error(`splats.bin holds ${splats.length} floats, expected ${meta.count * FLOATS}`);
     document.title = `${meta.title} - surfsplat viewer`;
     home = meta.camera; cam = JSON.parse(JSON.stringify(home));
-    dirty = true;
+    draw();  // the first frame at once (animation frames may be throttled in background or headless tabs)
     requestAnimationFrame(frame);
   } catch (err) {
     statusBox.textContent = "error: " + err.message;
