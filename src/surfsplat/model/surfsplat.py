@@ -13,7 +13,6 @@ released checkpoints), `tiny` is a 1M-parameter model for fast CPU tests.
 from __future__ import annotations
 
 import dataclasses
-import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -21,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from ..checks import SurfSplatInputError, check_tensor
+from ..configio import dataclass_from_dict
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
 from .adapter import AdapterConfig, AdapterOutput, GaussianAdapter
@@ -38,7 +38,7 @@ class SurfSplatConfig:
 
     @classmethod
     def from_dict(cls, data: object, source: str = "config") -> SurfSplatConfig:
-        return _dataclass_from_dict(cls, data, source)
+        return dataclass_from_dict(cls, data, source)
 
 
 PRESETS: dict[str, EncoderConfig] = {
@@ -156,31 +156,3 @@ def _depth_bound(name: str, value: float | Tensor, b: int, v: int, like: Tensor)
     if not bool(torch.isfinite(t).all()) or bool((t <= 0).any()):
         raise SurfSplatInputError(f"{name}: expected finite positive depths")
     return t
-
-
-def _dataclass_from_dict(cls: type, data: object, where: str):
-    """Build (nested, frozen) config dataclasses from JSON data; unknown keys are errors."""
-    if not isinstance(data, dict):
-        raise SurfSplatInputError(f"{where}: expected an object, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise SurfSplatInputError(f"{where}: unknown fields {unknown} for {cls.__name__}")
-    values = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        hint, value = hints[f.name], data[f.name]
-        if dataclasses.is_dataclass(hint):
-            values[f.name] = _dataclass_from_dict(hint, value, f"{where}.{f.name}")
-        elif typing.get_origin(hint) is tuple:
-            if not isinstance(value, list):
-                raise SurfSplatInputError(f"{where}.{f.name}: expected a list, got {type(value).__name__}")
-            values[f.name] = tuple(value)
-        else:
-            values[f.name] = value
-    try:
-        return cls(**values)
-    except (TypeError, ValueError) as err:
-        raise SurfSplatInputError(f"{where}: {err}") from None
