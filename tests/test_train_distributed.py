@@ -4,7 +4,8 @@
   loss curve: each rank trains on its own half of every global batch, DDP averages gradients, and
   one writer reports the mean over ranks.
 - A run SIGKILLed mid-training and resumed ends with exactly the weights, optimizer moments and
-  random-generator states of an uninterrupted run.
+  random-generator states of an uninterrupted run, with two CPU threads (torch's and the
+  compiled renderer's), so the proof covers parallel summation.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from surfsplat.train import read_checkpoint_config
 from surfsplat.train.checkpoint import list_checkpoints, verify_checkpoint
 
 # A few steps of the tiny model on 32x32 synthetic rooms: seconds per run on a laptop CPU.
@@ -29,12 +31,14 @@ _RUN = [
     "--preset", "tiny", "--image-shape", "32", "32", "--val-every", "0", "--log-every", "1", "--no-progress",
     "--set", "data.synthetic_length=6", "--set", "data.num_target_views=1", "--set", "keep_checkpoints=0",
 ]
-# One thread everywhere: bit-identity needs a fixed summation order, and the compiled CPU
-# renderer sums per-thread gradient partials whose grouping depends on thread scheduling.
+# One thread per rank for the two-rank comparison (two ranks fill a 2-core machine).
 _ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+# The resume proof runs two threads per process: the compiled renderer sums its per-tile
+# gradients in a fixed order, so parallel runs must still be bit-identical.
+_ENV_PARALLEL = {**os.environ, "OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"}
 
 
-def _train(out: Path, *options: str, ranks: int = 1) -> subprocess.CompletedProcess:
+def _train(out: Path, *options: str, ranks: int = 1, env: dict[str, str] = _ENV) -> subprocess.CompletedProcess:
     if ranks == 1:
         launcher = [sys.executable, "-m", "surfsplat.train"]
     else:
@@ -46,7 +50,7 @@ def _train(out: Path, *options: str, ranks: int = 1) -> subprocess.CompletedProc
             "--master_addr", "127.0.0.1", "--master_port", str(port), "-m", "surfsplat.train",
         ]
     proc = subprocess.run(
-        [*launcher, *_RUN, *options, "--out", str(out)], env=_ENV, capture_output=True, text=True, timeout=600
+        [*launcher, *_RUN, *options, "--out", str(out)], env=env, capture_output=True, text=True, timeout=600
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
@@ -83,13 +87,15 @@ def test_two_gloo_ranks_follow_the_single_process_loss_curve(tmp_path: Path) -> 
 
 @pytest.mark.slow
 def test_sigkill_and_resume_is_bit_identical(tmp_path: Path) -> None:
-    options = ["--steps", "8", "--batch-size", "1", "--checkpoint-every", "2"]
-    _train(tmp_path / "straight", *options)
+    # 64x64 renders: 16 tiles, so both renderer threads take tiles of every target view.
+    options = ["--steps", "8", "--batch-size", "1", "--checkpoint-every", "2", "--cpu-threads", "2",
+               "--image-shape", "64", "64"]
+    _train(tmp_path / "straight", *options, env=_ENV_PARALLEL)
 
     interrupted = tmp_path / "interrupted"
     proc = subprocess.Popen(
         [sys.executable, "-m", "surfsplat.train", *_RUN, *options, "--out", str(interrupted)],
-        env=_ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=_ENV_PARALLEL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     first = interrupted / "checkpoints" / "step-00000002"
     deadline = time.monotonic() + 600
@@ -106,7 +112,7 @@ def test_sigkill_and_resume_is_bit_identical(tmp_path: Path) -> None:
     # Only the run folder: the configuration comes from the checkpoint.
     resume = subprocess.run(
         [sys.executable, "-m", "surfsplat.train", "--resume", "--out", str(interrupted), "--no-progress"],
-        env=_ENV, capture_output=True, text=True, timeout=600,
+        env=_ENV_PARALLEL, capture_output=True, text=True, timeout=600,
     )
     assert resume.returncode == 0, resume.stderr[-3000:]
     straight = _tensors(tmp_path / "straight" / "checkpoints" / "step-00000008")
@@ -114,5 +120,6 @@ def test_sigkill_and_resume_is_bit_identical(tmp_path: Path) -> None:
     assert straight.keys() == resumed.keys()
     for key in straight:  # weights, AdamW moments and step counts, every RNG state
         assert torch.equal(straight[key], resumed[key]), key
+    assert read_checkpoint_config(interrupted / "checkpoints" / "step-00000008").cpu_threads == 2
     losses, resumed_losses = _losses(tmp_path / "straight"), _losses(interrupted)
     assert all(resumed_losses[s] == losses[s] for s in range(3, 9))

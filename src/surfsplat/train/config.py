@@ -158,8 +158,8 @@ def _tiny() -> TrainConfig:
     # Its ViT starts random (no pretrained weights), so it takes the full learning rate; the LPIPS
     # term is off so the preset runs without the VGG files; a fixed pool of cached rooms keeps the
     # procedural ray caster out of the step time. One CPU thread: tensors this small gain little
-    # from more, a shared machine loses a lot to oversubscription (0.57 s vs 4.5 s per step measured
-    # on a loaded 2-core box), and the compiled renderer's backward is bit-reproducible only then.
+    # from more, and a shared machine loses a lot to oversubscription (0.57 s vs 4.5 s per step
+    # measured on a loaded 2-core box). Runs are bit-reproducible with any fixed thread count.
     return TrainConfig(
         model=ModelConfig(preset="tiny"),
         optim=OptimConfig(lr=1e-3, vit_lr=1e-3, warmup_fraction=0.05),

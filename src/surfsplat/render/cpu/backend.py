@@ -51,6 +51,9 @@ class _Plan:
     flip: np.ndarray  # [N] +-1: the sign given to each normal
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] positions in `order`, per tile front to back
+    pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are pair_of[pair_start[m]:pair_start[m + 1]]
+    pair_of: np.ndarray  # [pairs]
+    rank: np.ndarray  # [N] position of each Gaussian in `order` (-1: culled)
     tiles_x: int
 
 
@@ -105,10 +108,12 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
     )
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
-    order, tile_start, tile_ids = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
+    order, tile_start, tile_ids, pair_start, pair_of = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
+    rank = np.full(n, -1, dtype=np.int64)
+    rank[order] = np.arange(order.shape[0])
     return _Plan(
         rot, order, kernels.gather_rows(geom, order), kernels.gather_rows(box, order),
-        kernels.gather_rows(features, order), flip, tile_start, tile_ids, tiles_x,
+        kernels.gather_rows(features, order), flip, tile_start, tile_ids, pair_start, pair_of, rank, tiles_x,
     )
 
 
@@ -148,7 +153,7 @@ class _Rasterize(torch.autograd.Function):
         means, quats, scales, opacities, sh, covariances = ctx.saved_tensors
         W, H = camera.width, camera.height
         threads = numba.get_num_threads()
-        per_thread = np.zeros((threads, plan.order.shape[0], kernels.GRAD_SIZE))
+        pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE))  # every row gets written
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_backward(
                 ctx.surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
@@ -157,15 +162,16 @@ class _Rasterize(torch.autograd.Function):
                 np.zeros((3, H, W)) if g_normal is None else _np64(g_normal),
                 np.zeros((H, W)) if g_alpha is None else _np64(g_alpha[0]),
                 np.zeros((H, W)) if g_depth is None else _np64(g_depth[0]),
-                per_thread,
+                pair_grads,
             )
         x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
         n = x.shape[0]
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
         kernels.project_backward(
-            ctx.surfel, plan.order, x, plan.rotations, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center,
-            camera.K, plan.geom, plan.flip, per_thread, g_means, g_rot, g_scales, g_opac, g_sh, g_cov,
+            ctx.surfel, plan.rank, plan.pair_start, plan.pair_of, pair_grads, x, plan.rotations, sc, op, shc, cov,
+            camera.R_cw, camera.t_cw, camera.center, camera.K, plan.geom, plan.flip, g_means, g_rot, g_scales, g_opac,
+            g_sh, g_cov,
             np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
         )
         g_quats = np.empty((n, 4))

@@ -14,8 +14,9 @@ the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
   the 3DGS rule and the tile stops once all of its pixels have.
 * `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
-  what lies behind, so no per-pair state is stored. Per-Gaussian gradients go to a buffer per
-  thread (no atomics), summed by the next kernel.
+  what lies behind, so no per-pixel-pair state is stored. Each (tile, Gaussian) entry gets its own
+  gradient row (no atomics, no per-thread buffers), and the next kernel sums a Gaussian's rows in
+  a fixed order: gradients are bit-identical for any number of threads and any scheduling.
 * `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
@@ -352,30 +353,42 @@ def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
     """Survivors sorted front to back (stable, so ties keep input order) and listed per tile.
 
     Returns order [M] (input index of each survivor, nearest first), tile_start [tiles + 1] and
-    tile_ids [pairs]: the survivors (as positions in `order`) touching each tile, front to back.
+    tile_ids [pairs]: the survivors (as positions in `order`) touching each tile, front to back;
+    and the same lists seen from the survivors: pair_start [M + 1] and pair_of [pairs], the
+    entries of tile_ids that belong to survivor m are pair_of[pair_start[m]:pair_start[m + 1]]
+    (its tiles in row-major order). The backward pass sums per-tile gradients through them in
+    that fixed order, whatever thread handled which tile.
     """
     index = np.nonzero(keep)[0]
     order = index[np.argsort(depth[index], kind="mergesort")]
     n_tiles = tiles_x * tiles_y
     tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
+    pair_start = np.zeros(order.shape[0] + 1, dtype=np.int64)
     for m in range(order.shape[0]):
         i = order[m]
         for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
             for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
                 tile_start[ty * tiles_x + tx + 1] += 1
+        pair_start[m + 1] = pair_start[m] + (box[i, 3] // tile - box[i, 2] // tile + 1) * (
+            box[i, 1] // tile - box[i, 0] // tile + 1
+        )
     for t in range(n_tiles):
         tile_start[t + 1] += tile_start[t]
     cursor = tile_start[:-1].copy()
     tile_ids = np.empty(tile_start[n_tiles], dtype=np.int64)
+    pair_of = np.empty(tile_start[n_tiles], dtype=np.int64)
     # Visiting survivors in depth order fills every tile's list already front to back.
     for m in range(order.shape[0]):
         i = order[m]
+        q = pair_start[m]
         for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
             for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
                 t = ty * tiles_x + tx
                 tile_ids[cursor[t]] = m
+                pair_of[q] = cursor[t]
+                q += 1
                 cursor[t] += 1
-    return order, tile_start, tile_ids
+    return order, tile_start, tile_ids, pair_start, pair_of
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -537,20 +550,21 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                       trans_final, last, g_color, g_normal, g_alpha, g_depth, grads):
+                       trans_final, last, g_color, g_normal, g_alpha, g_depth, pair_grads):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
       dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
     Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
     so nothing per pair is stored. g_color [3, H, W], g_normal [3, H, W], g_alpha [H, W] and
-    g_depth [H, W] are the upstream gradients; grads [threads, M, GRAD_SIZE] receives per-Gaussian
-    sums (zeroed by the caller), one slab per thread, so tiles never write to the same memory.
+    g_depth [H, W] are the upstream gradients. pair_grads [pairs, GRAD_SIZE] receives, for every
+    entry k of tile_ids, the gradient sums of that Gaussian over that tile's pixels (zeros where it
+    contributed nothing): each row is written once, by the one thread that owns the tile, so no two
+    threads touch the same memory and the result does not depend on scheduling.
     """
     n_tiles = tile_start.shape[0] - 1
     S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
     for t in prange(n_tiles):
-        buf = grads[get_thread_id()]
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
         # Tile-local pixel state: upstream dL/dfeatures (6), T (walked back), the weighted sum
@@ -571,6 +585,8 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                 n_last = max(n_last, last[r, c])
         alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
         start = tile_start[t]
+        for k in range(start + n_last, tile_start[t + 1]):
+            pair_grads[k, :] = 0.0  # behind every pixel's last blended Gaussian
         for k in range(start + n_last - 1, start - 1, -1):
             pos = k - start
             m = tile_ids[k]
@@ -584,7 +600,6 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
             s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = 0.0  # surfel h; ewa conic in s_h
             s_cx = s_cy = s_det = s_depth = s_logo = 0.0
             s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = 0.0
-            touched = False
             c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
             for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
                 dy = r + 0.5 - cy
@@ -600,7 +615,6 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                     p = base + j
                     if a == 0.0 or pos >= last_px[p]:
                         continue  # below 1/255, or behind this pixel's last blended Gaussian
-                    touched = True
                     s = state[p]
                     inv_one_minus = 1.0 / (1.0 - a)
                     T = s[S_T] * inv_one_minus
@@ -657,28 +671,27 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                         s_cx -= 2.0 * g_rho * (ca * dx + cb * dy)
                         s_cy -= 2.0 * g_rho * (cb * dx + cc * dy)
                         s_depth += g_dpair
-            if touched:
-                row = buf[m]
-                row[GRAD_H] += s_h0
-                row[GRAD_H + 1] += s_h1
-                row[GRAD_H + 2] += s_h2
-                row[GRAD_HX] += s_x0
-                row[GRAD_HX + 1] += s_x1
-                row[GRAD_HX + 2] += s_x2
-                row[GRAD_HY] += s_y0
-                row[GRAD_HY + 1] += s_y1
-                row[GRAD_HY + 2] += s_y2
-                row[GRAD_CX] += s_cx
-                row[GRAD_CY] += s_cy
-                row[GRAD_DET] += s_det
-                row[GRAD_DEPTH] += s_depth
-                row[GRAD_LOGO] += s_logo
-                row[GRAD_FEAT] += s_f0
-                row[GRAD_FEAT + 1] += s_f1
-                row[GRAD_FEAT + 2] += s_f2
-                row[GRAD_FEAT + 3] += s_f3
-                row[GRAD_FEAT + 4] += s_f4
-                row[GRAD_FEAT + 5] += s_f5
+            row = pair_grads[k]
+            row[GRAD_H] = s_h0
+            row[GRAD_H + 1] = s_h1
+            row[GRAD_H + 2] = s_h2
+            row[GRAD_HX] = s_x0
+            row[GRAD_HX + 1] = s_x1
+            row[GRAD_HX + 2] = s_x2
+            row[GRAD_HY] = s_y0
+            row[GRAD_HY + 1] = s_y1
+            row[GRAD_HY + 2] = s_y2
+            row[GRAD_CX] = s_cx
+            row[GRAD_CY] = s_cy
+            row[GRAD_DET] = s_det
+            row[GRAD_DEPTH] = s_depth
+            row[GRAD_LOGO] = s_logo
+            row[GRAD_FEAT] = s_f0
+            row[GRAD_FEAT + 1] = s_f1
+            row[GRAD_FEAT + 2] = s_f2
+            row[GRAD_FEAT + 3] = s_f3
+            row[GRAD_FEAT + 4] = s_f4
+            row[GRAD_FEAT + 5] = s_f5
 
 
 # ---------------------------------------------------------------------------------------------
@@ -815,28 +828,33 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def project_backward(surfel, order, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center,
-                     K, geom, flip, grads, g_means, g_rotations, g_scales, g_opacities, g_sh, g_covariances,
-                     scratch, cov_scratch):
+def project_backward(surfel, rank, pair_start, pair_of, pair_grads, means, rotations, scales, opacities, sh,
+                     covariances, R_cw, t_cw, cam_center, K, geom, flip, g_means, g_rotations, g_scales, g_opacities,
+                     g_sh, g_covariances, scratch, cov_scratch):
     """Chain rule from the survivors' compositing gradients to the Gaussian parameters.
 
-    grads [threads, M, GRAD_SIZE] are the per-thread sums of `composite_backward` (rows in `order`).
-    Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
+    rank [N] is each Gaussian's position m among the sorted survivors (-1: culled); a survivor's
+    gradient row is the sum of its per-tile rows pair_grads[pair_of[pair_start[m]:pair_start[m + 1]]]
+    (from `composite_backward`), added in that fixed order so gradients are bit-identical for any
+    number of threads. The loop runs in input order, so parameters and outputs are read and written
+    sequentially. Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
     g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
-    for m in prange(order.shape[0]):
-        i = order[m]
+    for i in prange(means.shape[0]):
+        m = rank[i]
+        if m < 0:
+            continue
         tid = get_thread_id()
         gr = scratch[tid, 64 : 64 + GRAD_SIZE]
-        for j in range(GRAD_SIZE):
-            total = 0.0
-            for th in range(grads.shape[0]):
-                total += grads[th, m, j]
-            gr[j] = total
+        gr[:] = 0.0
+        for q in range(pair_start[m], pair_start[m + 1]):
+            row = pair_grads[pair_of[q]]
+            for j in range(GRAD_SIZE):
+                gr[j] += row[j]
         R = rotations[i]
         mu = _camera_point(means[i], R_cw, t_cw)
         if surfel:
