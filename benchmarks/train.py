@@ -9,12 +9,14 @@ memory on a GPU. Defaults follow the issue: batch 1, 2 context views, 256x256, 4
 
     python benchmarks/train.py                                  # tiny small base large, CPU
     python benchmarks/train.py --presets tiny --size 64 --targets 2
+    python benchmarks/train.py --presets tiny --render-backends torch cpu   # the compiled renderer's gain
     python benchmarks/train.py --device cuda --precision bf16
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -30,12 +32,14 @@ import torch
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def measure(preset: str, size: int, targets: int, batch: int, repeats: int, device: str, precision: str) -> dict:
+def measure(preset: str, size: int, targets: int, batch: int, repeats: int, device: str, precision: str,
+            render_backend: str = "auto") -> dict:
     """Time `repeats` training steps after one warm-up step, in this process."""
     from torch.utils.data import default_collate
 
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
     from surfsplat.model.decoder import decoder_mode
+    from surfsplat.render import resolve_backend
     from surfsplat.train import build_model, build_optimizer, train_preset
     from surfsplat.train.config import override
     from surfsplat.train.data import to_train_batch
@@ -44,7 +48,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
 
     config = override(train_preset(preset), {
         "data.image_shape": [size, size], "data.num_target_views": targets, "loss.lpips_weight": 0.0,
-        "batch_size": batch, "precision": precision, "device": device,
+        "batch_size": batch, "precision": precision, "device": device, "model.render_backend": render_backend,
     })
     dev = torch.device("cuda" if device == "cuda" else "cpu")
     torch.manual_seed(0)
@@ -64,7 +68,8 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         if dev.type == "cuda":
             torch.cuda.synchronize()
         start = time.perf_counter()
-        out = training_step(model, model, sample, loss_fn, optimizer, mode=mode, amp_dtype=amp, scaler=scaler,
+        out = training_step(model, model, sample, loss_fn, optimizer, mode=mode, backend=render_backend,
+                            amp_dtype=amp, scaler=scaler,
                             grad_clip=config.optim.grad_clip, cascade=cascade)
         float(out.loss)  # waits for the GPU
         return time.perf_counter() - start
@@ -88,6 +93,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         "target_views": targets,
         "cascade_renders": 1 + (model.cfg.encoder.num_scales - 1),
         "render_mode": mode,
+        "render_backend": resolve_backend(render_backend, dev, None, sample.target.cameras()),
         "precision": str(amp).replace("torch.", "") if amp is not None else "fp32",
         "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),
         "threads": torch.get_num_threads(),
@@ -110,37 +116,49 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed steps after one warm-up step")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"), default="auto")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--render-backends", nargs="+", choices=("auto", "torch", "cpu", "gsplat"), default=["auto"],
+                        help="renderers to compare (auto: gsplat on CUDA, the compiled one on CPU)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="CPU threads of torch and the compiled renderer (default: their own choice)")
     parser.add_argument("--out", default=None, help="JSON path (default benchmarks/results/train_<device>.json)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+        if importlib.util.find_spec("numba") is not None:
+            import numba
 
-    if args.child:  # one preset, measured in this fresh process
-        (preset,) = args.presets
-        print(json.dumps(measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision)))
+            numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+
+    if args.child:  # one preset and renderer, measured in this fresh process
+        (preset,), (backend,) = args.presets, args.render_backends
+        print(json.dumps(measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision,
+                                 backend)))
         return
 
     rows = []
     for preset in args.presets:
-        cmd = [sys.executable, __file__, "--child", "--presets", preset, "--size", str(args.size), "--targets",
-               str(args.targets), "--batch", str(args.batch), "--repeats", str(args.repeats), "--device", args.device,
-               "--precision", args.precision]
-        if args.threads:
-            cmd += ["--threads", str(args.threads)]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            lines = proc.stderr.strip().splitlines()
-            rows.append({"preset": preset, "error": lines[-1] if lines else f"exit {proc.returncode}"})
-        else:
-            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-        r = rows[-1]
-        if "error" in r:
-            print(f"{preset:6s}  failed: {r['error']}", flush=True)
-        else:
-            print(f"{preset:6s}  {r['parameters'] / 1e6:7.1f} M params  step {r['step_seconds_median']:8.3f} s "
-                  f"(min {r['step_seconds_min']:.3f})  peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}", flush=True)
+        for backend in args.render_backends:
+            cmd = [sys.executable, __file__, "--child", "--presets", preset, "--render-backends", backend, "--size",
+                   str(args.size), "--targets", str(args.targets), "--batch", str(args.batch), "--repeats",
+                   str(args.repeats), "--device", args.device, "--precision", args.precision]
+            if args.threads:
+                cmd += ["--threads", str(args.threads)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                lines = proc.stderr.strip().splitlines()
+                rows.append({"preset": preset, "render_backend": backend,
+                             "error": lines[-1] if lines else f"exit {proc.returncode}"})
+            else:
+                rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+            r = rows[-1]
+            if "error" in r:
+                print(f"{preset:6s} {backend:>6s}  failed: {r['error']}", flush=True)
+            else:
+                print(f"{preset:6s} {r['render_backend']:>6s}  {r['parameters'] / 1e6:7.1f} M params  "
+                      f"step {r['step_seconds_median']:8.3f} s (min {r['step_seconds_min']:.3f})  "
+                      f"peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}  load {r['load_average_1min']:.1f}",
+                      flush=True)
 
     out = Path(args.out) if args.out else RESULTS / f"train_{args.device}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

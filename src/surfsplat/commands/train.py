@@ -48,6 +48,7 @@ _FIELDS: dict[str, str] = {
     "init_checkpoint": "model.init_checkpoint",
     "release_weights": "model.release_weights",
     "depth_anything": "model.depth_anything",
+    "render_backend": "model.render_backend",
 }
 
 
@@ -66,6 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--seed", type=int)
     common.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"))
     common.add_argument("--device", choices=("auto", "cpu", "cuda"))
+    common.add_argument("--render-backend", choices=("auto", "torch", "cpu", "gsplat"),
+                        help="renderer of the training views (auto: gsplat on CUDA, the compiled one on CPU)")
     common.add_argument("--cpu-threads", type=int, help="CPU threads per rank (torch and the compiled renderer; 0: defaults)")
     common.add_argument("--dataset", choices=("synthetic", "chunks"))
     common.add_argument("--roots", nargs="+", help="training chunk folders")

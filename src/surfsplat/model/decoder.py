@@ -31,7 +31,7 @@ from ..checks import SurfSplatInputError
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
 from ..render import render
-from ..render.types import RenderMode
+from ..render.types import Backend, RenderMode
 from .adapter import AdapterConfig
 
 
@@ -66,6 +66,7 @@ def render_views(
     mode: RenderMode = "surfel",
     alpha_threshold: float | None,
     background: Tensor | Sequence[float] | None = None,
+    backend: Backend = "auto",
 ) -> DecodedViews:
     """Render every scene of a batch from its own cameras; differentiable like `surfsplat.render`.
 
@@ -93,6 +94,7 @@ def render_views(
             mode=mode,
             alpha_threshold=alpha_threshold,
             background=background,
+            backend=backend,
         )
         for i in range(b)
     ]

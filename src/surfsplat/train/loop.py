@@ -36,7 +36,7 @@ from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
 from ..model.decoder import decoder_mode, render_views
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
-from ..render.types import RenderMode
+from ..render.types import Backend, RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
 from .checkpoint import (
     TrainingState,
@@ -267,6 +267,7 @@ def training_step(
     optimizer: torch.optim.Optimizer,
     *,
     mode: RenderMode,
+    backend: Backend = "auto",
     amp_dtype: torch.dtype | None = None,
     scaler: torch.amp.GradScaler | None = None,
     grad_clip: float = 0.5,
@@ -282,7 +283,8 @@ def training_step(
     # renderer always works in float32, at the training tau_alpha the adapter reports.
     coarse = intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far)
     renders = [
-        render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold).color
+        render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold,
+                     backend=backend).color
         for g in [*coarse, prediction.gaussians]
     ]
     loss, terms = cascade_loss(loss_fn, renders, target.images)
@@ -421,7 +423,8 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
 
             out = training_step(
                 net, model, batch, loss_fn, optimizer,
-                mode=mode, amp_dtype=amp_dtype, scaler=scaler, grad_clip=config.optim.grad_clip, cascade=cascade,
+                mode=mode, backend=config.model.render_backend, amp_dtype=amp_dtype, scaler=scaler,
+                grad_clip=config.optim.grad_clip, cascade=cascade,
             )
             loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
 
@@ -466,7 +469,8 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
 
             if validating and (done % config.val_every == 0 or is_last):
                 metrics = validate(net.module if isinstance(net, DistributedDataParallel) else net, val_samples, ctx,
-                                   mode=mode, lpips=val_lpips, factors=config.val_factors)
+                                   mode=mode, backend=config.model.render_backend, lpips=val_lpips,
+                                   factors=config.val_factors)
                 result.validation[done] = metrics
                 reporter.scalars(done, {f"val/{k}": v for k, v in metrics.items()})
                 shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("x"))

@@ -19,7 +19,7 @@ from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator
 from ..metrics.lpips import Lpips, LpipsUnavailable
 from ..model.decoder import render_views
-from ..render.types import RenderMode
+from ..render.types import Backend, RenderMode
 from .data import TrainBatch
 from .distributed import DistributedContext, all_reduce_sum
 
@@ -33,6 +33,7 @@ def validate(
     ctx: DistributedContext,
     *,
     mode: RenderMode,
+    backend: Backend = "auto",
     lpips: Lpips | LpipsUnavailable,
     factors: tuple[int, ...] = (1, 2, 4),
 ) -> dict[str, float]:
@@ -57,6 +58,7 @@ def validate(
                 h * s,
                 mode=mode,
                 alpha_threshold=prediction.alpha_threshold,
+                backend=backend,
             )
             renders[s] = views.color[0]
         evaluator.add_scene(f"{ctx.rank}:{i}:{batch.scenes[0]}", target.images[0], renders)
