@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -63,6 +62,7 @@ def run_one(
     import torch
 
     from surfsplat import Cameras
+    from surfsplat.evaluate import peak_rss_bytes
     from surfsplat.model import SurfSplat
 
     torch.set_num_threads(threads)
@@ -101,7 +101,7 @@ def run_one(
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
         peak_kind = "cuda_max_allocated"
     else:
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+        peak_mb = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
         peak_kind = "process_peak_rss"
     return {
         "preset": preset,

@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -86,12 +85,13 @@ def available_backends() -> list[str]:
 def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads: int) -> dict:
     torch.set_num_threads(threads)
     from surfsplat import Gaussians
+    from surfsplat.evaluate import peak_rss_bytes
     from surfsplat.render import render
 
     scene = _scene()
     g = scene.gaussians
     cam = scene.target.scaled(res / 256)
-    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    base_rss = peak_rss_bytes() / 2**20
 
     if backend == "cpu":
         import numba
@@ -114,7 +114,7 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads
     warm = run_once()[0]  # includes compiling (or loading the compiled cache of) the cpu kernels
     runs = [run_once() for _ in range(repeats)]
     times = [r[0] for r in runs]
-    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_rss = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
     return {
         "backend": backend, "mode": mode, "resolution": res, "passes": passes,
         "seconds": statistics.median(times), "seconds_all": times, "warmup_seconds": warm,

@@ -20,7 +20,6 @@ import importlib.util
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -38,6 +37,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
     from torch.utils.data import default_collate
 
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
+    from surfsplat.evaluate import peak_rss_bytes
     from surfsplat.model.decoder import decoder_mode
     from surfsplat.render import resolve_backend
     from surfsplat.train import build_model, build_optimizer, train_preset
@@ -82,7 +82,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
         memory_kind = "cuda_max_allocated"
     else:
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+        peak_mb = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
         memory_kind = "process_max_rss"
     return {
         "preset": preset,

@@ -419,7 +419,19 @@ def evaluate(
 
 
 def peak_rss_bytes() -> int:
-    """This process's peak resident set size (Linux reports kilobytes, macOS bytes)."""
+    """This process's peak resident set size.
+
+    On Linux the high-water mark of /proc/self/status (VmHWM): getrusage's ru_maxrss survives
+    fork + exec, so a fresh child started by a large parent would report the parent's peak.
+    Elsewhere ru_maxrss (kilobytes on Linux, bytes on macOS).
+    """
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(peak if sys.platform == "darwin" else peak * 1024)
 

@@ -108,12 +108,14 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
     )
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
-    order, tile_start, tile_ids, pair_start, pair_of = kernels.sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y)
+    order = kernels.depth_order(keep, depth)
+    box = kernels.gather_rows(box, order)
+    tile_start, tile_ids, pair_start, pair_of = kernels.bin_tiles(box, tile, tiles_x, tiles_y)
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(
-        rot, order, kernels.gather_rows(geom, order), kernels.gather_rows(box, order),
-        kernels.gather_rows(features, order), flip, tile_start, tile_ids, pair_start, pair_of, rank, tiles_x,
+        rot, order, kernels.gather_rows(geom, order), box, kernels.gather_rows(features, order), flip,
+        tile_start, tile_ids, pair_start, pair_of, rank, tiles_x,
     )
 
 

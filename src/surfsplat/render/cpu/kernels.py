@@ -6,8 +6,8 @@ the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
 * `quats_to_rotations`, `project`: one pass over the Gaussians (parallel) giving each one's
   camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
   and camera-facing normal.
-* `sort_and_bin`: stable depth sort of the survivors, then a counting sort into tiles, so every
-  tile lists its Gaussians front to back (no global key sort).
+* `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
+  tiles, so every tile lists its Gaussians front to back (no global key sort).
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
   each, only over the pixels of its box, one row segment at a time: alpha for the whole segment in
   SIMD lanes (`_segment`), then front-to-back blending into tile-local pixel state. Pixels stop by
@@ -348,47 +348,53 @@ def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, 
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
-def sort_and_bin(keep, depth, box, tile, tiles_x, tiles_y):
-    """Survivors sorted front to back (stable, so ties keep input order) and listed per tile.
+def depth_order(keep, depth):
+    """Input indices of the survivors sorted front to back (stable: ties keep input order).
 
-    Returns order [M] (input index of each survivor, nearest first), tile_start [tiles + 1] and
-    tile_ids [pairs]: the survivors (as positions in `order`) touching each tile, front to back;
-    and the same lists seen from the survivors: pair_start [M + 1] and pair_of [pairs], the
-    entries of tile_ids that belong to survivor m are pair_of[pair_start[m]:pair_start[m + 1]]
+    NumPy's stable sort, not numba's: the compiled mergesort took 5x longer on 120k keys.
+    """
+    index = np.flatnonzero(keep)
+    return index[np.argsort(depth[index], kind="stable")]
+
+
+@njit(cache=True, error_model="numpy")
+def bin_tiles(box, tile, tiles_x, tiles_y):
+    """The depth-sorted survivors (their pixel boxes box [M, 4], front to back) listed per tile.
+
+    Returns tile_start [tiles + 1] and tile_ids [pairs]: the survivors (as positions m in the
+    sorted order) touching each tile, front to back; and the same lists seen from the survivors:
+    the entries of tile_ids that belong to survivor m are pair_of[pair_start[m]:pair_start[m + 1]]
     (its tiles in row-major order). The backward pass sums per-tile gradients through them in
     that fixed order, whatever thread handled which tile.
     """
-    index = np.nonzero(keep)[0]
-    order = index[np.argsort(depth[index], kind="mergesort")]
+    n = box.shape[0]
     n_tiles = tiles_x * tiles_y
+    tiles = np.empty((n, 4), dtype=np.int64)  # tile range of each box: tx0, tx1, ty0, ty1
     tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
-    pair_start = np.zeros(order.shape[0] + 1, dtype=np.int64)
-    for m in range(order.shape[0]):
-        i = order[m]
-        for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
-            for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
+    pair_start = np.zeros(n + 1, dtype=np.int64)
+    for m in range(n):
+        tx0, tx1, ty0, ty1 = box[m, 0] // tile, box[m, 1] // tile, box[m, 2] // tile, box[m, 3] // tile
+        tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
                 tile_start[ty * tiles_x + tx + 1] += 1
-        pair_start[m + 1] = pair_start[m] + (box[i, 3] // tile - box[i, 2] // tile + 1) * (
-            box[i, 1] // tile - box[i, 0] // tile + 1
-        )
+        pair_start[m + 1] = pair_start[m] + (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
     for t in range(n_tiles):
         tile_start[t + 1] += tile_start[t]
     cursor = tile_start[:-1].copy()
     tile_ids = np.empty(tile_start[n_tiles], dtype=np.int64)
     pair_of = np.empty(tile_start[n_tiles], dtype=np.int64)
     # Visiting survivors in depth order fills every tile's list already front to back.
-    for m in range(order.shape[0]):
-        i = order[m]
-        q = pair_start[m]
-        for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
-            for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
+    q = 0
+    for m in range(n):
+        for ty in range(tiles[m, 2], tiles[m, 3] + 1):
+            for tx in range(tiles[m, 0], tiles[m, 1] + 1):
                 t = ty * tiles_x + tx
                 tile_ids[cursor[t]] = m
                 pair_of[q] = cursor[t]
                 q += 1
                 cursor[t] += 1
-    return order, tile_start, tile_ids, pair_start, pair_of
+    return tile_start, tile_ids, pair_start, pair_of
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
