@@ -370,3 +370,28 @@ def test_termination_holds_across_depth_blocks():
                      settings=TorchRenderSettings(max_block_depth=depth_block))
         assert torch.allclose(out.color, ref[0], atol=1e-12), depth_block
         assert torch.allclose(out.alpha, ref[1], atol=1e-12), depth_block
+
+
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+def test_torch_backend_gradients_repeat_bit_for_bit_with_several_threads(mode):
+    # Gathers use index_select, whose backward adds in index order; advanced indexing's backward
+    # adds float32 gradients with parallel atomics on multi-threaded CPUs (last bits varied per run).
+    from surfsplat.scenes import make_scene
+
+    scene = make_scene(resolution=48, views=2, opacity=0.5)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = []
+        for _ in range(3):
+            params = {k: getattr(scene.gaussians, k).detach().clone().requires_grad_(True)
+                      for k in ("means", "quats", "scales", "opacities", "sh")}
+            out = render(Gaussians(**params), scene.target, 48, 48, mode=mode, backend="torch")
+            (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+            grads.append({k: p.grad for k, p in params.items()})
+    finally:
+        torch.set_num_threads(threads)
+    assert grads[0]["means"].dtype == torch.float32 and float(grads[0]["means"].abs().max()) > 0
+    for other in grads[1:]:
+        for name, grad in grads[0].items():
+            assert torch.equal(other[name], grad), name

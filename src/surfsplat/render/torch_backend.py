@@ -54,6 +54,16 @@ class Projected:
     pixel_box: Tensor  # [M, 4] int64 inclusive pixel ranges: col0, col1, row0, row1
 
 
+def _take(x: Tensor, index: Tensor) -> Tensor:
+    """x[index] along dim 0 for an index of any shape, with a deterministic backward.
+
+    Advanced indexing's backward accumulates with parallel atomic adds on multi-threaded CPUs
+    (float32), so repeated runs differed in the last bits; index_select's backward (index_add_)
+    adds in index order.
+    """
+    return x.index_select(0, index.reshape(-1)).reshape(*index.shape, *x.shape[1:])
+
+
 def _opacity_extent(opacity: Tensor) -> Tensor:
     """k^2 such that alpha = o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
     return 2.0 * torch.log((opacity.to(torch.float64) / ALPHA_MIN).clamp_min(1.0))
@@ -135,7 +145,7 @@ def project_surfels(
     box = _pixel_box(xmin.detach(), xmax.detach(), ymin.detach(), ymax.detach(), width, height)
 
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
-    Tx, Ty, Tw, center = Tx[idx], Ty[idx], Tw[idx], center[idx]
+    Tx, Ty, Tw, center = _take(Tx, idx), _take(Ty, idx), _take(Tw, idx), _take(center, idx)
     B = torch.linalg.cross(Ty, Tw)
     C = torch.linalg.cross(Tw, Tx)
     # Cross product at the projected centre, so that tiles expand it over small offsets only.
@@ -143,10 +153,10 @@ def project_surfels(
     det = (Tw * torch.linalg.cross(Tx, Ty)).sum(-1)
     geometry = torch.cat((A_c, B, C, det[:, None], Tw[:, 2:3]), dim=-1)  # [M, 11]
 
-    normals = _camera_facing(rotations[idx, :, 2], mu[idx].to(means.dtype), w2c[:3, :3])
-    colors = _colors(sh[idx], means[idx], cam_center)
+    normals = _camera_facing(_take(rotations[:, :, 2], idx), _take(mu, idx).to(means.dtype), w2c[:3, :3])
+    colors = _colors(_take(sh, idx), _take(means, idx), cam_center)
     features = torch.cat((colors, normals), dim=-1)
-    return Projected(idx, center, geometry, opacities[idx], features, box[idx])
+    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx])
 
 
 def project_ewa(
@@ -187,10 +197,10 @@ def project_ewa(
     )
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
 
-    n = _camera_facing(normals[idx], mu[idx].to(means.dtype), w2c[:3, :3])
-    colors = _colors(sh[idx], means[idx], cam_center)
-    features = torch.cat((colors, n, z[idx, None].to(means.dtype)), dim=-1)
-    return Projected(idx, center[idx], conic[idx], opacities[idx], features, box[idx])
+    n = _camera_facing(_take(normals, idx), _take(mu, idx).to(means.dtype), w2c[:3, :3])
+    colors = _colors(_take(sh, idx), _take(means, idx), cam_center)
+    features = torch.cat((colors, n, _take(z, idx)[:, None].to(means.dtype)), dim=-1)
+    return Projected(idx, _take(center, idx), _take(conic, idx), _take(opacities, idx), features, box[idx])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -431,7 +441,7 @@ def composite(
                 break
             pair = (g_start[:, None] + slot[None, :]).clamp_max(max(bins.gaussian.shape[0] - 1, 0))
             gi = torch.where(valid, bins.gaussian[pair], torch.zeros_like(pair))
-            rows = table[gi]  # [n, kb, G + F + 5]
+            rows = _take(table, gi)  # [n, kb, G + F + 5]
             offset = (origin[:, None, :] - rows[..., -4:-2]) - rows[..., -2:]
             log_opac = torch.where(valid, rows[..., G + F_], -math.inf)
             coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset)
