@@ -9,8 +9,8 @@ the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
 * `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
   tiles, so every tile lists its Gaussians front to back (no global key sort).
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
-  each, only over the pixels of its box, one row segment at a time: alpha for the whole segment in
-  SIMD lanes (`_segment`), then front-to-back blending into tile-local pixel state. Pixels stop by
+  each, only over the pixels of its box: alpha for the whole box in one flat loop that fills SIMD
+  lanes (`_box_alpha`), then front-to-back blending into tile-local pixel state. Pixels stop by
   the 3DGS rule and the tile stops once all of its pixels have.
 * `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
@@ -418,13 +418,13 @@ _TAYLOR = (
 )
 
 
-# Numba's IR-level inlining is used for this one pure scalar function only, so that the row loop
-# of `_segment` vectorizes; it miscompiled larger array-writing helpers inside prange bodies.
+# Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loop
+# of `_box_alpha` vectorizes; it miscompiled larger array-writing helpers inside prange bodies.
 @njit(cache=True, inline="always", error_model="numpy")
 def _exp_nonpositive(x):
     """e^x for x in [_EXP_MIN, 0] (relative error < 1e-14), clamped below at _EXP_MIN.
 
-    Plain multiply-adds, so a row of pixels evaluates in SIMD lanes (a libm call per pixel was
+    Plain multiply-adds, so a box of pixels evaluates in SIMD lanes (a libm call per pixel was
     60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms), then
     squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
     """
@@ -440,9 +440,27 @@ def _exp_nonpositive(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _segment(surfel, g, c0, n, dy, alpha, depth, inv_hz):
-    """alpha, depth and 1 / hz of n consecutive pixels (columns c0.., offset dy from the centre row).
+def _box_tables(tile):
+    """Row-major walks of every box shape that fits a tile, indexed [columns - 1, step]:
+    the step's row and column within the box (as floats) and its offset in the tile's pixel state."""
+    rows = np.empty((tile, tile * tile))
+    cols = np.empty((tile, tile * tile))
+    offsets = np.empty((tile, tile * tile), dtype=np.int64)
+    for nc in range(1, tile + 1):
+        for step in range(tile * tile):
+            rows[nc - 1, step] = step // nc
+            cols[nc - 1, step] = step % nc
+            offsets[nc - 1, step] = (step // nc) * tile + step % nc
+    return rows, cols, offsets
 
+
+@njit(cache=True, error_model="numpy")
+def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
+    """alpha, depth and 1 / hz of the first n pixels of a box walked row-major from pixel (r0, c0)
+    (its rows and columns relative to the box in `rows`, `cols`: a `_box_tables` row).
+
+    One flat loop over the whole box, not one per row: the footprints of small surfels span a few
+    pixels per row, too few for SIMD lanes, while the whole box fills them.
     surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
             (the z of the ray-splat intersection) or the centre depth (2DGS).
@@ -450,18 +468,22 @@ def _segment(surfel, g, c0, n, dy, alpha, depth, inv_hz):
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
     inv_hz is 1 / hz on the ray-splat branch and 0 on the filter branch (and for ewa), so the
     backward pass takes the very branch the forward pass took.
-    Returns whether any pixel of the segment has alpha > 0.
+    Returns whether any pixel of the box has alpha > 0.
     """
-    cx, log_o, z = g[GEOM_CX], g[GEOM_LOGO], g[GEOM_DEPTH]
+    cx, cy, log_o, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO], g[GEOM_DEPTH]
+    fc0, fr0 = float(c0), float(r0)
     hit = False
     if surfel:
-        a0, a1, a2 = g[GEOM_A] + dy * g[GEOM_C], g[GEOM_A + 1] + dy * g[GEOM_C + 1], g[GEOM_A + 2] + dy * g[GEOM_C + 2]
+        A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
+        C0, C1, C2 = g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2]
         b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
-        r_dy = LOWPASS_RHO_SCALE * dy * dy
         for j in range(n):
-            dx = c0 + j + 0.5 - cx
-            hx, hy, hz = a0 + dx * b0, a1 + dx * b1, a2 + dx * b2
-            rho2d = LOWPASS_RHO_SCALE * dx * dx + r_dy
+            dx = (fc0 + cols[j]) + 0.5 - cx
+            dy = (fr0 + rows[j]) + 0.5 - cy
+            hx = (A0 + dy * C0) + dx * b0
+            hy = (A1 + dy * C1) + dx * b1
+            hz = (A2 + dy * C2) + dx * b2
+            rho2d = LOWPASS_RHO_SCALE * dx * dx + LOWPASS_RHO_SCALE * dy * dy
             q = hx * hx + hy * hy
             use3d = q < rho2d * (hz * hz)
             inv = 1.0 / (hz if use3d else 1.0)
@@ -474,7 +496,8 @@ def _segment(surfel, g, c0, n, dy, alpha, depth, inv_hz):
     else:
         ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
         for j in range(n):
-            dx = c0 + j + 0.5 - cx
+            dx = (fc0 + cols[j]) + 0.5 - cx
+            dy = (fr0 + rows[j]) + 0.5 - cy
             log_alpha = log_o - 0.5 * (ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy)
             ok = log_alpha >= LOG_ALPHA_MIN
             alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
@@ -495,6 +518,7 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
     blended Gaussian).
     """
     n_tiles = tile_start.shape[0] - 1
+    rows, cols, offsets = _box_tables(tile)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
@@ -503,7 +527,7 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
         state = np.zeros((tile * tile, FEATURES + 2))
         state[:, FEATURES + 1] = 1.0
         last = np.zeros(tile * tile, dtype=np.int64)
-        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
+        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
         active = (x1 - x0) * (y1 - y0)
         start = tile_start[t]
         for k in range(start, tile_start[t + 1]):
@@ -513,36 +537,41 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
             g = geom[m]
             f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
             f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                if not _segment(surfel, g, c0, c1 - c0 + 1, r + 0.5 - g[GEOM_CY], alpha, depth, inv_hz):
+            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
+            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
+            if nc <= 0 or nr <= 0:
+                continue
+            n = nc * nr
+            if not _box_alpha(surfel, g, c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
+                continue
+            base = (r0 - y0) * tile + c0 - x0
+            offset = offsets[nc - 1]
+            for j in range(n):
+                a = alpha[j]
+                if a == 0.0:
                     continue
-                base = (r - y0) * tile + c0 - x0
-                for j in range(c1 - c0 + 1):
-                    a = alpha[j]
-                    if a == 0.0:
-                        continue
-                    s = state[base + j]
-                    T = s[FEATURES + 1]
-                    if T < 0.0:
-                        continue  # stopped
-                    T_next = T * (1.0 - a)
-                    # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
-                    # ends the pixel and is itself not blended.
-                    if T_next < TRANSMITTANCE_MIN:
-                        s[FEATURES + 1] = -T
-                        active -= 1
-                        continue
-                    w = a * T
-                    s[0] += w * f0
-                    s[1] += w * f1
-                    s[2] += w * f2
-                    s[3] += w * f3
-                    s[4] += w * f4
-                    s[5] += w * f5
-                    s[FEATURES] += w * depth[j]
-                    s[FEATURES + 1] = T_next
-                    last[base + j] = k - start + 1
+                p = base + offset[j]
+                s = state[p]
+                T = s[FEATURES + 1]
+                if T < 0.0:
+                    continue  # stopped
+                T_next = T * (1.0 - a)
+                # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
+                # ends the pixel and is itself not blended.
+                if T_next < TRANSMITTANCE_MIN:
+                    s[FEATURES + 1] = -T
+                    active -= 1
+                    continue
+                w = a * T
+                s[0] += w * f0
+                s[1] += w * f1
+                s[2] += w * f2
+                s[3] += w * f3
+                s[4] += w * f4
+                s[5] += w * f5
+                s[FEATURES] += w * depth[j]
+                s[FEATURES + 1] = T_next
+                last[p] = k - start + 1
         for r in range(y0, y1):
             for c in range(x0, x1):
                 p = (r - y0) * tile + c - x0
@@ -570,6 +599,7 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
     """
     n_tiles = tile_start.shape[0] - 1
     S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
+    rows, cols, offsets = _box_tables(tile)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
@@ -589,7 +619,7 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                 state[p, S_GDEPTH] = g_depth[r, c]
                 last_px[p] = last[r, c]
                 n_last = max(n_last, last[r, c])
-        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
+        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
         start = tile_start[t]
         for k in range(start + n_last, tile_start[t + 1]):
             pair_grads[k, :] = 0.0  # behind every pixel's last blended Gaussian
@@ -606,19 +636,16 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
             s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = 0.0  # surfel h; ewa conic in s_h
             s_cx = s_cy = s_det = s_depth = s_logo = 0.0
             s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = 0.0
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                dy = r + 0.5 - cy
-                if not _segment(surfel, g, c0, c1 - c0 + 1, dy, alpha, depth, inv_hz):
-                    continue
-                # h at the row start, grouped as in `_segment` so every bit matches the forward pass.
-                a0 = g[GEOM_A] + dy * g[GEOM_C]
-                a1 = g[GEOM_A + 1] + dy * g[GEOM_C + 1]
-                a2 = g[GEOM_A + 2] + dy * g[GEOM_C + 2]
-                base = (r - y0) * tile + c0 - x0
-                for j in range(c1 - c0 + 1):
+            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
+            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
+            n = nc * nr if nc > 0 and nr > 0 else 0
+            if n > 0 and _box_alpha(surfel, g, c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
+                base = (r0 - y0) * tile + c0 - x0
+                offset = offsets[nc - 1]
+                row_f, col_f = rows[nc - 1], cols[nc - 1]
+                for j in range(n):
                     a = alpha[j]
-                    p = base + j
+                    p = base + offset[j]
                     if a == 0.0 or pos >= last_px[p]:
                         continue  # below 1/255, or behind this pixel's last blended Gaussian
                     s = state[p]
@@ -645,12 +672,16 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                         s_logo += g_log_alpha
                         g_rho = -0.5 * g_log_alpha
                     g_dpair = w * g_d
-                    dx = c0 + j + 0.5 - cx
+                    # The pixel's offset from the centre, computed as in `_box_alpha` (every bit equal).
+                    dx = (float(c0) + col_f[j]) + 0.5 - cx
+                    dy = (float(r0) + row_f[j]) + 0.5 - cy
                     if surfel:
                         inv = inv_hz[j]
                         if inv != 0.0:
                             # rho = (hx^2 + hy^2) / hz^2, depth = det / hz
-                            hx, hy, hz = a0 + dx * b0, a1 + dx * b1, a2 + dx * b2
+                            hx = (g[GEOM_A] + dy * g[GEOM_C]) + dx * b0
+                            hy = (g[GEOM_A + 1] + dy * g[GEOM_C + 1]) + dx * b1
+                            hz = (g[GEOM_A + 2] + dy * g[GEOM_C + 2]) + dx * b2
                             sc = 2.0 * g_rho * inv * inv
                             g_hx, g_hy = sc * hx, sc * hy
                             g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
@@ -936,17 +967,20 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     """
     n_tiles = tile_start.shape[0] - 1
     per_tile = np.zeros(n_tiles, dtype=np.int64)
+    rows, cols, _ = _box_tables(tile)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        alpha, depth, inv_hz = np.empty(tile), np.empty(tile), np.empty(tile)
-        n = 0
+        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
+        count = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             m = tile_ids[k]
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            for r in range(max(box[m, 2], y0), min(box[m, 3], y1 - 1) + 1):
-                if _segment(surfel, geom[m], c0, c1 - c0 + 1, r + 0.5 - geom[m, GEOM_CY], alpha, depth, inv_hz):
-                    for j in range(c1 - c0 + 1):
-                        n += alpha[j] > 0.0
-        per_tile[t] = n
+            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
+            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
+            if nc > 0 and nr > 0:
+                n = nc * nr
+                if _box_alpha(surfel, geom[m], c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
+                    for j in range(n):
+                        count += alpha[j] > 0.0
+        per_tile[t] = count
     return per_tile.sum()
