@@ -25,14 +25,8 @@ from surfsplat.data.synthetic import (
 from surfsplat.data.synthetic.scene import SyntheticConfig
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Many small elementwise ops: on a loaded 2-core machine two intra-op threads spend more time
-    in barriers than computing (measured 15x slower), so these tests run single-threaded."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Many small elementwise ops: single-threaded (see conftest.one_torch_thread).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _texture(pattern: str = "checker", frequency: float = 1.0, detail: float = 0.0) -> Texture:

@@ -22,6 +22,28 @@ def make_cameras(c2w: Tensor, K: Tensor, source: str, dtype: torch.dtype) -> Cam
     return Cameras(c2w.to(dtype), K.to(dtype), validate=False)
 
 
+def pick_image_folder(root: Path, images: str | None, names: tuple[str, ...], where: str) -> Path:
+    """The image folder of a capture: `images` when given, else the first of `names` under root,
+    else the single `images_N` folder (a downsampled copy). `where` ends the not-found message."""
+    if images is not None:
+        folder = root / images
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{folder}: image folder not found")
+        return folder
+    for name in names:
+        if (root / name).is_dir():
+            return root / name
+    candidates = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("images_"))
+    if len(candidates) == 1:
+        return candidates[0]
+    if not candidates:
+        quoted = [f"'{n}'" for n in (*names, "images_N")]
+        wanted = ", ".join(quoted[:-1]) + " or " + quoted[-1]
+        raise FileNotFoundError(f"{root}: no {wanted} folder{where}")
+    found = ", ".join(p.name for p in candidates)
+    raise SurfSplatInputError(f"{root}: several image folders ({found}); choose one with images=...")
+
+
 def image_sizes(paths: list[Path]) -> list[tuple[int, int]]:
     """(width, height) of every file, from headers only."""
     return [read_image_size(p) for p in paths]

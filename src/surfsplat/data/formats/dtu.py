@@ -21,7 +21,7 @@ from torch import Tensor
 from ...checks import SurfSplatInputError
 from ..images import list_images, read_image
 from ..scene import Scene, fit_intrinsics
-from .common import image_sizes, load_image_stack, make_cameras
+from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 DTU_SENSOR_SIZE = (1600, 1200)  # (W, H) at which DTU's calibration (and IDR's world_mat) is expressed
@@ -50,24 +50,6 @@ def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     t = np.linalg.solve(K, p4)
     K = K / scale
     return torch.from_numpy(K), torch.from_numpy(R), torch.from_numpy(t)
-
-
-def _pick_image_folder(root: Path, images: str | None) -> Path:
-    if images is not None:
-        folder = root / images
-        if not folder.is_dir():
-            raise FileNotFoundError(f"{folder}: image folder not found")
-        return folder
-    for name in ("image", "images"):
-        if (root / name).is_dir():
-            return root / name
-    candidates = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("images_"))
-    if len(candidates) == 1:
-        return candidates[0]
-    if not candidates:
-        raise FileNotFoundError(f"{root}: no 'image', 'images' or 'images_N' folder")
-    names = ", ".join(p.name for p in candidates)
-    raise SurfSplatInputError(f"{root}: several image folders ({names}); choose one with images=...")
 
 
 def _indexed(npz: dict[str, np.ndarray], prefix: str) -> dict[int, np.ndarray]:
@@ -130,7 +112,7 @@ def load_dtu(
     if missing:
         raise SurfSplatInputError(f"{cam_path}: missing key world_mat_{missing[0]} ({n} views expected)")
 
-    folder = _pick_image_folder(root, images)
+    folder = pick_image_folder(root, images, ("image", "images"), "")
     paths = list_images(folder)
     if len(paths) != n:
         raise SurfSplatInputError(f"{cam_path}: {n} cameras but {len(paths)} images in {folder}")

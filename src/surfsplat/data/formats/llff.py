@@ -16,30 +16,13 @@ from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras, validate_c2w
 from ..images import list_images
 from ..scene import Scene, check_finite_rows, fit_intrinsics
-from .common import image_sizes, load_image_stack, make_cameras
+from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 POSES_FILE = "poses_bounds.npy"
 
 
 def is_llff(path: Path) -> bool:
     return path.is_dir() and (path / POSES_FILE).is_file()
-
-
-def _pick_image_folder(root: Path, images: str | None) -> Path:
-    if images is not None:
-        folder = root / images
-        if not folder.is_dir():
-            raise FileNotFoundError(f"{folder}: image folder not found")
-        return folder
-    if (root / "images").is_dir():
-        return root / "images"
-    candidates = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith("images_"))
-    if len(candidates) == 1:
-        return candidates[0]
-    if not candidates:
-        raise FileNotFoundError(f"{root}: no 'images' or 'images_N' folder beside {POSES_FILE}")
-    names = ", ".join(p.name for p in candidates)
-    raise SurfSplatInputError(f"{root}: several image folders ({names}); choose one with images=...")
 
 
 def read_poses_bounds(path: Path) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,7 +48,7 @@ def load_llff(
     """Read an LLFF capture (see module doc); `images` picks the image folder by name."""
     poses_path = root / POSES_FILE
     poses, bounds = read_poses_bounds(poses_path)
-    folder = _pick_image_folder(root, images)
+    folder = pick_image_folder(root, images, ("images",), f" beside {POSES_FILE}")
     paths = list_images(folder)
     if len(paths) != poses.shape[0]:
         raise SurfSplatInputError(
