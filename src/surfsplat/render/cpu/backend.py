@@ -41,19 +41,19 @@ class _Camera:
 
 @dataclass
 class _Plan:
-    """Survivors of culling, front to back, and their tile lists: the work of one camera."""
+    """Survivors of culling, front to back (survivor m is the m-th nearest), and their tile lists:
+    the work of one camera."""
 
     rotations: np.ndarray  # [N, 3, 3] from the quaternions
-    order: np.ndarray  # [M] input index of each survivor, front to back
     geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
     features: np.ndarray  # [M, 6] survivors' colour and oriented normal
     flip: np.ndarray  # [N] +-1: the sign given to each normal
     tile_start: np.ndarray  # [tiles + 1]
-    tile_ids: np.ndarray  # [pairs] positions in `order`, per tile front to back
-    pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are pair_of[pair_start[m]:pair_start[m + 1]]
-    pair_of: np.ndarray  # [pairs]
-    rank: np.ndarray  # [N] position of each Gaussian in `order` (-1: culled)
+    tile_ids: np.ndarray  # [pairs] survivors m touching each tile, front to back
+    pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are
+    pair_of: np.ndarray  # [pairs]   pair_of[pair_start[m]:pair_start[m + 1]]
+    rank: np.ndarray  # [N] each Gaussian's survivor index m (-1: culled)
     tiles_x: int
 
 
@@ -114,7 +114,7 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(
-        rot, order, kernels.gather_rows(geom, order), box, kernels.gather_rows(features, order), flip,
+        rot, kernels.gather_rows(geom, order), box, kernels.gather_rows(features, order), flip,
         tile_start, tile_ids, pair_start, pair_of, rank, tiles_x,
     )
 
