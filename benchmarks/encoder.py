@@ -62,7 +62,7 @@ def run_one(
     import torch
 
     from surfsplat import Cameras
-    from surfsplat.evaluate import peak_rss_bytes
+    from surfsplat.evaluate import peak_memory
     from surfsplat.model import SurfSplat
 
     torch.set_num_threads(threads)
@@ -97,12 +97,7 @@ def run_one(
             model.encoder(images, K_b, c2w_b, near, far)
             sync()
             encoder_only.append(time.perf_counter() - t)
-    if device.startswith("cuda"):
-        peak_mb = torch.cuda.max_memory_allocated() / 2**20
-        peak_kind = "cuda_max_allocated"
-    else:
-        peak_mb = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
-        peak_kind = "process_peak_rss"
+    peak_bytes, peak_kind = peak_memory(torch.device(device))
     return {
         "preset": preset,
         "device": device,
@@ -115,7 +110,7 @@ def run_one(
         "encoder_forward_s": encoder_only,
         "encoder_median_s": statistics.median(encoder_only),
         "idle_before": idle,
-        "peak_mb": peak_mb,
+        "peak_mb": peak_bytes / 2**20,
         "peak_kind": peak_kind,
     }
 

@@ -37,7 +37,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
     from torch.utils.data import default_collate
 
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
-    from surfsplat.evaluate import peak_rss_bytes
+    from surfsplat.evaluate import peak_memory
     from surfsplat.model.decoder import decoder_mode
     from surfsplat.render import resolve_backend
     from surfsplat.train import build_model, build_optimizer, train_preset
@@ -78,12 +78,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         torch.cuda.reset_peak_memory_stats()
     warmup = step()
     times = [step() for _ in range(repeats)]
-    if dev.type == "cuda":
-        peak_mb = torch.cuda.max_memory_allocated() / 2**20
-        memory_kind = "cuda_max_allocated"
-    else:
-        peak_mb = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
-        memory_kind = "process_max_rss"
+    peak_bytes, memory_kind = peak_memory(dev)
     return {
         "preset": preset,
         "parameters": sum(p.numel() for p in model.parameters()),
@@ -102,7 +97,7 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         "step_seconds_median": statistics.median(times),
         "step_seconds_min": min(times),
         "steps_timed": repeats,
-        "peak_memory_mb": peak_mb,
+        "peak_memory_mb": peak_bytes / 2**20,
         "memory_kind": memory_kind,
     }
 

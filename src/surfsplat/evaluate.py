@@ -418,6 +418,14 @@ def evaluate(
     )
 
 
+def peak_memory(device: torch.device) -> tuple[int, str]:
+    """This process's peak memory on `device` in bytes and what it counts: CUDA's peak allocation
+    (since the last torch.cuda.reset_peak_memory_stats) or the peak resident set (`peak_rss_bytes`)."""
+    if device.type == "cuda":
+        return int(torch.cuda.max_memory_allocated(device)), "cuda_max_allocated"
+    return peak_rss_bytes(), "process_peak_rss"
+
+
 def peak_rss_bytes() -> int:
     """This process's peak resident set size.
 
