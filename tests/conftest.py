@@ -44,3 +44,16 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="session")
+def lpips_files(tmp_path_factory) -> tuple[Path, Path]:
+    """Random LPIPS weights in torchvision's and the lpips package's file layouts: for wiring and
+    structural checks only, never a reported number."""
+    from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
+
+    g = torch.Generator().manual_seed(0)
+    folder = tmp_path_factory.mktemp("lpips")
+    torch.save({k: 0.1 * torch.randn(s, generator=g) for k, s in vgg_shapes().items()}, folder / VGG16_FILENAME)
+    torch.save({k: torch.rand(s, generator=g) for k, s in lin_shapes().items()}, folder / "vgg.pth")
+    return folder / VGG16_FILENAME, folder / "vgg.pth"

@@ -2,25 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import Lpips, LpipsUnavailable, load_lpips
-from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
 from surfsplat.train.losses import ImageLoss, LossConfig, cascade_loss, cascade_weights
-
-
-@pytest.fixture(scope="module")
-def weight_files(tmp_path_factory) -> tuple[Path, Path]:
-    """Random LPIPS weights in the two file layouts (a structural check, never a reported number)."""
-    g = torch.Generator().manual_seed(0)
-    folder = tmp_path_factory.mktemp("lpips_weights")
-    torch.save({k: 0.1 * torch.randn(s, generator=g) for k, s in vgg_shapes().items()}, folder / VGG16_FILENAME)
-    torch.save({k: torch.rand(s, generator=g) for k, s in lin_shapes().items()}, folder / "vgg.pth")
-    return folder / VGG16_FILENAME, folder / "vgg.pth"
 
 
 def constant_error_pair(error: float, shape=(2, 2, 3, 16, 16)) -> tuple[torch.Tensor, torch.Tensor]:
@@ -56,8 +43,8 @@ def test_missing_lpips_weights_fail_at_construction_with_advice(tmp_path, monkey
         ImageLoss(LossConfig(lpips_vgg_path=str(tmp_path / "missing.pth"), lpips_lin_path=str(tmp_path / "x.pth")))
 
 
-def test_loss_is_mse_plus_lambda_lpips(weight_files):
-    vgg_path, lin_path = weight_files
+def test_loss_is_mse_plus_lambda_lpips(lpips_files):
+    vgg_path, lin_path = lpips_files
     loss = ImageLoss(LossConfig(lpips_vgg_path=str(vgg_path), lpips_lin_path=str(lin_path)))
     assert isinstance(loss.lpips, Lpips)
     assert list(loss.parameters()) == [] and loss.state_dict() == {}  # nothing leaks into checkpoints
@@ -76,8 +63,8 @@ def test_loss_is_mse_plus_lambda_lpips(weight_files):
     assert (prediction.grad - mse_grad).abs().max() > 1e-6
 
 
-def test_a_loaded_lpips_model_can_be_shared(weight_files):
-    model = load_lpips(*weight_files)
+def test_a_loaded_lpips_model_can_be_shared(lpips_files):
+    model = load_lpips(*lpips_files)
     loss = ImageLoss(LossConfig(lpips_weight=0.5), lpips=model)
     assert loss.lpips is model
 

@@ -14,7 +14,6 @@ import torch
 from surfsplat import Cameras
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import LpipsUnavailable, try_load_lpips
-from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
 from surfsplat.model.checkpoint import load_checkpoint
 from surfsplat.model.surfsplat import SurfSplat
 from surfsplat.train import build_model, fit, train_preset
@@ -35,16 +34,6 @@ def _quick(out: Path, **changes):
     }
     base.update(changes)
     return override(train_preset("tiny"), base)
-
-
-@pytest.fixture(scope="module")
-def lpips_files(tmp_path_factory) -> tuple[Path, Path]:
-    """Random LPIPS weights in torchvision's and the lpips package's layouts (wiring only)."""
-    g = torch.Generator().manual_seed(0)
-    folder = tmp_path_factory.mktemp("lpips")
-    torch.save({k: 0.1 * torch.randn(s, generator=g) for k, s in vgg_shapes().items()}, folder / VGG16_FILENAME)
-    torch.save({k: torch.rand(s, generator=g) for k, s in lin_shapes().items()}, folder / "vgg.pth")
-    return folder / VGG16_FILENAME, folder / "vgg.pth"
 
 
 def test_fit_reports_checkpoints_and_lpips_term(tmp_path: Path, lpips_files) -> None:
