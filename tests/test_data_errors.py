@@ -232,7 +232,7 @@ CASES = [
     ("blender_no_matrix", _case_blender_no_matrix, "transforms.json: frame 1: missing key 'transform_matrix'"),
     ("blender_no_intrinsics", _case_blender_no_intrinsics, "frame 0: no intrinsics"),
     ("blender_distortion", _case_blender_distortion, "non-zero distortion"),
-    ("blender_bad_json", _case_blender_bad_json, "transforms.json: invalid JSON"),
+    ("blender_bad_json", _case_blender_bad_json, "transforms.json: not valid JSON"),
     ("colmap_distortion", _case_colmap_distortion, "camera model OPENCV has non-zero distortion"),
     ("colmap_truncated", _case_colmap_truncated, "images.bin: truncated file"),
     ("colmap_missing_image", _case_colmap_missing_image, "b.png: image file not found"),

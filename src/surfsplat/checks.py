@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -10,6 +13,16 @@ from torch import Tensor
 
 class SurfSplatInputError(ValueError):
     """Raised when a public function or file receives malformed input."""
+
+
+def read_json(path: str | Path) -> Any:
+    """The parsed content of a JSON file; malformed text raises SurfSplatInputError naming the
+    file (a missing file stays FileNotFoundError)."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except ValueError as err:
+        raise SurfSplatInputError(f"{path}: not valid JSON ({err})") from None
 
 
 def check_tensor(name: str, value: object, shape: Sequence[int | str | None], *, finite: bool = True) -> Tensor:

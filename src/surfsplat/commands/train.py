@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, read_json
 from ..train.checkpoint import latest_checkpoint
 from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, train_preset
 from ..train.loop import fit, read_checkpoint_config
@@ -122,12 +122,7 @@ def build_config(args: argparse.Namespace) -> tuple[TrainConfig, str | Path | bo
         path = Path(args.config)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: configuration file not found")
-        try:
-            config = config_from_dict(json.loads(path.read_text()))
-        except ValueError as err:
-            if isinstance(err, SurfSplatInputError):
-                raise
-            raise SurfSplatInputError(f"{path}: not valid JSON ({err})") from None
+        config = config_from_dict(read_json(path))
     elif resume is not False:
         folder = resume if isinstance(resume, Path) else latest_checkpoint(args.out)
         if folder is None:

@@ -23,7 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, read_json
 from ..geometry.cameras import Cameras
 from .formats.re10k_raw import rows_to_cameras
 from .images import decode_depth_png, decode_image_bytes, encode_depth_png, encode_image, image_bytes_size
@@ -102,10 +102,7 @@ def read_index(root: str | Path) -> dict[str, Path]:
     path = Path(root) / INDEX_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: index file not found")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise SurfSplatInputError(f"{path}: invalid JSON ({err})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
         raise SurfSplatInputError(f"{path}: expected an object mapping scene keys to chunk file names")
     return {k: Path(root) / v for k, v in data.items()}

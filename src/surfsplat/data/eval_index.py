@@ -8,12 +8,11 @@ DTU index: `scan1_train_00` ... `scan1_train_03` for the chunk key `scan1_train`
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, read_json
 
 _SUFFIX = re.compile(r"^(.*)_(\d+)$")
 
@@ -43,11 +42,7 @@ class EvaluationIndex:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: evaluation index not found")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise SurfSplatInputError(f"{path}: invalid JSON ({err})") from None
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_json(path), str(path))
 
     @classmethod
     def from_dict(cls, data: object, source: str = "evaluation index") -> EvaluationIndex:

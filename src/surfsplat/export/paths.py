@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..checks import SurfSplatInputError, check_tensor, read_json
 from ..geometry.cameras import Cameras
 from ..geometry.rotations import matrix_to_quat, quat_to_matrix, skew
 
@@ -246,10 +246,7 @@ def load_cameras(path: str | os.PathLike, images: str | None = None) -> CameraSe
 
 
 def _load_camera_json(path: Path) -> CameraSet:
-    try:
-        data = json.loads(path.read_text())
-    except ValueError as err:
-        raise SurfSplatInputError(f"{path}: not valid JSON ({err})") from None
+    data = read_json(path)
     if not isinstance(data, dict):
         raise SurfSplatInputError(f"{path}: expected a JSON object with 'width', 'height' and 'frames'")
     for key in ("width", "height"):

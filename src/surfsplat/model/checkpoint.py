@@ -25,7 +25,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, read_json
 from .encoder.encoder import SurfSplatEncoder
 
 # ----------------------------------------------------------------------------- the mapping table
@@ -282,10 +282,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"):
     weights_path, config_path = _paths(path)
     if not config_path.is_file():
         raise FileNotFoundError(f"{config_path}: configuration file of the checkpoint is missing")
-    try:
-        meta = json.loads(config_path.read_text())
-    except ValueError as err:
-        raise SurfSplatInputError(f"{config_path}: not valid JSON ({err})") from None
+    meta = read_json(config_path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise SurfSplatInputError(f"{config_path}: not a SurfSplat model configuration (format must be '{FORMAT_NAME}')")
     if meta.get("version") != FORMAT_VERSION:

@@ -305,7 +305,7 @@ def _block_state(
         # 2DGS: the depth of the ray-splat intersection, det(T) / hz; the centre depth where the filter wins.
         det, mu_z = depth_params[..., 0:1], depth_params[..., 1:2]
         depth = torch.where(use3d, det * inv_hz, mu_z)
-        st.update(hx=hx, hy=hy, hz=hz, use3d=use3d, inv_hz=inv_hz, depth=depth)
+        st.update(hx=hx, hy=hy, use3d=use3d, inv_hz=inv_hz, depth=depth)
     else:
         rho = (coef.reshape(n * k, -1) @ basis).reshape(n, k, -1)
     st["rho"] = rho
@@ -371,7 +371,7 @@ class _CompositeBlock(torch.autograd.Function):
         if not surfel:
             g_coef = (g_rho.reshape(n * k, -1) @ basis.T).reshape(coef.shape)
             return g_coef, None, g_log_opacity, g_features, g_transmittance, None, None
-        use3d, inv_hz, hx, hy, hz = st["use3d"], st["inv_hz"], st["hx"], st["hy"], st["hz"]
+        use3d, inv_hz, hx, hy = st["use3d"], st["inv_hz"], st["hx"], st["hy"]
         # rho = (hx^2 + hy^2) / hz^2 on the 3D branch, rho2d elsewhere; depth = det / hz or mu_z.
         g_depth_pair = w.mul_(g_depth[:, None, :])
         g_det = (g_depth_pair * inv_hz).sum(-1)

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
 from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
@@ -506,8 +506,7 @@ def read_checkpoint_config(path: str | Path) -> TrainConfig:
     document_path = Path(path) / "train_state.json"
     if not document_path.is_file():
         raise FileNotFoundError(f"{document_path}: not a training checkpoint folder")
-    try:
-        document = json.loads(document_path.read_text())
-    except ValueError as err:
-        raise SurfSplatInputError(f"{document_path}: not valid JSON ({err})") from None
+    document = read_json(document_path)
+    if not isinstance(document, dict):
+        raise SurfSplatInputError(f"{document_path}: expected a JSON object with the run's 'config'")
     return config_from_dict(document.get("config"))

@@ -9,7 +9,6 @@ RGBA images are composited on a background colour and their alpha becomes the sc
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 
 import torch
 
-from ...checks import SurfSplatInputError
+from ...checks import SurfSplatInputError, read_json
 from ...geometry.cameras import Cameras
 from ..scene import Scene, check_finite_rows, downscale_from_folder, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
@@ -77,10 +76,7 @@ def read_transforms(
     json_path = find_transforms(path, split)
     if json_path is None:
         raise FileNotFoundError(f"{path}: no transforms.json or transforms_{split}.json")
-    try:
-        meta = json.loads(json_path.read_text())
-    except json.JSONDecodeError as err:
-        raise SurfSplatInputError(f"{json_path}: invalid JSON ({err})") from None
+    meta = read_json(json_path)
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise SurfSplatInputError(f"{json_path}: missing key 'frames' (a list of frames)")
     frames = meta["frames"]

@@ -630,7 +630,7 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
             cx, cy = g[GEOM_CX], g[GEOM_CY]
             f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
             f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
-            b0, b1, b2 = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2]
+            b0, b1 = g[GEOM_B], g[GEOM_B + 1]
             ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
             # Per-Gaussian sums kept in registers (GRAD_* columns).
             s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = 0.0  # surfel h; ewa conic in s_h
@@ -678,10 +678,9 @@ def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width,
                     if surfel:
                         inv = inv_hz[j]
                         if inv != 0.0:
-                            # rho = (hx^2 + hy^2) / hz^2, depth = det / hz
+                            # rho = (hx^2 + hy^2) / hz^2, depth = det / hz (1 / hz is inv)
                             hx = (g[GEOM_A] + dy * g[GEOM_C]) + dx * b0
                             hy = (g[GEOM_A + 1] + dy * g[GEOM_C + 1]) + dx * b1
-                            hz = (g[GEOM_A + 2] + dy * g[GEOM_C + 2]) + dx * b2
                             sc = 2.0 * g_rho * inv * inv
                             g_hx, g_hy = sc * hx, sc * hy
                             g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
