@@ -133,7 +133,7 @@ def markdown(document: dict) -> str:
         "HRRC renders at x2/x4 with K scaled; \"bicubic GT\" is the paper's HRRC (the x1 truth upsampled), "
         "\"native GT\" is the scene ray-cast at the higher resolution. Coverage: share of pixels with alpha > 0.5.",
         "",
-        f"| Variant | PSNR x1 | PSNR x2 (bicubic GT) | PSNR x4 (bicubic GT) | PSNR x2 (native GT) | PSNR x4 (native GT) "
+        "| Variant | PSNR x1 | PSNR x2 (bicubic GT) | PSNR x4 (bicubic GT) | PSNR x2 (native GT) | PSNR x4 (native GT) "
         "| SSIM x1 | SSIM x4 (bicubic GT) | coverage x1 | coverage x2 | coverage x4 |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]

@@ -186,8 +186,8 @@ def test_dataset_rescale_and_crop_keeps_intrinsics(tmp_path: Path) -> None:
     ds = ChunkDataset(ChunkDatasetConfig(roots=[tmp_path], image_shape=(16, 16), shuffle=False), _small_sampler())
     (sample,) = list(ds)
     assert sample["context"]["image"].shape == (2, 3, 16, 16)
-    # 30x60 -> scaled by 16/30 to 16x32 -> centre crop of 16 columns starting at column 8.
-    K0 = torch.tensor([[72.0, 0, 30], [0, 72, 15], [0, 0, 1]])
+    # K = [[72, 0, 30], [0, 72, 15], [0, 0, 1]] at 30x60 -> scaled by 16/30 to 16x32 -> centre crop
+    # of 16 columns starting at column 8.
     s = 16 / 30
     expected = torch.tensor([[72 * s, 0, 30 * s - 8], [0, 72 * s, 15 * s], [0, 0, 1]])
     torch.testing.assert_close(sample["context"]["K"][0], expected, atol=1e-4, rtol=0)
