@@ -82,8 +82,8 @@ def available_backends() -> list[str]:
     return names
 
 
-def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads: int) -> dict:
-    torch.set_num_threads(threads)
+def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict:
+    """Measure one configuration in this process (threads are set by the caller)."""
     from surfsplat import Gaussians
     from surfsplat.evaluate import peak_rss_bytes
     from surfsplat.render import render
@@ -92,11 +92,7 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int, threads
     g = scene.gaussians
     cam = scene.target.scaled(res / 256)
     base_rss = peak_rss_bytes() / 2**20
-
-    if backend == "cpu":
-        import numba
-
-        numba.set_num_threads(threads)
+    threads = torch.get_num_threads()
 
     def run_once() -> tuple[float, float]:
         if passes == "forward":
@@ -136,8 +132,11 @@ def main() -> None:
     args = parser.parse_args()
 
     if args.worker:
+        from surfsplat.train.loop import cpu_threads
+
         backend, mode, res, passes = args.worker
-        print(json.dumps(worker(backend, mode, int(res), passes, args.repeats, args.threads)))
+        with cpu_threads(args.threads):  # torch's and the compiled renderer's
+            print(json.dumps(worker(backend, mode, int(res), passes, args.repeats)))
         return
 
     torch.set_num_threads(args.threads)

@@ -16,7 +16,6 @@ memory on a GPU. Defaults follow the issue: batch 1, 2 context views, 256x256, 4
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import platform
@@ -118,17 +117,14 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="JSON path (default benchmarks/results/train_<device>.json)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-        if importlib.util.find_spec("numba") is not None:
-            import numba
-
-            numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-
     if args.child:  # one preset and renderer, measured in this fresh process
+        from surfsplat.train.loop import cpu_threads
+
         (preset,), (backend,) = args.presets, args.render_backends
-        print(json.dumps(measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision,
-                                 backend)))
+        with cpu_threads(args.threads or 0):  # torch's and the compiled renderer's; 0 keeps their defaults
+            row = measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision,
+                          backend)
+        print(json.dumps(row))
         return
 
     rows = []
