@@ -27,6 +27,8 @@ from pathlib import Path
 
 import torch
 
+from surfsplat.render.types import BACKENDS
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -110,7 +112,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed steps after one warm-up step")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"), default="auto")
-    parser.add_argument("--render-backends", nargs="+", choices=("auto", "torch", "cpu", "gsplat"), default=["auto"],
+    parser.add_argument("--render-backends", nargs="+", choices=BACKENDS, default=["auto"],
                         help="renderers to compare (auto: gsplat on CUDA, the compiled one on CPU)")
     parser.add_argument("--threads", type=int, default=None,
                         help="CPU threads of torch and the compiled renderer (default: their own choice)")

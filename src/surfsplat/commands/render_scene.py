@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 from ..checks import SurfSplatInputError
+from ..render.types import BACKENDS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scales", type=float, nargs="+", default=[1, 2, 4], help="resolution factors")
     parser.add_argument("--resolution", type=int, default=128, help="source-view size of the scene (pixels)")
     parser.add_argument("--mode", choices=["surfel", "ewa"], default="surfel")
-    parser.add_argument("--backend", choices=["auto", "torch", "cpu", "gsplat"], default="auto")
+    parser.add_argument("--backend", choices=BACKENDS, default="auto")
 
 
 def run(args: argparse.Namespace) -> int:

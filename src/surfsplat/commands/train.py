@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from ..checks import SurfSplatInputError, read_json
+from ..render.types import BACKENDS
 from ..train.checkpoint import latest_checkpoint
 from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, train_preset
 from ..train.loop import fit, read_checkpoint_config
@@ -67,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--seed", type=int)
     common.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"))
     common.add_argument("--device", choices=("auto", "cpu", "cuda"))
-    common.add_argument("--render-backend", choices=("auto", "torch", "cpu", "gsplat"),
+    common.add_argument("--render-backend", choices=BACKENDS,
                         help="renderer of the training views (auto: gsplat on CUDA, the compiled one on CPU)")
     common.add_argument("--cpu-threads", type=int, help="CPU threads per rank (torch and the compiled renderer; 0: defaults)")
     common.add_argument("--dataset", choices=("synthetic", "chunks"))

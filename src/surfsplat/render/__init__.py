@@ -14,7 +14,7 @@ from ..geometry.cameras import Cameras
 from .cpu import CpuRenderSettings
 from .cpu import backend_unavailable as cpu_backend_unavailable
 from .torch_backend import TorchRenderSettings, render_torch
-from .types import Backend, RenderMode, RenderOutput
+from .types import BACKENDS, Backend, RenderMode, RenderOutput
 
 __all__ = [
     "render", "RenderOutput", "TorchRenderSettings", "CpuRenderSettings", "normalize_by_alpha", "gsplat_available",
@@ -96,7 +96,7 @@ def resolve_backend(
     the cameras require gradients (only torch differentiates them); cpu for CpuRenderSettings;
     otherwise the compiled cpu backend, or torch with a one-line warning if that cannot load.
     """
-    if backend not in ("auto", "torch", "cpu", "gsplat"):
+    if backend not in BACKENDS:
         raise SurfSplatInputError(f"backend: expected 'auto', 'torch', 'cpu' or 'gsplat', got {backend!r}")
     if backend == "auto":
         if gsplat_available(device):

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 from torch import Tensor
 
 RenderMode = Literal["surfel", "ewa"]
 Backend = Literal["auto", "torch", "cpu", "gsplat"]
+BACKENDS: tuple[str, ...] = get_args(Backend)
 
 # Compositing constants shared with 3DGS/2DGS/gsplat so every backend computes the same function.
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian contributes to a pixel only if its alpha reaches this

@@ -24,12 +24,12 @@ from ..configio import dataclass_from_dict
 from ..data.view_sampler import BoundedViewSamplerConfig
 from ..model.adapter import AdapterConfig
 from ..model.surfsplat import PRESETS
+from ..render.types import BACKENDS, Backend
 from .losses import LossConfig
 
 Precision = Literal["auto", "fp32", "bf16", "fp16"]
 DatasetKind = Literal["synthetic", "chunks"]
 RenderModeChoice = Literal["auto", "surfel", "ewa"]
-RenderBackendChoice = Literal["auto", "torch", "cpu", "gsplat"]
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class ModelConfig:
     release_weights: str | None = None  # a released SurfSplat .ckpt/.pth to fine-tune from
     depth_anything: str | None = None  # Depth Anything V2 ViT weights for the monocular backbone
     render_mode: RenderModeChoice = "auto"  # auto: surfel for the paper adapter, ewa for official / 3D Gaussians
-    render_backend: RenderBackendChoice = "auto"  # surfsplat.render backend: auto = gsplat on CUDA, compiled on CPU
+    render_backend: Backend = "auto"  # surfsplat.render backend: auto = gsplat on CUDA, compiled on CPU
 
 
 @dataclass(frozen=True)
@@ -120,8 +120,7 @@ def _validate(config: TrainConfig) -> TrainConfig:
     m, o, d = config.model, config.optim, config.data
     need(m.preset in PRESETS, "model.preset", f"one of {sorted(PRESETS)}", m.preset)
     need(m.render_mode in ("auto", "surfel", "ewa"), "model.render_mode", "auto, surfel or ewa", m.render_mode)
-    need(m.render_backend in ("auto", "torch", "cpu", "gsplat"), "model.render_backend", "auto, torch, cpu or gsplat",
-         m.render_backend)
+    need(m.render_backend in BACKENDS, "model.render_backend", ", ".join(BACKENDS), m.render_backend)
     for name in ("lr", "vit_lr"):
         value = getattr(o, name)
         need(value >= 0, f"optim.{name}", "a learning rate >= 0", value)
