@@ -56,15 +56,5 @@ def check_tensor(name: str, value: object, shape: Sequence[int | str | None], *,
     return value
 
 
-def check_same_leading(names: Sequence[str], tensors: Sequence[Tensor], dims: int) -> None:
-    """Check that tensors agree on their first `dims` sizes."""
-    ref = tuple(tensors[0].shape[:dims])
-    for name, t in zip(names[1:], tensors[1:]):
-        if tuple(t.shape[:dims]) != ref:
-            raise SurfSplatInputError(
-                f"{name}: leading shape {tuple(t.shape[:dims])} does not match {names[0]}'s {ref}"
-            )
-
-
 def _pattern(shape: Sequence[int | str | None]) -> str:
     return "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..checks import SurfSplatInputError
 
 # Colours of the chart's series, in order (a colour-blind-safe palette).
 SERIES_COLOURS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9")
@@ -167,11 +167,3 @@ def _fmt(value: float) -> str:
     if abs(value) >= 1e4 or abs(value) < 1e-3:
         return f"{value:.0e}"
     return f"{value:.4g}"
-
-
-def depth_normal_row(depth: Tensor, alpha: Tensor, normal: Tensor, near: float | None = None, far: float | None = None) -> list[Tensor]:
-    """[colour-mapped depth, normal map] of one render, as grid cells."""
-    from .images import colorize_depth, normal_to_rgb
-
-    check_tensor("depth", depth, (1, "H", "W"))
-    return [colorize_depth(depth, alpha, near=near, far=far), normal_to_rgb(normal)]

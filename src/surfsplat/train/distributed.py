@@ -106,15 +106,6 @@ def all_gather_objects(obj: Any, ctx: DistributedContext) -> list[Any]:
     return out
 
 
-def broadcast_object(obj: Any, ctx: DistributedContext) -> Any:
-    """Rank 0's `obj` on every rank."""
-    if not ctx.is_distributed:
-        return obj
-    box = [obj]
-    dist.broadcast_object_list(box, src=0)
-    return box[0]
-
-
 def barrier(ctx: DistributedContext) -> None:
     if ctx.is_distributed:
         dist.barrier()

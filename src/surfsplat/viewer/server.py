@@ -23,8 +23,6 @@ from ..gaussians import Gaussians
 from ..geometry.sh import SH_C0
 from .page import PAGE
 
-FLOATS_PER_SPLAT = 8
-
 
 @dataclass
 class InitialView:

@@ -19,7 +19,7 @@ from ...geometry.cameras import Cameras
 from ..chunks import ChunkWriter, scene_to_example
 from ..dataset import Sample, mix_seed
 from ..scene import Scene
-from .render import SyntheticRender, render_synthetic
+from .render import render_synthetic
 from .scene import SyntheticConfig, SyntheticScene, Trajectory, make_scene, make_trajectory
 
 
@@ -92,15 +92,6 @@ class SyntheticDataset(Dataset):
         if scale != 1.0:
             cams = [c.scaled(scale) for c in cams]
         return cams[0], cams[1]
-
-    def render_truth(self, index: int, scale: int = 1, supersample: int = 1, which: str = "target") -> SyntheticRender:
-        """Native rendering of a sample's context or target views at `scale` times the resolution
-        (K scaled by `scale`): the high-resolution ground truth for HRRC."""
-        if which not in ("context", "target"):
-            raise SurfSplatInputError(f"which: expected 'context' or 'target', got {which!r}")
-        context, target = self.cameras(index, float(scale))
-        h, w = self.config.image_shape
-        return render_synthetic(self.scene(index), context if which == "context" else target, w * scale, h * scale, supersample)
 
     def __getitem__(self, index: int) -> Sample:
         c = self.config
