@@ -56,14 +56,18 @@ def main() -> None:
     parser.add_argument("--train-scenes", type=int, default=24, help="procedural training rooms")
     parser.add_argument("--eval-scenes", type=int, default=4, help="held-out rooms")
     parser.add_argument("--seed", type=int, default=111123)
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "ablation.json", help="every number (committed beside the doc)")
+    parser.add_argument(
+        "--out", type=Path, default=ROOT / "docs" / "ablation.json", help="every number (committed beside the doc)"
+    )
     parser.add_argument("--doc", type=Path, default=ROOT / "docs" / "ablation.md")
     parser.add_argument("--work", type=Path, default=None, help="folder for runs and data (default: a temporary one)")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
-        demo = DemoConfig(image_size=args.image_size, eval_scenes=args.eval_scenes, eval_frames=6, eval_targets=3, seed=args.seed)
+        demo = DemoConfig(
+            image_size=args.image_size, eval_scenes=args.eval_scenes, eval_frames=6, eval_targets=3, seed=args.seed
+        )
         index_path, data_dir = write_eval_data(demo, work / "data")
         samples = list(iter_index_samples([data_dir], EvaluationIndex.load(index_path), near=0.5, far=15.0))
         truth = native_truth(demo, samples, FACTORS)
@@ -71,26 +75,61 @@ def main() -> None:
         results = {}
         for name, adapter in VARIANTS.items():
             print(f"== {name}: training {args.steps} steps", flush=True)
-            run_dir = work / "runs" / name.replace(" ", "_").replace("/", "").replace(",", "").replace("(", "").replace(")", "").replace("+", "")
-            config = train_preset("tiny", out_dir=str(run_dir), seed=args.seed, steps=args.steps, val_every=0,
-                                  image_every=0, checkpoint_every=args.steps, log_every=max(1, args.steps // 20))
-            config = override(config, {"data.image_shape": [args.image_size] * 2, "data.synthetic_length": args.train_scenes,
-                                       "loss.lpips_weight": 0.0, **{f"model.adapter.{k}": v for k, v in adapter.items()}})
+            run_dir = (
+                work
+                / "runs"
+                / name.replace(" ", "_")
+                .replace("/", "")
+                .replace(",", "")
+                .replace("(", "")
+                .replace(")", "")
+                .replace("+", "")
+            )
+            config = train_preset(
+                "tiny",
+                out_dir=str(run_dir),
+                seed=args.seed,
+                steps=args.steps,
+                val_every=0,
+                image_every=0,
+                checkpoint_every=args.steps,
+                log_every=max(1, args.steps // 20),
+            )
+            config = override(
+                config,
+                {
+                    "data.image_shape": [args.image_size] * 2,
+                    "data.synthetic_length": args.train_scenes,
+                    "loss.lpips_weight": 0.0,
+                    **{f"model.adapter.{k}": v for k, v in adapter.items()},
+                },
+            )
             t0 = time.perf_counter()
             trained = fit(config)
             seconds = time.perf_counter() - t0
             model, _ = load_model(ModelSpec(str(latest_checkpoint(run_dir))))
             results[name] = score(model, samples, truth, lpips) | {
-                "adapter": adapter, "train_seconds": seconds,
+                "adapter": adapter,
+                "train_seconds": seconds,
                 "final_loss": trained.losses[-1][1] if trained.losses else None,
             }
             print(json.dumps({k: v for k, v in results[name].items() if k != "adapter"}, indent=1), flush=True)
 
     document = {
-        "settings": {"steps": args.steps, "image_size": args.image_size, "train_scenes": args.train_scenes,
-                     "eval_scenes": args.eval_scenes, "target_views": sum(len(s.target_views) for s in samples),
-                     "seed": args.seed, "preset": "tiny", "loss": "MSE (lambda_lpips = 0)", "hrrc_upsample": "bicubic",
-                     "torch": torch.__version__, "machine": platform.machine(), "threads": torch.get_num_threads()},
+        "settings": {
+            "steps": args.steps,
+            "image_size": args.image_size,
+            "train_scenes": args.train_scenes,
+            "eval_scenes": args.eval_scenes,
+            "target_views": sum(len(s.target_views) for s in samples),
+            "seed": args.seed,
+            "preset": "tiny",
+            "loss": "MSE (lambda_lpips = 0)",
+            "hrrc_upsample": "bicubic",
+            "torch": torch.__version__,
+            "machine": platform.machine(),
+            "threads": torch.get_num_threads(),
+        },
         # The reason without the machine's cache paths (this file and the doc are committed).
         "lpips": None if not isinstance(lpips, Exception) else str(lpips).split(" (looked in:")[0],
         "variants": results,
@@ -130,8 +169,8 @@ def markdown(document: dict) -> str:
         "Generated by `python benchmarks/ablation.py` (every number: `docs/ablation.json`).",
         f"Tiny preset, {s['steps']} steps per variant, batch 1, {s['train_scenes']} procedural training rooms at "
         f"{size}x{size}, MSE loss, seed {s['seed']}; {s['eval_scenes']} held-out rooms, {s['target_views']} target views. "
-        "HRRC renders at x2/x4 with K scaled; \"bicubic GT\" is the paper's HRRC (the x1 truth upsampled), "
-        "\"native GT\" is the scene ray-cast at the higher resolution. Coverage: share of pixels with alpha > 0.5.",
+        'HRRC renders at x2/x4 with K scaled; "bicubic GT" is the paper\'s HRRC (the x1 truth upsampled), '
+        '"native GT" is the scene ray-cast at the higher resolution. Coverage: share of pixels with alpha > 0.5.',
         "",
         "| Variant | PSNR x1 | PSNR x2 (bicubic GT) | PSNR x4 (bicubic GT) | PSNR x2 (native GT) | PSNR x4 (native GT) "
         "| SSIM x1 | SSIM x4 (bicubic GT) | coverage x1 | coverage x2 | coverage x4 |",
@@ -149,17 +188,23 @@ def markdown(document: dict) -> str:
     def best(column: str, metric: str, factor: str) -> str:
         return max(variants, key=lambda n: variants[n][column][factor][metric])
 
-    lines.append(f"- Highest PSNR at x1 (standard): {best('bicubic_gt', 'psnr', 'x1')}; at x4 against bicubic GT (HRRC): "
-                 f"{best('bicubic_gt', 'psnr', 'x4')}; at x4 against native GT: {best('native_gt', 'psnr', 'x4')}.")
+    lines.append(
+        f"- Highest PSNR at x1 (standard): {best('bicubic_gt', 'psnr', 'x1')}; at x4 against bicubic GT (HRRC): "
+        f"{best('bicubic_gt', 'psnr', 'x4')}; at x4 against native GT: {best('native_gt', 'psnr', 'x4')}."
+    )
     for name, r in variants.items():
         n = r["native_gt"]
-        lines.append(f"- {name}: native-GT PSNR x1 -> x2 -> x4: {n['x1']['psnr']:.2f} -> {n['x2']['psnr']:.2f} -> "
-                     f"{n['x4']['psnr']:.2f} dB; coverage "
-                     f"{r['coverage']['x1']:.3f} -> {r['coverage']['x4']:.3f}; trained in {r['train_seconds']:.0f} s, "
-                     f"final loss {r['final_loss']:.5f}.")
-    lines.append(f"- Run on {s['machine']} with {s['threads']} threads (a shared CPU: times are indicative only). "
-                 "A network this small and this briefly trained is far from the paper's, and this is one seed: "
-                 "the spread across seeds was not measured, so small differences between variants are not conclusive.")
+        lines.append(
+            f"- {name}: native-GT PSNR x1 -> x2 -> x4: {n['x1']['psnr']:.2f} -> {n['x2']['psnr']:.2f} -> "
+            f"{n['x4']['psnr']:.2f} dB; coverage "
+            f"{r['coverage']['x1']:.3f} -> {r['coverage']['x4']:.3f}; trained in {r['train_seconds']:.0f} s, "
+            f"final loss {r['final_loss']:.5f}."
+        )
+    lines.append(
+        f"- Run on {s['machine']} with {s['threads']} threads (a shared CPU: times are indicative only). "
+        "A network this small and this briefly trained is far from the paper's, and this is one seed: "
+        "the spread across seeds was not measured, so small differences between variants are not conclusive."
+    )
     if document["lpips"]:
         lines += ["", document["lpips"] + " (no LPIPS column)."]
     lines.append("")

@@ -130,7 +130,14 @@ def main() -> int:
 
     if args.single:
         result = run_one(
-            args.single, args.views, args.size, args.device, args.repeats, args.threads, args.min_idle, args.idle_timeout
+            args.single,
+            args.views,
+            args.size,
+            args.device,
+            args.repeats,
+            args.threads,
+            args.min_idle,
+            args.idle_timeout,
         )
         print(json.dumps(result))
         return 0
@@ -164,13 +171,17 @@ def main() -> int:
     out = RESULTS / f"encoder_{args.device.split(':')[0]}.json"
     out.write_text(json.dumps(report, indent=2))
 
-    print(f"{'preset':<7} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
-          f"{'encoder s':>10} {'peak MB':>9} {'idle before':>12}")
+    print(
+        f"{'preset':<7} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
+        f"{'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
+    )
     for r in rows:
         idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
         timing = f"{r['forward_median_s']:.3f}, {min(r['forward_s']):.3f}"
-        print(f"{r['preset']:<7} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
-              f"{r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}")
+        print(
+            f"{r['preset']:<7} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
+            f"{r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}"
+        )
     print(f"({rows[0]['peak_kind']}; load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
     return 0
 

@@ -42,9 +42,13 @@ def contributing_pairs(gaussians, cameras, width: int, height: int, mode: str) -
     w2c, K, center = cameras.w2c[0], cameras.K[0], cameras.centers[0]
     with torch.no_grad():
         if mode == "surfel":
-            proj = tb.project_surfels(g.means, g.rotations, g.scales, g.opacities, g.sh, w2c, K, center, width, height, settings)
+            proj = tb.project_surfels(
+                g.means, g.rotations, g.scales, g.opacities, g.sh, w2c, K, center, width, height, settings
+            )
         else:
-            proj = tb.project_ewa(g.means, g.covariances, g.rotations[:, :, 2], g.opacities, g.sh, w2c, K, center, width, height, settings)
+            proj = tb.project_ewa(
+                g.means, g.covariances, g.rotations[:, :, 2], g.opacities, g.sh, w2c, K, center, width, height, settings
+            )
         bins = tb.bin_tiles(proj.pixel_box, width, height, settings.tile_size)
         tile = settings.tile_size
         basis = tb._tile_basis(mode, tile, g.means.dtype, g.means.device)
@@ -100,7 +104,10 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict
             with torch.no_grad():
                 render(g, cam, res, res, mode=mode, backend=backend)
             return time.perf_counter() - t, time.process_time() - c
-        params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")}
+        params = {
+            k: getattr(g, k).detach().clone().requires_grad_(True)
+            for k in ("means", "quats", "scales", "opacities", "sh")
+        }
         gaussians = Gaussians(**params)  # input validation is not renderer work: outside the timer
         t, c = time.perf_counter(), time.process_time()
         out = render(gaussians, cam, res, res, mode=mode, backend=backend)
@@ -112,10 +119,18 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict
     times = [r[0] for r in runs]
     peak_rss = peak_rss_bytes() / 2**20  # this process's own peak (ru_maxrss would include the parent's)
     return {
-        "backend": backend, "mode": mode, "resolution": res, "passes": passes,
-        "seconds": statistics.median(times), "seconds_all": times, "warmup_seconds": warm,
-        "cpu_seconds": statistics.median(r[1] for r in runs), "load_average": os.getloadavg()[0],
-        "peak_rss_mb": peak_rss, "scene_rss_mb": base_rss, "threads": threads,
+        "backend": backend,
+        "mode": mode,
+        "resolution": res,
+        "passes": passes,
+        "seconds": statistics.median(times),
+        "seconds_all": times,
+        "warmup_seconds": warm,
+        "cpu_seconds": statistics.median(r[1] for r in runs),
+        "load_average": os.getloadavg()[0],
+        "peak_rss_mb": peak_rss,
+        "scene_rss_mb": base_rss,
+        "threads": threads,
     }
 
 
@@ -149,12 +164,30 @@ def main() -> None:
             for backend in args.backends:
                 for passes in args.passes:
                     # A fresh process per measurement, so peak memory belongs to this configuration.
-                    cmd = [sys.executable, __file__, "--worker", backend, mode, str(res), passes,
-                           "--repeats", str(args.repeats), "--threads", str(args.threads)]
+                    cmd = [
+                        sys.executable,
+                        __file__,
+                        "--worker",
+                        backend,
+                        mode,
+                        str(res),
+                        passes,
+                        "--repeats",
+                        str(args.repeats),
+                        "--threads",
+                        str(args.threads),
+                    ]
                     proc = subprocess.run(cmd, capture_output=True, text=True)
                     if proc.returncode != 0:
-                        row = {"backend": backend, "mode": mode, "resolution": res, "passes": passes,
-                               "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+                        row = {
+                            "backend": backend,
+                            "mode": mode,
+                            "resolution": res,
+                            "passes": passes,
+                            "error": proc.stderr.strip().splitlines()[-1]
+                            if proc.stderr.strip()
+                            else f"exit {proc.returncode}",
+                        }
                     else:
                         row = json.loads(proc.stdout.strip().splitlines()[-1])
                         row["pairs_per_second"] = pairs / row["seconds"]
@@ -165,8 +198,12 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {
         "scene": "surfsplat.scenes.make_scene(256, views=2, opacity=0.5): 131,072 surfels, target view scaled",
-        "machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(), "torch": torch.__version__,
-                    "processor": platform.processor()},
+        "machine": {
+            "cpus": torch.get_num_threads(),
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "processor": platform.processor(),
+        },
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
     args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
@@ -177,9 +214,11 @@ def _format_row(r: dict) -> str:
     head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16}"
     if "error" in r:
         return f"{head}  ERROR {r['error']}"
-    return (f"{head}  {r['seconds']:8.3f} s  (cpu {r['cpu_seconds']:7.3f} s, load {r['load_average']:4.1f})  "
-            f"peak {r['peak_rss_mb']:7.0f} MB  "
-            f"pairs {r['contributing_pairs'] / 1e6:6.2f} M  {r['pairs_per_second'] / 1e6:6.2f} M pairs/s")
+    return (
+        f"{head}  {r['seconds']:8.3f} s  (cpu {r['cpu_seconds']:7.3f} s, load {r['load_average']:4.1f})  "
+        f"peak {r['peak_rss_mb']:7.0f} MB  "
+        f"pairs {r['contributing_pairs'] / 1e6:6.2f} M  {r['pairs_per_second'] / 1e6:6.2f} M pairs/s"
+    )
 
 
 if __name__ == "__main__":

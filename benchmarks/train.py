@@ -32,8 +32,16 @@ from surfsplat.render.types import BACKENDS
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def measure(preset: str, size: int, targets: int, batch: int, repeats: int, device: str, precision: str,
-            render_backend: str = "auto") -> dict:
+def measure(
+    preset: str,
+    size: int,
+    targets: int,
+    batch: int,
+    repeats: int,
+    device: str,
+    precision: str,
+    render_backend: str = "auto",
+) -> dict:
     """Time `repeats` training steps after one warm-up step, in this process."""
     from torch.utils.data import default_collate
 
@@ -47,10 +55,18 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
     from surfsplat.train.loop import resolve_precision, training_step
     from surfsplat.train.losses import ImageLoss
 
-    config = override(train_preset(preset), {
-        "data.image_shape": [size, size], "data.num_target_views": targets, "loss.lpips_weight": 0.0,
-        "batch_size": batch, "precision": precision, "device": device, "model.render_backend": render_backend,
-    })
+    config = override(
+        train_preset(preset),
+        {
+            "data.image_shape": [size, size],
+            "data.num_target_views": targets,
+            "loss.lpips_weight": 0.0,
+            "batch_size": batch,
+            "precision": precision,
+            "device": device,
+            "model.render_backend": render_backend,
+        },
+    )
     dev = torch.device("cuda" if device == "cuda" else "cpu")
     torch.manual_seed(0)
     model = build_model(config).to(dev).train()
@@ -69,9 +85,19 @@ def measure(preset: str, size: int, targets: int, batch: int, repeats: int, devi
         if dev.type == "cuda":
             torch.cuda.synchronize()
         start = time.perf_counter()
-        out = training_step(model, model, sample, loss_fn, optimizer, mode=mode, backend=render_backend,
-                            amp_dtype=amp, scaler=scaler,
-                            grad_clip=config.optim.grad_clip, cascade=cascade)
+        out = training_step(
+            model,
+            model,
+            sample,
+            loss_fn,
+            optimizer,
+            mode=mode,
+            backend=render_backend,
+            amp_dtype=amp,
+            scaler=scaler,
+            grad_clip=config.optim.grad_clip,
+            cascade=cascade,
+        )
         float(out.loss)  # waits for the GPU
         return time.perf_counter() - start
 
@@ -112,10 +138,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed steps after one warm-up step")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"), default="auto")
-    parser.add_argument("--render-backends", nargs="+", choices=BACKENDS, default=["auto"],
-                        help="renderers to compare (auto: gsplat on CUDA, the compiled one on CPU)")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="CPU threads of torch and the compiled renderer (default: their own choice)")
+    parser.add_argument(
+        "--render-backends",
+        nargs="+",
+        choices=BACKENDS,
+        default=["auto"],
+        help="renderers to compare (auto: gsplat on CUDA, the compiled one on CPU)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads of torch and the compiled renderer (default: their own choice)",
+    )
     parser.add_argument("--out", default=None, help="JSON path (default benchmarks/results/train_<device>.json)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -124,34 +159,60 @@ def main() -> None:
 
         (preset,), (backend,) = args.presets, args.render_backends
         with cpu_threads(args.threads or 0):  # torch's and the compiled renderer's; 0 keeps their defaults
-            row = measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision,
-                          backend)
+            row = measure(
+                preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision, backend
+            )
         print(json.dumps(row))
         return
 
     rows = []
     for preset in args.presets:
         for backend in args.render_backends:
-            cmd = [sys.executable, __file__, "--child", "--presets", preset, "--render-backends", backend, "--size",
-                   str(args.size), "--targets", str(args.targets), "--batch", str(args.batch), "--repeats",
-                   str(args.repeats), "--device", args.device, "--precision", args.precision]
+            cmd = [
+                sys.executable,
+                __file__,
+                "--child",
+                "--presets",
+                preset,
+                "--render-backends",
+                backend,
+                "--size",
+                str(args.size),
+                "--targets",
+                str(args.targets),
+                "--batch",
+                str(args.batch),
+                "--repeats",
+                str(args.repeats),
+                "--device",
+                args.device,
+                "--precision",
+                args.precision,
+            ]
             if args.threads:
                 cmd += ["--threads", str(args.threads)]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode != 0:
                 lines = proc.stderr.strip().splitlines()
-                rows.append({"preset": preset, "render_backend": backend,
-                             "error": lines[-1] if lines else f"exit {proc.returncode}"})
+                rows.append(
+                    {
+                        "preset": preset,
+                        "render_backend": backend,
+                        "error": lines[-1] if lines else f"exit {proc.returncode}",
+                    }
+                )
             else:
                 rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
             r = rows[-1]
             if "error" in r:
                 print(f"{preset:6s} {backend:>6s}  failed: {r['error']}", flush=True)
             else:
-                print(f"{preset:6s} {r['render_backend']:>6s}  {r['parameters'] / 1e6:7.1f} M params  "
-                      f"step {r['step_seconds_median']:8.3f} s (min {r['step_seconds_min']:.3f})  "
-                      f"peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}  load {r['load_average_1min']:.1f}",
-                      flush=True)
+                print(
+                    f"{preset:6s} {r['render_backend']:>6s}  {r['parameters'] / 1e6:7.1f} M params  "
+                    f"step {r['step_seconds_median']:8.3f} s (min {r['step_seconds_min']:.3f})  "
+                    f"peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}  load {r['load_average_1min']:.1f}",
+                    flush=True,
+                )
 
     out = Path(args.out) if args.out else RESULTS / f"train_{args.device}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -14,8 +14,9 @@ from surfsplat import Cameras, Gaussians
 from surfsplat.geometry.sh import sh_to_color
 
 
-def reference_render(g: Gaussians, cameras: Cameras, width: int, height: int, mode: str = "surfel",
-                     near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def reference_render(
+    g: Gaussians, cameras: Cameras, width: int, height: int, mode: str = "surfel", near: float = 0.01
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]."""
     dt = torch.float64
     outs = []
@@ -79,8 +80,10 @@ def reference_render(g: Gaussians, cameras: Cameras, width: int, height: int, mo
             depth += w * z
             T = torch.where(take, next_T, T)
         outs.append((color, 1 - T, depth, normal))
+
     def img(x, ch):
         return torch.stack([o[x].reshape(height, width, ch) for o in outs]).permute(0, 3, 1, 2)
+
     color = img(0, 3)
     alpha = torch.stack([o[1].reshape(height, width) for o in outs])[:, None]
     depth = torch.stack([o[2].reshape(height, width) for o in outs])[:, None]

@@ -230,7 +230,9 @@ def test_paper_world_normals_of_a_tilted_plane_seen_by_a_rotated_camera() -> Non
     R = random_rotation(3)
     c2w = rigid(R, [1.0, 2.0, -0.5])
     raw = torch.zeros(1, 1, 32, H, W, dtype=F64)
-    out = GaussianAdapter()(depth[None, None], raw, torch.rand(1, 1, 3, H, W, dtype=F64), K[None, None], c2w[None, None])
+    out = GaussianAdapter()(
+        depth[None, None], raw, torch.rand(1, 1, 3, H, W, dtype=F64), K[None, None], c2w[None, None]
+    )
     torch.testing.assert_close(out.normals[0], (R @ n_cam).expand(H * W, 3), atol=1e-10, rtol=0)
     Rw = quat_to_matrix(out.rotations[0])
     torch.testing.assert_close(Rw[:, :, 2], out.normals[0], atol=1e-10, rtol=0)
@@ -537,9 +539,11 @@ def test_official_mode_follows_the_release_formulas_with_rotated_cameras() -> No
     Rv = c2w[0, :, :3, :3].repeat_interleave(H * W, dim=0)[:, None]
     torch.testing.assert_close(g.sh[0], rotate_sh(ref["sh_cam"], Rv, "e3nn"), atol=1e-12, rtol=0)
     # With these rotated cameras the double rotation matters: a single rotation would differ.
-    single = torch.from_numpy(
-        np.stack([c2w[0, v, :3, :3].numpy().T for v in range(2)]).repeat(H * W, axis=0)
-    ) @ ref["cov"] @ c2w[0, :, :3, :3].repeat_interleave(H * W, dim=0)
+    single = (
+        torch.from_numpy(np.stack([c2w[0, v, :3, :3].numpy().T for v in range(2)]).repeat(H * W, axis=0))
+        @ ref["cov"]
+        @ c2w[0, :, :3, :3].repeat_interleave(H * W, dim=0)
+    )
     assert float((single - ref["cov"]).abs().max()) > 1e-3 * float(ref["cov"].abs().max())
 
 
@@ -563,7 +567,9 @@ def test_official_and_paper_agree_where_the_release_is_exact() -> None:
     official = GaussianAdapter(AdapterConfig(mode="official"))(depths, raw, images, K, c2w)
     torch.testing.assert_close(paper.gaussians.means, official.gaussians.means, atol=1e-12, rtol=0)
     torch.testing.assert_close(paper.scales, official.scales, atol=1e-12, rtol=0)
-    torch.testing.assert_close(paper.normals, official.normals * torch.sign(official.normals[..., 2:]), atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        paper.normals, official.normals * torch.sign(official.normals[..., 2:]), atol=1e-9, rtol=0
+    )
     torch.testing.assert_close(paper.gaussians.sh, official.gaussians.sh, atol=1e-12, rtol=0)
 
 

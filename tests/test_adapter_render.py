@@ -16,7 +16,6 @@ from scipy.ndimage import distance_transform_edt
 from surfsplat import Cameras
 from surfsplat.model.adapter import AdapterConfig, GaussianAdapter
 from surfsplat.render import render
-
 from test_adapter import (
     intrinsics,
     plane_depth,

@@ -221,7 +221,9 @@ def test_depth_anything_v2_weights_initialise_the_vit_only(tmp_path):
     del vit["pretrained.norm.bias"]
     vit["backbone.conv1.weight"] = torch.zeros(1)
     torch.save(vit, path)
-    with pytest.raises(SurfSplatInputError, match="not a Depth Anything V2 file; unexpected keys: backbone.conv1.weight"):
+    with pytest.raises(
+        SurfSplatInputError, match="not a Depth Anything V2 file; unexpected keys: backbone.conv1.weight"
+    ):
         load_depth_anything_v2(model, path)
     del vit["backbone.conv1.weight"]
     with pytest.raises(SurfSplatInputError, match="missing 1: norm.bias"):

@@ -20,7 +20,21 @@ from surfsplat.data.load import load_scene
 
 pytestmark = pytest.mark.slow
 
-SURFEL_FIELDS = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"}
+SURFEL_FIELDS = {
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+}
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
 
 
@@ -76,9 +90,29 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
     scan = data_dir / "dtu_scan24"
     out = tmp_path / "dtu"
     images = [str(scan / "images_4" / "000000.png"), str(scan / "images_4" / "000001.png")]
-    code = main(["reconstruct", "--checkpoint", str(demo / "train"), "--images", *images, "--cameras", str(scan),
-                 "--images-folder", "images_4", "--size", "96", "128", "--out", str(out), "--frames", "8",
-                 "--mesh-resolution", "48", "--no-progress"])
+    code = main(
+        [
+            "reconstruct",
+            "--checkpoint",
+            str(demo / "train"),
+            "--images",
+            *images,
+            "--cameras",
+            str(scan),
+            "--images-folder",
+            "images_4",
+            "--size",
+            "96",
+            "128",
+            "--out",
+            str(out),
+            "--frames",
+            "8",
+            "--mesh-resolution",
+            "48",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     ply = PlyData.read(str(out / "surfels.ply"))
     assert SURFEL_FIELDS <= {p.name for p in ply["vertex"].properties}
@@ -92,8 +126,20 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
     assert len(PlyData.read(str(out / "mesh.ply"))["face"].data) > 0
 
     # render at x4 from the saved reconstruction
-    code = main(["render", str(out / "surfels.ply"), "--cameras", str(out / "cameras.json"), "--scale", "4",
-                 "--views", "1", "--out", str(tmp_path / "x4")])
+    code = main(
+        [
+            "render",
+            str(out / "surfels.ply"),
+            "--cameras",
+            str(out / "cameras.json"),
+            "--scale",
+            "4",
+            "--views",
+            "1",
+            "--out",
+            str(tmp_path / "x4"),
+        ]
+    )
     assert code == 0
     assert iio.imread(tmp_path / "x4" / "000001_color.png").shape == (384, 512, 3)
 
@@ -103,8 +149,20 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
 
     server = ViewerServer.from_ply(out / "surfels.ply", port=0).start()
     try:
-        dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
-                              "--dump-dom", server.url], capture_output=True, text=True, timeout=180)
+        dom = subprocess.run(
+            [
+                CHROMIUM,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--virtual-time-budget=10000",
+                "--dump-dom",
+                server.url,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
     finally:
         server.shutdown()
     assert 'data-state="ready"' in dom.stdout and '<canvas id="view"' in dom.stdout
@@ -114,15 +172,43 @@ def test_eval_over_chunks_built_from_dtu(demo, data_dir, tmp_path):
     scene = load_scene(data_dir / "dtu_scan24", images="images_4").select([0, 1, 2, 3, 4])
     write_chunks([scene_to_example(scene, key="scan24", image_format="png")], tmp_path / "chunks")
     # MVSplat's DTU index style: several entries per scene as key_NN (one of them excluded with null).
-    index = {"scan24_00": {"context": [0, 2], "target": [1, 3]}, "scan24_01": None, "scan99": {"context": [0, 1], "target": [2]}}
+    index = {
+        "scan24_00": {"context": [0, 2], "target": [1, 3]},
+        "scan24_01": None,
+        "scan99": {"context": [0, 1], "target": [2]},
+    }
     (tmp_path / "index.json").write_text(json.dumps(index))
     near, far = float(scene.near.min()), float(scene.far.max())
-    code = main(["eval", "--compare", f"demo={demo / 'train'}", f"demo w/o FAB={demo / 'train'}:opacity_max=1.0",
-                 "--data", str(tmp_path / "chunks"), "--index", str(tmp_path / "index.json"), "--size", "96", "128",
-                 "--near", str(near), "--far", str(far), "--out", str(tmp_path / "eval"), "--no-progress"])
+    code = main(
+        [
+            "eval",
+            "--compare",
+            f"demo={demo / 'train'}",
+            f"demo w/o FAB={demo / 'train'}:opacity_max=1.0",
+            "--data",
+            str(tmp_path / "chunks"),
+            "--index",
+            str(tmp_path / "index.json"),
+            "--size",
+            "96",
+            "128",
+            "--near",
+            str(near),
+            "--far",
+            str(far),
+            "--out",
+            str(tmp_path / "eval"),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 1, "scenes_not_in_index": 0, "missing_from_data": 1}
+    assert document["entries"] == {
+        "evaluated_per_model": 1,
+        "excluded_null": 1,
+        "scenes_not_in_index": 0,
+        "missing_from_data": 1,
+    }
     full, ablated = document["models"]["demo"], document["models"]["demo w/o FAB"]
     assert full["num_images"] == 2 and set(full["mean"]) == {"x1", "x2", "x4"}
     assert full["mean"]["x1"]["psnr"] != ablated["mean"]["x1"]["psnr"]  # alpha normalization changes the render

@@ -46,7 +46,10 @@ def test_convention_k_scaling_keeps_pixel_centres_aligned(s):
     # Under K' = diag(s, s, 1) K a point projecting to the continuous position x lands on s * x,
     # so the centre of low-res pixel j, (j + 0.5), maps to s (j + 0.5): the centre of the block of
     # s x s high-res pixels that covers it.
-    cam = Cameras(random_c2w(3), torch.tensor([[80.0, 0, 30], [0, 90.0, 20], [0, 0, 1]], dtype=torch.float64).expand(3, 3, 3).clone())
+    cam = Cameras(
+        random_c2w(3),
+        torch.tensor([[80.0, 0, 30], [0, 90.0, 20], [0, 0, 1]], dtype=torch.float64).expand(3, 3, 3).clone(),
+    )
     pts = torch.randn(50, 3, dtype=torch.float64) * 0.1
     pts = pts @ cam.c2w[0, :3, :3].T + cam.c2w[0, :3, 3] + 2 * cam.c2w[0, :3, 2]  # in front of camera 0
     a = project(cam[0], pts)
@@ -60,7 +63,9 @@ def test_convention_quaternion_order_is_wxyz():
     # 90 degrees about z: q = (cos 45, 0, 0, sin 45) takes x to y.
     q = torch.tensor([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], dtype=torch.float64)
     R = quat_to_matrix(q)
-    assert torch.allclose(R @ torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64))
+    assert torch.allclose(
+        R @ torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64)
+    )
     qs = torch.randn(500, 4, dtype=torch.float64)
     qs = qs / qs.norm(dim=-1, keepdim=True)
     qs = torch.where(qs[:, :1] < 0, -qs, qs)

@@ -79,7 +79,7 @@ def test_chunk_round_trip_is_exact(tmp_path: Path) -> None:
 
 def test_png_example_decodes_to_the_written_pixels() -> None:
     g = torch.Generator().manual_seed(0)
-    images = (torch.randint(0, 256, (2, 3, 10, 14), generator=g).float() / 255)
+    images = torch.randint(0, 256, (2, 3, 10, 14), generator=g).float() / 255
     cams = Cameras(torch.eye(4).repeat(2, 1, 1), torch.tensor([[20.0, 0, 7], [0, 20, 5], [0, 0, 1]]).repeat(2, 1, 1))
     ex = scene_to_example(Scene(images, cams, ["0", "1"]), key="k", image_format="png")
     back = example_to_scene(ex)
@@ -196,7 +196,12 @@ def test_dataset_rescale_and_crop_keeps_intrinsics(tmp_path: Path) -> None:
 def _keys_seen(root: Path, world_size: int, workers: int) -> list[list[str]]:
     per_rank = []
     for rank in range(world_size):
-        ds = ChunkDataset(ChunkDatasetConfig(roots=[root], image_shape=None, seed=3), _small_sampler(), rank=rank, world_size=world_size)
+        ds = ChunkDataset(
+            ChunkDatasetConfig(roots=[root], image_shape=None, seed=3),
+            _small_sampler(),
+            rank=rank,
+            world_size=world_size,
+        )
         loader = DataLoader(ds, batch_size=None, num_workers=workers)
         per_rank.append([s["scene"] for s in loader])
     return per_rank
@@ -216,19 +221,28 @@ def test_ranks_and_workers_see_disjoint_data(tmp_path: Path, examples_per_chunk:
 
 def test_evaluation_sampler_in_dataset_counts_what_it_skips(tmp_path: Path, caplog) -> None:
     write_chunks([make_example(k, 6, seed=i) for i, k in enumerate(["a", "b", "c", "d"])], tmp_path)
-    index = EvaluationIndex.from_dict({
-        "a": {"context": [0, 4], "target": [1, 2]},
-        "b": None,
-        "d": {"context": [0, 9], "target": [3]},  # view 9 does not exist
-    }, source="index.json")
-    ds = ChunkDataset(ChunkDatasetConfig(roots=[tmp_path], image_shape=None, shuffle=False), EvaluationViewSampler(index))
+    index = EvaluationIndex.from_dict(
+        {
+            "a": {"context": [0, 4], "target": [1, 2]},
+            "b": None,
+            "d": {"context": [0, 9], "target": [3]},  # view 9 does not exist
+        },
+        source="index.json",
+    )
+    ds = ChunkDataset(
+        ChunkDatasetConfig(roots=[tmp_path], image_shape=None, shuffle=False), EvaluationViewSampler(index)
+    )
     with caplog.at_level("WARNING", logger="surfsplat.data"):
         samples = list(ds)
     assert [s["scene"] for s in samples] == ["a"]
     assert samples[0]["context"]["index"].tolist() == [0, 4] and samples[0]["target"]["index"].tolist() == [1, 2]
     summary = ds.summary
     assert summary.yielded == 1
-    assert dict(summary.skipped) == {"excluded by evaluation index": 1, "not in evaluation index": 1, "index out of range": 1}
+    assert dict(summary.skipped) == {
+        "excluded by evaluation index": 1,
+        "not in evaluation index": 1,
+        "index out of range": 1,
+    }
     assert any("uses view 9 but scene 'd' has 6 views" in m for m in summary.messages)
     assert "3 skipped" in caplog.text
 

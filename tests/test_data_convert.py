@@ -15,7 +15,6 @@ from surfsplat.checks import SurfSplatInputError
 from surfsplat.commands import convert as convert_command
 from surfsplat.data import example_to_scene, load_example, load_scene, read_index
 from surfsplat.data.convert import convert
-
 from test_data_formats import _random_cameras, _write_images, write_colmap_model
 
 _GL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
@@ -29,10 +28,22 @@ def _dl3dv_scene(root: Path, name: str, n: int, nested: bool) -> torch.Tensor:
     _write_images(base / "images_8", files, 8, 6, seed=len(name))
     K = cams.K[0]
     meta = {
-        "w": 64, "h": 48, "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-        "k1": 0, "k2": 0, "p1": 0, "p2": 0, "camera_model": "OPENCV",
+        "w": 64,
+        "h": 48,
+        "fl_x": float(K[0, 0]),
+        "fl_y": float(K[1, 1]),
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "k1": 0,
+        "k2": 0,
+        "p1": 0,
+        "p2": 0,
+        "camera_model": "OPENCV",
         # Frames listed out of name order: the converter keeps the JSON order.
-        "frames": [{"file_path": f"images/{files[i]}", "transform_matrix": (cams.c2w[i] @ _GL).tolist()} for i in reversed(range(n))],
+        "frames": [
+            {"file_path": f"images/{files[i]}", "transform_matrix": (cams.c2w[i] @ _GL).tolist()}
+            for i in reversed(range(n))
+        ],
     }
     (base / "transforms.json").write_text(json.dumps(meta))
     return cams.c2w.flip(0), cams.scaled(1 / 8).K.flip(0)
@@ -47,7 +58,9 @@ def test_dl3dv_converter(tmp_path: Path) -> None:
     ex = load_example(tmp_path / "out", "aaaa")
     assert ex["timestamps"].tolist() == [4, 3, 2, 1]  # frame numbers, JSON order
     # Image files are copied byte for byte.
-    assert ex["images"][0].numpy().tobytes() == (src / "aaaa" / "nerfstudio" / "images_8" / "frame_00004.png").read_bytes()
+    assert (
+        ex["images"][0].numpy().tobytes() == (src / "aaaa" / "nerfstudio" / "images_8" / "frame_00004.png").read_bytes()
+    )
     scene = example_to_scene(ex)
     torch.testing.assert_close(scene.cameras.c2w.double(), c2w_a, atol=1e-5, rtol=0)
     torch.testing.assert_close(scene.cameras.K.double(), K_a, atol=1e-4, rtol=1e-6)
@@ -97,7 +110,10 @@ def test_scene_converters_match_load_scene(tmp_path: Path, fmt: str) -> None:
         write_colmap_model(src / "sparse" / "0", cams, names, 12, 10, binary=True)
     else:
         _write_images(src, names, 12, 10, seed=5)
-        meta = {"camera_angle_x": 0.7, "frames": [{"file_path": n, "transform_matrix": (cams.c2w[i] @ _GL).tolist()} for i, n in enumerate(names)]}
+        meta = {
+            "camera_angle_x": 0.7,
+            "frames": [{"file_path": n, "transform_matrix": (cams.c2w[i] @ _GL).tolist()} for i, n in enumerate(names)],
+        }
         (src / "transforms.json").write_text(json.dumps(meta))
     convert(fmt, src, tmp_path / "out")
     direct = load_scene(src)
@@ -113,8 +129,18 @@ def test_dtu_converter_on_scan24(data_dir: Path, tmp_path: Path) -> None:
     src.mkdir()
     for name in ("cameras_sphere.npz", "images_4"):
         (src / name).symlink_to(data_dir / "dtu_scan24" / name)
-    args = argparse.Namespace(format="dtu", src=str(src), out=str(tmp_path / "out"), images=None, image_format="jpeg",
-                              quality=95, chunk_mb=100.0, frame_step=1, skip_bad=False, append=False)
+    args = argparse.Namespace(
+        format="dtu",
+        src=str(src),
+        out=str(tmp_path / "out"),
+        images=None,
+        image_format="jpeg",
+        quality=95,
+        chunk_mb=100.0,
+        frame_step=1,
+        skip_bad=False,
+        append=False,
+    )
     assert convert_command.run(args) == 0
     assert list(read_index(tmp_path / "out")) == ["scan24"]
     back = example_to_scene(load_example(tmp_path / "out", "scan24"))
@@ -122,7 +148,12 @@ def test_dtu_converter_on_scan24(data_dir: Path, tmp_path: Path) -> None:
     assert back.images.shape == (49, 3, 300, 400)
     torch.testing.assert_close(back.cameras.c2w, direct.cameras.c2w, atol=1e-5, rtol=0)
     # The chunk stores K as fx/W, cx/W, ...: the tiny skew of DTU's calibration is dropped.
-    torch.testing.assert_close(back.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]], direct.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]], atol=1e-3, rtol=1e-6)
+    torch.testing.assert_close(
+        back.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]],
+        direct.cameras.K[:, [0, 1, 0, 1], [0, 1, 2, 2]],
+        atol=1e-3,
+        rtol=1e-6,
+    )
 
 
 def test_command_lists_every_converter() -> None:

@@ -25,7 +25,6 @@ from surfsplat.data import (
     read_chunk,
     write_chunks,
 )
-
 from test_data_chunks import make_example
 from test_data_formats import _random_cameras, write_colmap_model
 
@@ -58,7 +57,10 @@ def _blender(root: Path, meta_fn: Callable[[dict], None]) -> Path:
     for i in range(2):
         Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(root / "train" / f"r_{i}.png")
     c2w_gl = cams.c2w @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
-    meta = {"camera_angle_x": 0.8, "frames": [{"file_path": f"train/r_{i}", "transform_matrix": c2w_gl[i].tolist()} for i in range(2)]}
+    meta = {
+        "camera_angle_x": 0.8,
+        "frames": [{"file_path": f"train/r_{i}", "transform_matrix": c2w_gl[i].tolist()} for i in range(2)],
+    }
     meta_fn(meta)
     (root / "transforms.json").write_text(json.dumps(meta))
     return root
@@ -193,7 +195,9 @@ def _case_colmap_missing_image(tmp: Path) -> Path:
 def _re10k(tmp: Path, edit: Callable[[list[str]], None]) -> Path:
     cams = _random_cameras(2, 3, 8, 8)
     rows = cams.to_re10k(8, 8)
-    lines = ["https://www.youtube.com/watch?v=x"] + [" ".join([str(ts)] + [repr(v) for v in r.tolist()]) for ts, r in zip((10, 20), rows)]
+    lines = ["https://www.youtube.com/watch?v=x"] + [
+        " ".join([str(ts)] + [repr(v) for v in r.tolist()]) for ts, r in zip((10, 20), rows)
+    ]
     edit(lines)
     (tmp / "vid.txt").write_text("\n".join(lines))
     (tmp / "vid").mkdir()
@@ -309,7 +313,11 @@ def test_dataset_skips_and_counts_bad_examples(tmp_path: Path, caplog) -> None:
     short = make_example("too_short", 2, seed=4)
     write_chunks([good, nan, rot, corrupt, short], tmp_path, target_bytes=1)
     (tmp_path / "999999.torch").write_bytes(b"broken")  # an unreadable chunk file
-    sampler = BoundedViewSampler(BoundedViewSamplerConfig(min_distance_between_context_views=3, max_distance_between_context_views=5, warm_up_steps=0))
+    sampler = BoundedViewSampler(
+        BoundedViewSamplerConfig(
+            min_distance_between_context_views=3, max_distance_between_context_views=5, warm_up_steps=0
+        )
+    )
     ds = ChunkDataset(ChunkDatasetConfig(roots=[tmp_path], image_shape=None, shuffle=False), sampler)
     with caplog.at_level("WARNING", logger="surfsplat.data"):
         samples = list(ds)

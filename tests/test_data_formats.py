@@ -19,7 +19,6 @@ from surfsplat.data.formats.dtu import decompose_projection
 from surfsplat.geometry.cameras import rigid_inverse
 from surfsplat.geometry.rotations import matrix_to_quat
 
-
 # Many small elementwise ops: single-threaded (see conftest.one_torch_thread).
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -29,18 +28,24 @@ def _random_cameras(n: int, seed: int, width: int, height: int) -> Cameras:
     """Cameras on a circle around the origin looking at it (OpenCV), with distinct intrinsics."""
     g = torch.Generator().manual_seed(seed)
     angles = torch.linspace(0, 1.2, n, dtype=torch.float64)
-    eyes = torch.stack([3 * torch.sin(angles), 0.3 * torch.rand(n, generator=g, dtype=torch.float64) - 0.5, -3 * torch.cos(angles)], -1)
+    eyes = torch.stack(
+        [3 * torch.sin(angles), 0.3 * torch.rand(n, generator=g, dtype=torch.float64) - 0.5, -3 * torch.cos(angles)], -1
+    )
     forward = F.normalize(-eyes, dim=-1)
     up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64).expand_as(forward)  # world y down
     right = F.normalize(torch.linalg.cross(up, forward, dim=-1), dim=-1)
     down = torch.linalg.cross(forward, right, dim=-1)
     c2w = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
     c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2], c2w[:, :3, 3] = right, down, forward, eyes
-    K = torch.tensor([[1.1 * width, 0.0, 0.47 * width], [0.0, 1.05 * width, 0.52 * height], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    K = torch.tensor(
+        [[1.1 * width, 0.0, 0.47 * width], [0.0, 1.05 * width, 0.52 * height], [0.0, 0.0, 1.0]], dtype=torch.float64
+    )
     return Cameras(c2w, K.repeat(n, 1, 1))
 
 
-def _write_images(folder: Path, names: list[str], width: int, height: int, seed: int, mode: str = "RGB") -> torch.Tensor:
+def _write_images(
+    folder: Path, names: list[str], width: int, height: int, seed: int, mode: str = "RGB"
+) -> torch.Tensor:
     folder.mkdir(parents=True, exist_ok=True)
     g = torch.Generator().manual_seed(seed)
     channels = len(mode)
@@ -68,7 +73,9 @@ def test_llff_fern_axis_conversion_pinned(fern, data_dir: Path) -> None:
     # images_8: focal and principal point of the 4032x3024 photos divided by 8.
     assert fern.images.shape == (20, 3, 378, 504)
     torch.testing.assert_close(fern.cameras.K[:, 0, 0], poses[:, 2, 4] / 8)
-    torch.testing.assert_close(fern.cameras.K[:, :2, 2], torch.tensor([[252.0, 189.0]], dtype=torch.float64).expand(20, 2))
+    torch.testing.assert_close(
+        fern.cameras.K[:, :2, 2], torch.tensor([[252.0, 189.0]], dtype=torch.float64).expand(20, 2)
+    )
     torch.testing.assert_close(fern.near, raw[:, 15])
     torch.testing.assert_close(fern.far, raw[:, 16])
     assert fern.names[0] == "IMG_4026.png" and detect_format(data_dir / "llff_fern") == "llff"
@@ -234,7 +241,9 @@ def test_blender_transforms_cameras_and_rgba(tmp_path: Path) -> None:
     scene = load_scene(tmp_path, background=(0.0, 1.0, 0.0), dtype=torch.float64)
     torch.testing.assert_close(scene.cameras.c2w, cams.c2w)
     f = 0.5 * W / np.tan(0.5 * angle)
-    torch.testing.assert_close(scene.cameras.K[0], torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64))
+    torch.testing.assert_close(
+        scene.cameras.K[0], torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
+    )
     # Straight alpha compositing on the chosen background.
     px = rgba[1, 5, 7].double() / 255
     expected = px[:3] * px[3] + torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64) * (1 - px[3])
@@ -250,8 +259,17 @@ def test_nerfstudio_transforms_with_downscaled_folder(tmp_path: Path) -> None:
     c2w_gl = cams.c2w @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     K = cams.K[0]
     meta = {
-        "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-        "w": W, "h": H, "camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "fl_x": float(K[0, 0]),
+        "fl_y": float(K[1, 1]),
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "w": W,
+        "h": H,
+        "camera_model": "OPENCV",
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
         "frames": [{"file_path": f"images/{n}", "transform_matrix": c2w_gl[i].tolist()} for i, n in enumerate(names)],
     }
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
@@ -262,9 +280,17 @@ def test_nerfstudio_transforms_with_downscaled_folder(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------- COLMAP
-def write_colmap_model(folder: Path, cams: Cameras, names: list[str], width: int, height: int,
-                       binary: bool, model: str = "PINHOLE", extra: list[float] | None = None,
-                       points: torch.Tensor | None = None) -> None:
+def write_colmap_model(
+    folder: Path,
+    cams: Cameras,
+    names: list[str],
+    width: int,
+    height: int,
+    binary: bool,
+    model: str = "PINHOLE",
+    extra: list[float] | None = None,
+    points: torch.Tensor | None = None,
+) -> None:
     """A COLMAP sparse model in COLMAP's own text or binary layout (one shared camera)."""
     folder.mkdir(parents=True, exist_ok=True)
     K = cams.K[0]
@@ -302,7 +328,17 @@ def write_colmap_model(folder: Path, cams: Cameras, names: list[str], width: int
         (folder / "cameras.txt").write_text("\n".join(lines) + "\n")
         lines = ["# Image list with two lines of data per image:"]
         for i, name in enumerate(names):
-            lines.append(" ".join([str(i + 1), *[repr(v) for v in quats[i].tolist()], *[repr(v) for v in w2c[i, :3, 3].tolist()], "1", name]))
+            lines.append(
+                " ".join(
+                    [
+                        str(i + 1),
+                        *[repr(v) for v in quats[i].tolist()],
+                        *[repr(v) for v in w2c[i, :3, 3].tolist()],
+                        "1",
+                        name,
+                    ]
+                )
+            )
             lines.append(" ".join(f"1.0 2.0 {p + 1}" for p in range(n_points)))
         (folder / "images.txt").write_text("\n".join(lines) + "\n")
         if points is not None:
@@ -330,7 +366,10 @@ def test_colmap_model_cameras_exact(tmp_path: Path, binary: bool, model: str) ->
     torch.testing.assert_close(scene.cameras.c2w, cams.c2w[order], atol=1e-12, rtol=0)
     torch.testing.assert_close(scene.cameras.K, cams.K[order])
     # near/far: 0.1 / 99.9 percentiles of the points' depths in each view.
-    z = (points @ rigid_inverse(cams.c2w[order])[:, :3, :3].transpose(1, 2) + rigid_inverse(cams.c2w[order])[:, None, :3, 3])[..., 2]
+    z = (
+        points @ rigid_inverse(cams.c2w[order])[:, :3, :3].transpose(1, 2)
+        + rigid_inverse(cams.c2w[order])[:, None, :3, 3]
+    )[..., 2]
     torch.testing.assert_close(scene.near.double(), torch.quantile(z, 0.001, dim=1))
     torch.testing.assert_close(scene.far.double(), torch.quantile(z, 0.999, dim=1))
 

@@ -24,7 +24,6 @@ from surfsplat.data.synthetic import (
 )
 from surfsplat.data.synthetic.scene import SyntheticConfig
 
-
 # Many small elementwise ops: single-threaded (see conftest.one_torch_thread).
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -43,14 +42,18 @@ def _scene(prims: list[Primitive]) -> SyntheticScene:
     return SyntheticScene(prims, _flat_light(), torch.full((3,), -10.0), torch.full((3,), 10.0), 0, SyntheticConfig())
 
 
-def _plane(point: tuple[float, float, float], normal: tuple[float, float, float], texture: Texture | None = None) -> Primitive:
+def _plane(
+    point: tuple[float, float, float], normal: tuple[float, float, float], texture: Texture | None = None
+) -> Primitive:
     n = F.normalize(torch.tensor(normal, dtype=torch.float64), dim=0)
     helper = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
     if abs(float(n @ helper)) > 0.9:
         helper = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
     u = F.normalize(torch.linalg.cross(helper, n), dim=0)
     v = torch.linalg.cross(n, u)
-    return Primitive("plane", torch.tensor(point), torch.stack([u, v, n], 1).float(), torch.zeros(3), texture or _texture())
+    return Primitive(
+        "plane", torch.tensor(point), torch.stack([u, v, n], 1).float(), torch.zeros(3), texture or _texture()
+    )
 
 
 def _camera(width: int, height: int, f: float, c2w: torch.Tensor | None = None) -> Cameras:
@@ -75,7 +78,9 @@ def test_tilted_plane_depth_matches_closed_form_at_x1_and_x4() -> None:
     for s in (1, 4):
         W, H, f = 32 * s, 24 * s, 30.0 * s
         out = render_synthetic(scene, _camera(W, H, f), W, H, dtype=torch.float64)
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
+        v, u = torch.meshgrid(
+            torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij"
+        )
         rays = torch.stack([(u - W / 2) / f, (v - H / 2) / f, torch.ones_like(u)], -1)
         expected = (n @ p0) / (rays @ n)
         # The plane's stored centre/rotation are float32; that rounding is the only error source.
@@ -87,7 +92,9 @@ def test_sphere_depth_and_normal_match_closed_form() -> None:
     r = 1.5
     sphere = Primitive("sphere", c.float(), torch.eye(3), torch.tensor([r, 0.0, 0.0]), _texture())
     out = render_synthetic(_scene([sphere]), _camera(64, 64, 60.0), 64, 64, dtype=torch.float64)
-    v, u = torch.meshgrid(torch.arange(64, dtype=torch.float64) + 0.5, torch.arange(64, dtype=torch.float64) + 0.5, indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(64, dtype=torch.float64) + 0.5, torch.arange(64, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     d = torch.stack([(u - 32) / 60, (v - 32) / 60, torch.ones_like(u)], -1)  # camera-z = 1
     # |t d - c|^2 = r^2: nearest root.
     a = (d * d).sum(-1)
@@ -175,7 +182,7 @@ def test_convention_pixel_centres_at_half_integers() -> None:
     out = render_synthetic(_scene([wall]), _camera(W, 8, 10.0), W, 8, dtype=torch.float64)
     reddish = out.image[0, 0] > out.image[0, 2]  # [H, W]: which checker colour each pixel shows
     assert bool((reddish[:, : W // 2] == reddish[0, 0]).all())
-    assert bool((reddish[:, W // 2:] != reddish[0, 0]).all())
+    assert bool((reddish[:, W // 2 :] != reddish[0, 0]).all())
 
 
 def test_convention_opencv_axes() -> None:
@@ -281,7 +288,9 @@ def test_dataset_sample_layout_and_geometry() -> None:
     near, far = float(ctx["near"][0]), float(ctx["far"][0])
     for views in (ctx, tgt):
         assert float(views["depth"].min()) >= near and float(views["depth"].max()) <= far
-        torch.testing.assert_close(views["normal"].norm(dim=1), torch.ones(len(views["image"]), 32, 48), atol=1e-5, rtol=0)
+        torch.testing.assert_close(
+            views["normal"].norm(dim=1), torch.ones(len(views["image"]), 32, 48), atol=1e-5, rtol=0
+        )
     # Targets lie on the path between the two context cameras.
     c0, c1 = ctx["c2w"][0, :3, 3], ctx["c2w"][1, :3, 3]
     seg = c1 - c0
@@ -329,8 +338,14 @@ def test_synthetic_chunks_stream_like_any_chunk_dataset(tmp_path) -> None:
 
     index = write_synthetic_chunks(tmp_path, num_scenes=2, seed=4, image_shape=(16, 20), num_frames=6, supersample=1)
     assert sorted(index) == ["synthetic-4-0", "synthetic-4-1"]
-    sampler = BoundedViewSampler(BoundedViewSamplerConfig(min_distance_between_context_views=3, max_distance_between_context_views=5, warm_up_steps=0))
-    ds = ChunkDataset(ChunkDatasetConfig(roots=[tmp_path], image_shape=None, near=0.5, far=15.0, shuffle=False), sampler)
+    sampler = BoundedViewSampler(
+        BoundedViewSamplerConfig(
+            min_distance_between_context_views=3, max_distance_between_context_views=5, warm_up_steps=0
+        )
+    )
+    ds = ChunkDataset(
+        ChunkDatasetConfig(roots=[tmp_path], image_shape=None, near=0.5, far=15.0, shuffle=False), sampler
+    )
     samples = list(ds)
     assert [s["scene"] for s in samples] == ["synthetic-4-0", "synthetic-4-1"]
     # Same pixels (8-bit) and depth (millimetres) as a direct rendering of the same frames.

@@ -26,10 +26,10 @@ def _edge_image(H: int, W: int, u0: float) -> torch.Tensor:
 def test_resize_scales_intrinsics_about_the_pixel_corner(method: str) -> None:
     K = torch.tensor([[[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
     X = torch.tensor([[0.37, -0.11, 2.0]], dtype=torch.float64)
-    (u, v), = _project(K[0], X).tolist()
+    ((u, v),) = _project(K[0], X).tolist()
     img = _edge_image(48, 64, u)
     out, K2, _ = resize_views(img.float(), K, (12, 16), method=method)
-    (u2, v2), = _project(K2[0], X).tolist()
+    ((u2, v2),) = _project(K2[0], X).tolist()
     assert u2 == pytest.approx(u / 4) and v2 == pytest.approx(v / 4)
     # The edge in the resized image sits where the point now projects: the row sum of an image
     # that is 0 left of u' and 1 right of it equals W' - u'.
@@ -44,8 +44,8 @@ def test_center_crop_shifts_the_principal_point() -> None:
     out, K2, _ = center_crop(img, K, (20, 24))
     assert out.shape == (2, 3, 20, 24)
     X = torch.tensor([[0.1, 0.05, 1.0]])
-    (u, v), = _project(K[0], X).tolist()
-    (u2, v2), = _project(K2[0], X).tolist()
+    ((u, v),) = _project(K[0], X).tolist()
+    ((u2, v2),) = _project(K2[0], X).tolist()
     # Crop offsets: rows (30 - 20) // 2 = 5, columns (40 - 24) // 2 = 8.
     assert (u - u2, v - v2) == pytest.approx((8.0, 5.0))
     assert torch.equal(out[0, :, int(v2), int(u2)], img[0, :, int(v), int(u)])
@@ -70,7 +70,9 @@ def test_horizontal_flip_mirrors_projections() -> None:
     g = torch.Generator().manual_seed(1)
     from surfsplat.data.synthetic.scene import look_at
 
-    c2w = look_at(torch.tensor([[0.3, -2.0, 0.5]], dtype=torch.float64), torch.tensor([[0.0, 0.0, 0.2]], dtype=torch.float64))
+    c2w = look_at(
+        torch.tensor([[0.3, -2.0, 0.5]], dtype=torch.float64), torch.tensor([[0.0, 0.0, 0.2]], dtype=torch.float64)
+    )
     K = torch.tensor([[[60.0, 0.7, 30.0], [0.0, 58.0, 22.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
     W = 64
     img = torch.rand(1, 3, 48, W, generator=g, dtype=torch.float64)

@@ -50,7 +50,9 @@ def golden_run(golden_dir, tmp_path_factory):
     _, v, _, h, w = case["context.image"].shape
     cameras = Cameras.from_normalized(case["context.extrinsics"][0], case["context.intrinsics"][0], w, h)
     with torch.no_grad():
-        pred = model(case["context.image"], cameras, case["context.near"], case["context.far"], return_intermediates=True)
+        pred = model(
+            case["context.image"], cameras, case["context.near"], case["context.far"], return_intermediates=True
+        )
     return pred, case
 
 

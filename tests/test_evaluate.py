@@ -44,7 +44,11 @@ def chunks(tmp_path_factory):
 def index(chunks):
     _, keys = chunks
     return EvaluationIndex.from_dict(
-        {keys[0]: {"context": [0, 3], "target": [1, 2]}, keys[1]: None, "absent-scene": {"context": [0, 1], "target": [2]}},
+        {
+            keys[0]: {"context": [0, 3], "target": [1, 2]},
+            keys[1]: None,
+            "absent-scene": {"context": [0, 1], "target": [2]},
+        },
         "test index",
     )
 
@@ -166,7 +170,12 @@ def test_result_files(tmp_path, chunks, evaluated):
     results["b"] = evaluate(model, samples, config, lpips=LpipsUnavailable("none"), name="b")
     paths = write_results(results, tmp_path, counts)
     document = json.loads(paths["metrics"].read_text())
-    assert document["entries"] == {"evaluated_per_model": 1, "excluded_null": 1, "scenes_not_in_index": 0, "missing_from_data": 1}
+    assert document["entries"] == {
+        "evaluated_per_model": 1,
+        "excluded_null": 1,
+        "scenes_not_in_index": 0,
+        "missing_from_data": 1,
+    }
     assert document["models"]["a"]["mean"]["x2"]["psnr"] == pytest.approx(results["a"].report.mean[2]["psnr"])
     rows = list(csv.DictReader(io.StringIO(per_scene_csv(results))))
     assert len(rows) == 2 * 1 * 2  # models x entries x factors

@@ -29,7 +29,14 @@ def _look_at(eye: torch.Tensor) -> torch.Tensor:
 
 def _ring(views: int, radius: float = 4.0) -> Cameras:
     angles = [2 * math.pi * k / views for k in range(views)]
-    c2w = torch.stack([_look_at(torch.tensor([radius * math.cos(a), radius * math.sin(a), 0.6 * math.sin(2 * a)], dtype=torch.float64)) for a in angles])
+    c2w = torch.stack(
+        [
+            _look_at(
+                torch.tensor([radius * math.cos(a), radius * math.sin(a), 0.6 * math.sin(2 * a)], dtype=torch.float64)
+            )
+            for a in angles
+        ]
+    )
     K = torch.tensor([[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1]], dtype=torch.float64).repeat(views, 1, 1)
     return Cameras(c2w, K)
 
@@ -92,13 +99,18 @@ def test_sphere_faces_and_normals_point_outwards(sphere_mesh):
 def test_unobserved_space_behind_the_surface_makes_no_faces():
     # One view of a fronto-parallel plane z = 2: the band behind it meets unobserved voxels, a
     # false wall would appear there at z ~ 2 + truncation without the observed-edge rule.
-    cams = Cameras(torch.eye(4, dtype=torch.float64)[None], torch.tensor([[[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1]]], dtype=torch.float64))
+    cams = Cameras(
+        torch.eye(4, dtype=torch.float64)[None],
+        torch.tensor([[[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1]]], dtype=torch.float64),
+    )
     depths = torch.full((1, 1, H, W), 2.0)
     lo = torch.tensor([-0.8, -0.8, 1.5], dtype=torch.float64)
     hi = torch.tensor([0.8, 0.8, 2.5], dtype=torch.float64)
     volume = tsdf_fusion(depths, cams, config=TsdfConfig(resolution=32), bounds=(lo, hi))
     mesh = extract_mesh(volume)
-    torch.testing.assert_close(mesh.vertices[:, 2].double(), torch.full((len(mesh.vertices),), 2.0, dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        mesh.vertices[:, 2].double(), torch.full((len(mesh.vertices),), 2.0, dtype=torch.float64), atol=1e-5, rtol=0
+    )
     assert mesh.normals[:, 2].max() < -0.99  # facing the camera at the origin
 
 

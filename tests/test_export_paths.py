@@ -63,7 +63,9 @@ def test_interpolate_cameras_hits_the_views_and_moves_at_constant_speed():
     # Frame 2 (arc length 1) is exactly the middle view.
     torch.testing.assert_close(path.c2w[2], cams.c2w[1], atol=1e-12, rtol=0)
     R = path.c2w[:, :3, :3]
-    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(9, 3, 3), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(9, 3, 3), atol=1e-12, rtol=0
+    )
 
 
 def test_turntable_keeps_the_focus_on_the_optical_axis():
@@ -75,7 +77,7 @@ def test_turntable_keeps_the_focus_on_the_optical_axis():
     # Every frame is a rotation of the mean camera about an axis through the focus: same distance,
     # the focus projects where the mean camera projects it, and the sweep reaches +-20 degrees.
     torch.testing.assert_close((path.centers - focus).norm(dim=-1), distance.expand(16), atol=1e-12, rtol=0)
-    cam_points = (path.w2c[:, :3, :3] @ focus + path.w2c[:, :3, 3])
+    cam_points = path.w2c[:, :3, :3] @ focus + path.w2c[:, :3, 3]
     uv = (path.K @ cam_points[..., None])[..., 0]
     mean_cam = torch.linalg.inv(centre)[:3, :3] @ focus + torch.linalg.inv(centre)[:3, 3]
     mean_uv = K @ mean_cam
@@ -105,9 +107,15 @@ def test_camera_file_round_trip_is_exact(tmp_path):
 
 def test_camera_file_selection_opengl_and_rescale(tmp_path):
     c2w_gl = torch.eye(4).tolist()
-    doc = {"width": 100, "height": 50, "convention": "opengl",
-           "frames": [{"name": "x.png", "K": [[80, 0, 50], [0, 80, 25], [0, 0, 1]], "c2w": c2w_gl},
-                      {"name": "y.png", "K": [[90, 0, 50], [0, 90, 25], [0, 0, 1]], "c2w": c2w_gl[:3]}]}
+    doc = {
+        "width": 100,
+        "height": 50,
+        "convention": "opengl",
+        "frames": [
+            {"name": "x.png", "K": [[80, 0, 50], [0, 80, 25], [0, 0, 1]], "c2w": c2w_gl},
+            {"name": "y.png", "K": [[90, 0, 50], [0, 90, 25], [0, 0, 1]], "c2w": c2w_gl[:3]},
+        ],
+    }
     (tmp_path / "c.json").write_text(json.dumps(doc))
     cams = load_cameras(tmp_path / "c.json")
     # OpenGL looks down -z with y up: OpenCV's y and z axes are flipped.
@@ -128,13 +136,20 @@ def test_camera_file_selection_opengl_and_rescale(tmp_path):
         (lambda d: d.pop("width"), "field 'width' must be a positive integer"),
         (lambda d: d["frames"][1].__setitem__("K", [[1, 0], [0, 1]]), r"frames\[1\].K: expected shape \(3, 3\)"),
         (lambda d: d["frames"][0].__setitem__("c2w", [[1, 0, 0, 0]] * 4), "not a rigid camera transform"),
-        (lambda d: d["frames"][0].__setitem__("K", [[0, 0, 1], [0, 5, 1], [0, 0, 1]]), "focal lengths must be positive"),
+        (
+            lambda d: d["frames"][0].__setitem__("K", [[0, 0, 1], [0, 5, 1], [0, 0, 1]]),
+            "focal lengths must be positive",
+        ),
         (lambda d: d.__setitem__("near", 1.0), "give both 'near' and 'far'"),
         (lambda d: d.__setitem__("convention", "blender"), "field 'convention'"),
     ],
 )
 def test_camera_file_errors_name_the_field(tmp_path, change, message):
-    doc = {"width": 10, "height": 10, "frames": [{"K": [[5, 0, 5], [0, 5, 5], [0, 0, 1]], "c2w": torch.eye(4).tolist()}] * 2}
+    doc = {
+        "width": 10,
+        "height": 10,
+        "frames": [{"K": [[5, 0, 5], [0, 5, 5], [0, 0, 1]], "c2w": torch.eye(4).tolist()}] * 2,
+    }
     doc = json.loads(json.dumps(doc))
     change(doc)
     (tmp_path / "c.json").write_text(json.dumps(doc))

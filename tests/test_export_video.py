@@ -16,7 +16,9 @@ def _frames(t: int, h: int, w: int) -> torch.Tensor:
     """Smooth moving colour ramps (what H.264 encodes almost losslessly)."""
     y = torch.linspace(0, 1, h)[:, None].expand(h, w)
     x = torch.linspace(0, 1, w)[None, :].expand(h, w)
-    return torch.stack([torch.stack([(x + k / t) % 1 * 0.5 + 0.25, y * 0.8 + 0.1, 0.5 * (x + y) * (k + 1) / t]) for k in range(t)])
+    return torch.stack(
+        [torch.stack([(x + k / t) % 1 * 0.5 + 0.25, y * 0.8 + 0.1, 0.5 * (x + y) * (k + 1) / t]) for k in range(t)]
+    )
 
 
 def test_video_round_trip_matches_the_frames(tmp_path):

@@ -28,7 +28,9 @@ def test_mse_only_needs_no_weights(tmp_path, monkeypatch):
     assert terms.lpips is None
     assert terms.mse.item() == pytest.approx(0.01, rel=1e-5)
     assert terms.total.item() == pytest.approx(0.01, rel=1e-5)
-    assert ImageLoss(LossConfig(lpips_weight=0.0, mse_weight=2.0))(prediction, target).total.item() == pytest.approx(0.02, rel=1e-5)
+    assert ImageLoss(LossConfig(lpips_weight=0.0, mse_weight=2.0))(prediction, target).total.item() == pytest.approx(
+        0.02, rel=1e-5
+    )
 
 
 def test_missing_lpips_weights_fail_at_construction_with_advice(tmp_path, monkeypatch):

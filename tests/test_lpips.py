@@ -22,7 +22,8 @@ CLASSIFIER = {"classifier.0.weight": torch.zeros(4, 3), "classifier.0.bias": tor
 def formula_states(golden_dir: Path) -> tuple[dict, dict]:
     spec = json.loads((golden_dir / "lpips" / "formula_weights.json").read_text())
     state = {
-        t["key"]: torch.from_numpy(formula_tensor(t["key"], tuple(t["shape"]), t["mean"], t["std"])) for t in spec["tensors"]
+        t["key"]: torch.from_numpy(formula_tensor(t["key"], tuple(t["shape"]), t["mean"], t["std"]))
+        for t in spec["tensors"]
     }
     vgg = {k: v for k, v in state.items() if k.startswith("features.")}
     lin = {k: v for k, v in state.items() if k.startswith("lin")}
@@ -127,13 +128,17 @@ def test_unreadable_or_wrong_files_are_named(tmp_path):
         load_lpips(corrupt, lin_path)
 
     # A file in the wrong layout (the heads given as the trunk) names the missing key.
-    with pytest.raises(LpipsUnavailable, match=r"missing \['features\.0\.weight'.*unexpected \['lin0\.model\.1\.weight'"):
+    with pytest.raises(
+        LpipsUnavailable, match=r"missing \['features\.0\.weight'.*unexpected \['lin0\.model\.1\.weight'"
+    ):
         load_lpips(lin_path, lin_path)
 
     bad = dict(lin)
     bad["lin2.model.1.weight"] = torch.zeros(1, 128, 1, 1)
     torch.save(bad, tmp_path / "bad_lin.pth")
-    with pytest.raises(LpipsUnavailable, match=r"lin2\.model\.1\.weight has shape \(1, 128, 1, 1\), expected \(1, 256, 1, 1\)"):
+    with pytest.raises(
+        LpipsUnavailable, match=r"lin2\.model\.1\.weight has shape \(1, 128, 1, 1\), expected \(1, 256, 1, 1\)"
+    ):
         load_lpips(vgg_path, tmp_path / "bad_lin.pth")
 
     # Unexpected extra keys other than torchvision's classifier are an error, not ignored.

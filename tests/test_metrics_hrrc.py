@@ -119,7 +119,9 @@ def linear_texture_renderer(cameras: Cameras, width: int, height: int) -> torch.
     )
     pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # [H, W, 3]
     rays = torch.einsum("cij,hwj->chwi", torch.linalg.inv(cameras.K.double()), pix)  # [C, H, W, 3]
-    colour = torch.stack([0.5 + 0.3 * rays[..., 0], 0.5 + 0.2 * rays[..., 1], 0.4 + 0.1 * (rays[..., 0] - rays[..., 1])], 1)
+    colour = torch.stack(
+        [0.5 + 0.3 * rays[..., 0], 0.5 + 0.2 * rays[..., 1], 0.4 + 0.1 * (rays[..., 0] - rays[..., 1])], 1
+    )
     return colour  # [C, 3, H, W]
 
 

@@ -37,7 +37,10 @@ def test_hrrc_separates_continuous_surfels_from_sparse_ones():
             size,
         )
         report = evaluate_hrrc([("scene", truth, renders)], no_lpips, HrrcConfig(upsample="bicubic"))
-        native = {s: psnr(renders[s], analytic_image(scene.target.scaled(float(s)), size * s, size * s)).item() for s in (2, 4)}
+        native = {
+            s: psnr(renders[s], analytic_image(scene.target.scaled(float(s)), size * s, size * s)).item()
+            for s in (2, 4)
+        }
         return {s: report.mean[s]["psnr"] for s in (1, 2, 4)}, native
 
     dense_hrrc, dense_native = scores(scene.gaussians, 0.001)

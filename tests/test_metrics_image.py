@@ -83,7 +83,9 @@ def test_ssim_matches_skimage_on_random_images_float64():
     target = torch.rand(3, 3, 40, 57, generator=g, dtype=torch.float64)
     prediction = degrade(target, g)
     ours = ssim(prediction, target)
-    torch.testing.assert_close(ours, torch.tensor(skimage_ssim(target, prediction), dtype=torch.float64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        ours, torch.tensor(skimage_ssim(target, prediction), dtype=torch.float64), rtol=0, atol=1e-12
+    )
 
 
 def test_ssim_float32_matches_skimage_within_1e5():
@@ -113,7 +115,7 @@ def test_ssim_of_one_window_is_the_weighted_formula():
     g = torch.Generator().manual_seed(5)
     x = torch.rand(1, 1, 11, 11, generator=g, dtype=torch.float64)
     y = (0.6 * x + 0.3 * torch.rand(1, 1, 11, 11, generator=g, dtype=torch.float64)).clamp(0, 1)
-    t = np.exp(-np.arange(-5, 6) ** 2 / (2 * 1.5**2))
+    t = np.exp(-(np.arange(-5, 6) ** 2) / (2 * 1.5**2))
     w = np.outer(t, t) / np.outer(t, t).sum()
     a, b = x[0, 0].numpy(), y[0, 0].numpy()
     mu_a, mu_b = (w * a).sum(), (w * b).sum()

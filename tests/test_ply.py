@@ -83,6 +83,7 @@ def test_bad_files_get_clear_errors(tmp_path):
         load_ply(junk)
     points = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     from plyfile import PlyElement
+
     PlyData([PlyElement.describe(points, "vertex")]).write(str(tmp_path / "points.ply"))
     with pytest.raises(SurfSplatInputError, match="missing vertex properties"):
         load_ply(tmp_path / "points.ply")

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from _reference_render import reference_render
 from scipy.special import sph_harm_y
 
+from _reference_render import reference_render
 from surfsplat import Cameras, Gaussians
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.rotations import matrix_to_quat
@@ -34,7 +34,9 @@ def pixel_centres(width: int, height: int, dtype=torch.float64) -> tuple[torch.T
     return xx, yy
 
 
-def random_scene(n: int, seed: int, dtype=torch.float32, sh_degree: int = 1, behind: int = 0, edge_on: int = 0) -> Gaussians:
+def random_scene(
+    n: int, seed: int, dtype=torch.float32, sh_degree: int = 1, behind: int = 0, edge_on: int = 0
+) -> Gaussians:
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(n, 3, generator=g, dtype=torch.float64) * torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64)
     means[:, 2] += 2.5
@@ -64,7 +66,9 @@ def test_fronto_parallel_surfel_renders_closed_form_gaussian(scale, backend):
     cam = pinhole(f, W, H)
     mean = torch.tensor([0.07, -0.04, 2.0])
     su, sv, o = 0.09, 0.05, 0.8
-    g = Gaussians(mean[None], torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[su, sv]]), torch.tensor([o]), torch.zeros(1, 3, 1))
+    g = Gaussians(
+        mean[None], torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[su, sv]]), torch.tensor([o]), torch.zeros(1, 3, 1)
+    )
     out = render(g, cam.scaled(scale), W * scale, H * scale, alpha_threshold=None, backend=backend)
     xx, yy = pixel_centres(W * scale, H * scale)
     # Back-project pixel centres of the scaled camera onto the plane z = 2.
@@ -108,7 +112,9 @@ def test_tilted_plane_renders_analytic_depth_and_normal(scale, backend):
     g, normal, R = tilted_plane(spacing=0.15, tilt_deg=30, extent=2.4)
     out = render(g, pinhole(f, W, H).scaled(scale), W * scale, H * scale, backend=backend)
     xx, yy = pixel_centres(W * scale, H * scale)
-    rays = torch.stack(((xx - W * scale / 2) / (f * scale), (yy - H * scale / 2) / (f * scale), torch.ones_like(xx)), -1)
+    rays = torch.stack(
+        ((xx - W * scale / 2) / (f * scale), (yy - H * scale / 2) / (f * scale), torch.ones_like(xx)), -1
+    )
     p0 = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
     z = (p0 @ normal) / (rays @ normal)  # camera z of the ray-plane hit (rays have z = 1)
     hit = rays * z[..., None] - p0
@@ -119,7 +125,7 @@ def test_tilted_plane_renders_analytic_depth_and_normal(scale, backend):
     rel = ((depth - z).abs() / z)[interior]
     assert rel.max() <= 1e-3, rel.max()
     facing = normal  # built with a negative z component: it already faces the camera
-    cos = (out.normal[0].double().permute(1, 2, 0)[interior] @ facing)
+    cos = out.normal[0].double().permute(1, 2, 0)[interior] @ facing
     assert cos.min() >= 1 - 1e-5, cos.min()
     if scale == 4:
         assert out.alpha[0, 0][interior].min() > 0.99  # full coverage: no holes between surfels
@@ -129,10 +135,16 @@ def test_surfel_and_ewa_agree_on_camera_facing_surfels_larger_than_a_pixel():
     W, H, f = 64, 64, 80.0
     g = torch.Generator().manual_seed(1)
     n = 5
-    means = torch.cat((torch.rand(n, 2, generator=g) * 0.4 - 0.2, torch.full((n, 1), 2.0) + torch.rand(n, 1, generator=g)), -1)
-    gs = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4).contiguous(),
-                   torch.rand(n, 2, generator=g) * 0.06 + 0.08, torch.rand(n, generator=g) * 0.5 + 0.3,
-                   torch.rand(n, 3, 1, generator=g))
+    means = torch.cat(
+        (torch.rand(n, 2, generator=g) * 0.4 - 0.2, torch.full((n, 1), 2.0) + torch.rand(n, 1, generator=g)), -1
+    )
+    gs = Gaussians(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4).contiguous(),
+        torch.rand(n, 2, generator=g) * 0.06 + 0.08,
+        torch.rand(n, generator=g) * 0.5 + 0.3,
+        torch.rand(n, 3, 1, generator=g),
+    )
     cam = pinhole(f, W, H)
     a = render(gs, cam, W, H, mode="surfel", alpha_threshold=None)
     b = render(gs, cam, W, H, mode="ewa", alpha_threshold=None)
@@ -164,7 +176,10 @@ def test_result_does_not_depend_on_tiling_or_block_size():
     g = random_scene(300, 5)
     cam = pinhole(50.0, 64, 48)
     base = render(g, cam, 64, 48, settings=TorchRenderSettings(tile_size=16))
-    for settings in (TorchRenderSettings(tile_size=4), TorchRenderSettings(tile_size=8, block_elements=256, max_block_depth=3)):
+    for settings in (
+        TorchRenderSettings(tile_size=4),
+        TorchRenderSettings(tile_size=8, block_elements=256, max_block_depth=3),
+    ):
         other = render(g, cam, 64, 48, settings=settings)
         for name in ("color", "alpha", "depth", "normal"):
             assert torch.allclose(getattr(base, name), getattr(other, name), atol=1e-5), name
@@ -208,7 +223,9 @@ def test_forced_alpha_normalization_and_background():
     assert torch.allclose(plain.color, raw.color + (1 - alpha) * bg[None, :, None, None], atol=1e-6)
     normalized = alpha >= 0.1
     assert normalized.any() and (~normalized).any()
-    expected = torch.where(normalized, raw.color / alpha.clamp_min(1e-8), raw.color + (1 - alpha) * bg[None, :, None, None])
+    expected = torch.where(
+        normalized, raw.color / alpha.clamp_min(1e-8), raw.color + (1 - alpha) * bg[None, :, None, None]
+    )
     assert torch.allclose(fab.color, expected, atol=1e-5)
     expected_depth = torch.where(normalized, raw.depth / alpha.clamp_min(1e-8), raw.depth)
     assert torch.allclose(fab.depth, expected_depth, atol=1e-5)
@@ -239,13 +256,18 @@ def test_sh_colours_match_direct_evaluation(degree):
     # for the direction from the camera to its centre.
     sh = torch.from_numpy(rng.normal(size=(1, 3, (degree + 1) ** 2)) * 0.3)
     mean = torch.tensor([[0.3, -0.2, 2.0]], dtype=torch.float64)
-    g = Gaussians(mean, torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64), torch.tensor([[0.3, 0.3]], dtype=torch.float64),
-                  torch.tensor([0.9], dtype=torch.float64), sh)
+    g = Gaussians(
+        mean,
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        torch.tensor([[0.3, 0.3]], dtype=torch.float64),
+        torch.tensor([0.9], dtype=torch.float64),
+        sh,
+    )
     cam = pinhole(20.0, 16, 16, dtype=torch.float64)
     out = render(g, cam, 16, 16)
     d = F.normalize(mean[0], dim=0).numpy()
     direct = (sh[0].numpy() * real_sh_direct(d[None], degree)[0]).sum(-1) + 0.5
-    centre = (K_project(cam, mean[0]))
+    centre = K_project(cam, mean[0])
     np.testing.assert_allclose(out.color[0, :, centre[1], centre[0]].numpy(), np.maximum(direct, 0), atol=1e-10)
     assert torch.allclose(sh_to_color(sh[0], torch.from_numpy(d)), torch.from_numpy(np.maximum(direct, 0)))
 
@@ -266,11 +288,21 @@ def test_gradcheck_float64(mode, threshold, backend):
     cam = pinhole(14.0, 12, 10, dtype=torch.float64)
 
     def fn(means, quats, scales, opacities, sh):
-        out = render(Gaussians(means, quats, scales, opacities, sh), cam, 12, 10, mode=mode,
-                     alpha_threshold=threshold, background=[0.1, 0.2, 0.3], backend=backend)
+        out = render(
+            Gaussians(means, quats, scales, opacities, sh),
+            cam,
+            12,
+            10,
+            mode=mode,
+            alpha_threshold=threshold,
+            background=[0.1, 0.2, 0.3],
+            backend=backend,
+        )
         return out.color, out.alpha, out.depth, out.normal
 
-    inputs = tuple(t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh))
+    inputs = tuple(
+        t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh)
+    )
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
@@ -345,7 +377,9 @@ def test_gradcheck_float64_full_jacobian(mode):
         out = render(Gaussians(means, quats, scales, opacities, sh), cam, 6, 6, mode=mode, alpha_threshold=0.001)
         return out.color, out.alpha, out.depth, out.normal
 
-    inputs = tuple(t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh))
+    inputs = tuple(
+        t.detach().clone().requires_grad_(True) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh)
+    )
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
@@ -362,12 +396,21 @@ def test_termination_holds_across_depth_blocks():
     for bright in (128, 256):
         sh[bright] = 3.0
         opac[bright] = 0.02
-    g = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]], dtype=dt).expand(n, 4), torch.full((n, 2), 1e3, dtype=dt), opac, sh)
+    g = Gaussians(
+        means, torch.tensor([[1.0, 0, 0, 0]], dtype=dt).expand(n, 4), torch.full((n, 2), 1e3, dtype=dt), opac, sh
+    )
     cam = pinhole(10.0, 4, 4, dtype=dt)
     ref = reference_render(g, cam, 4, 4)
     for depth_block in (512, 128, 50, 7):
-        out = render(g, cam, 4, 4, alpha_threshold=None, backend="torch",
-                     settings=TorchRenderSettings(max_block_depth=depth_block))
+        out = render(
+            g,
+            cam,
+            4,
+            4,
+            alpha_threshold=None,
+            backend="torch",
+            settings=TorchRenderSettings(max_block_depth=depth_block),
+        )
         assert torch.allclose(out.color, ref[0], atol=1e-12), depth_block
         assert torch.allclose(out.alpha, ref[1], atol=1e-12), depth_block
 
@@ -384,8 +427,10 @@ def test_torch_backend_gradients_repeat_bit_for_bit_with_several_threads(mode):
     try:
         grads = []
         for _ in range(3):
-            params = {k: getattr(scene.gaussians, k).detach().clone().requires_grad_(True)
-                      for k in ("means", "quats", "scales", "opacities", "sh")}
+            params = {
+                k: getattr(scene.gaussians, k).detach().clone().requires_grad_(True)
+                for k in ("means", "quats", "scales", "opacities", "sh")
+            }
             out = render(Gaussians(**params), scene.target, 48, 48, mode=mode, backend="torch")
             (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
             grads.append({k: p.grad for k, p in params.items()})

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from _reference_render import reference_render
 
+from _reference_render import reference_render
 from surfsplat import Cameras, Gaussians
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.rotations import matrix_to_quat
@@ -31,8 +31,9 @@ def camera(f: float, width: int, height: int, offset=(0.05, -0.03, 0.1), dtype=t
     return Cameras(c2w[None], K[None])
 
 
-def scene(n: int, seed: int, sh_degree: int, behind: int = 0, edge_on: int = 0, tilt: float = 0.0,
-          dtype=torch.float64) -> Gaussians:
+def scene(
+    n: int, seed: int, sh_degree: int, behind: int = 0, edge_on: int = 0, tilt: float = 0.0, dtype=torch.float64
+) -> Gaussians:
     """Random surfels in front of the camera; `behind` of them behind it, `edge_on` seen edge-on.
 
     With tilt = 0 the edge-on normals are exactly perpendicular to the ray from the camera centre,
@@ -59,14 +60,24 @@ def scene(n: int, seed: int, sh_degree: int, behind: int = 0, edge_on: int = 0, 
     )
 
 
-def render_and_grads(g: Gaussians, cams: Cameras, width: int, height: int, mode: str, backend: str,
-                     weights: list[torch.Tensor], threshold: float | None = 0.001, covariances=None):
+def render_and_grads(
+    g: Gaussians,
+    cams: Cameras,
+    width: int,
+    height: int,
+    mode: str,
+    backend: str,
+    weights: list[torch.Tensor],
+    threshold: float | None = 0.001,
+    covariances=None,
+):
     """Outputs and gradients of sum(weights * outputs) with respect to every Gaussian parameter."""
     params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
     cov = None if covariances is None else covariances.detach().clone().requires_grad_(True)
     gs = Gaussians(**params, explicit_covariances=cov)
-    out = render(gs, cams, width, height, mode=mode, backend=backend, alpha_threshold=threshold,
-                 background=[0.1, 0.2, 0.3])
+    out = render(
+        gs, cams, width, height, mode=mode, backend=backend, alpha_threshold=threshold, background=[0.1, 0.2, 0.3]
+    )
     maps = (out.color, out.alpha, out.depth, out.normal)
     sum(((m * w).sum() for m, w in zip(maps, weights)), torch.zeros((), dtype=g.means.dtype)).backward()
     grads = {k: p.grad for k, p in params.items()}
@@ -119,8 +130,9 @@ def test_several_cameras_and_explicit_covariances_match_torch_reference():
     g = scene(50, 11, sh_degree=1, behind=2, edge_on=3)
     c2w = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     t = 0.1  # the second camera turned about y
-    c2w[1, :3, :3] = torch.tensor([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]],
-                                  dtype=torch.float64)
+    c2w[1, :3, :3] = torch.tensor(
+        [[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]], dtype=torch.float64
+    )
     c2w[1, :3, 3] = torch.tensor([0.2, 0.05, -0.1], dtype=torch.float64)
     K = torch.tensor([[28.0, 0.7, 15.0], [0.0, 26.0, 14.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # with skew
     cams = Cameras(c2w, K.expand(2, 3, 3).clone())
@@ -182,8 +194,16 @@ def test_gradcheck_float64(mode):
     cams = camera(12.0, 10, 9)
 
     def fn(means, quats, scales, opacities, sh):
-        out = render(Gaussians(means, quats, scales, opacities, sh), cams, 10, 9, mode=mode, backend="cpu",
-                     alpha_threshold=0.001, background=[0.3, 0.2, 0.1])
+        out = render(
+            Gaussians(means, quats, scales, opacities, sh),
+            cams,
+            10,
+            9,
+            mode=mode,
+            backend="cpu",
+            alpha_threshold=0.001,
+            background=[0.3, 0.2, 0.1],
+        )
         return out.color, out.alpha, out.depth, out.normal
 
     inputs = tuple(getattr(g0, k).detach().clone().requires_grad_(True) for k in PARAMS)
@@ -215,12 +235,17 @@ def test_fronto_parallel_surfel_is_the_analytic_gaussian_with_analytic_gradient(
     W, H, f, z = 40, 36, 50.0, 2.0
     mean = torch.tensor([[0.05, -0.03, z]], dtype=torch.float64)
     su, sv, o = 0.11, 0.07, 0.6
-    params = dict(means=mean, quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
-                  scales=torch.tensor([[su, sv]], dtype=torch.float64),
-                  opacities=torch.tensor([o], dtype=torch.float64, requires_grad=True),
-                  sh=torch.zeros(1, 3, 1, dtype=torch.float64))
-    cams = Cameras(torch.eye(4, dtype=torch.float64)[None],
-                   torch.tensor([[[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]]], dtype=torch.float64))
+    params = dict(
+        means=mean,
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        scales=torch.tensor([[su, sv]], dtype=torch.float64),
+        opacities=torch.tensor([o], dtype=torch.float64, requires_grad=True),
+        sh=torch.zeros(1, 3, 1, dtype=torch.float64),
+    )
+    cams = Cameras(
+        torch.eye(4, dtype=torch.float64)[None],
+        torch.tensor([[[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]]], dtype=torch.float64),
+    )
     out = render(Gaussians(**params), cams, W, H, backend="cpu", alpha_threshold=None)
     j = torch.arange(W, dtype=torch.float64) + 0.5
     i = torch.arange(H, dtype=torch.float64) + 0.5
@@ -416,9 +441,13 @@ def test_termination_holds_across_many_layers():
     opac[128] = 0.004
     sh = torch.zeros(n, 3, 1, dtype=dt)
     sh[128] = 10.0
-    g = Gaussians(torch.stack((torch.zeros(n, dtype=dt), torch.zeros(n, dtype=dt), z), -1),
-                  torch.tensor([[1.0, 0, 0, 0]], dtype=dt).expand(n, 4).clone(), torch.full((n, 2), 1e3, dtype=dt),
-                  opac, sh)
+    g = Gaussians(
+        torch.stack((torch.zeros(n, dtype=dt), torch.zeros(n, dtype=dt), z), -1),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=dt).expand(n, 4).clone(),
+        torch.full((n, 2), 1e3, dtype=dt),
+        opac,
+        sh,
+    )
     cams = camera(10.0, 4, 4, offset=(0.0, 0.0, 0.0))
     out = render(g, cams, 4, 4, backend="cpu", alpha_threshold=None)
     twin = reference_render(g, cams, 4, 4)
@@ -450,8 +479,9 @@ def test_benchmark_scene_matches_torch_reference(mode):
 
 def _with_backend_settings(g, cams, W, H, mode, weights, settings):
     params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
-    out = render(Gaussians(**params), cams, W, H, mode=mode, backend="torch", settings=settings,
-                 background=[0.1, 0.2, 0.3])
+    out = render(
+        Gaussians(**params), cams, W, H, mode=mode, backend="torch", settings=settings, background=[0.1, 0.2, 0.3]
+    )
     maps = (out.color, out.alpha, out.depth, out.normal)
     sum((m * w).sum() for m, w in zip(maps, weights)).backward()
     return maps, {k: p.grad for k, p in params.items()}

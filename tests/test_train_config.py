@@ -73,10 +73,24 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 
 def test_command_line_overrides(tmp_path) -> None:
-    args = _parse([
-        "--preset", "tiny", "--out", str(tmp_path), "--steps", "12", "--image-shape", "32", "48",
-        "--set", "optim.grad_clip=1.5", "--set", "data.cache_samples=false", "--no-progress",
-    ])
+    args = _parse(
+        [
+            "--preset",
+            "tiny",
+            "--out",
+            str(tmp_path),
+            "--steps",
+            "12",
+            "--image-shape",
+            "32",
+            "48",
+            "--set",
+            "optim.grad_clip=1.5",
+            "--set",
+            "data.cache_samples=false",
+            "--no-progress",
+        ]
+    )
     config, resume = command.build_config(args)
     assert resume is False
     assert (config.out_dir, config.steps, config.data.image_shape) == (str(tmp_path), 12, (32, 48))

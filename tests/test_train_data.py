@@ -41,7 +41,9 @@ def _views() -> ViewBatch:
     K = torch.tensor([[10.0, 0.0, 3.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]]).expand(b, v, 3, 3).clone()
     c2w = torch.eye(4).expand(b, v, 4, 4).clone()
     c2w[..., :3, 3] = torch.randn(b, v, 3)
-    return ViewBatch(torch.rand(b, v, 3, h, w), c2w, K, torch.ones(b, v), torch.full((b, v), 9.0), torch.rand(b, v, 1, h, w))
+    return ViewBatch(
+        torch.rand(b, v, 3, h, w), c2w, K, torch.ones(b, v), torch.full((b, v), 9.0), torch.rand(b, v, 1, h, w)
+    )
 
 
 def test_flip_mirrors_images_and_cameras_consistently() -> None:
@@ -90,8 +92,14 @@ def test_augmentation_is_a_function_of_the_sample_key() -> None:
 
 
 def test_synthetic_batches_match_the_dataset() -> None:
-    config = DataConfig(dataset="synthetic", image_shape=(16, 16), num_target_views=1, synthetic_length=3,
-                        synthetic_supersample=1, cache_samples=True)
+    config = DataConfig(
+        dataset="synthetic",
+        image_shape=(16, 16),
+        num_target_views=1,
+        synthetic_length=3,
+        synthetic_supersample=1,
+        cache_samples=True,
+    )
     source = build_train_batches(config, global_batch=2, rank=1, world_size=2, seed=4, start_step=2)
     batch = source.next(2)
     dataset = SyntheticDataset(
@@ -110,9 +118,16 @@ def test_chunk_stream_resumes_at_its_position(tmp_path) -> None:
     stream yields (epochs included)."""
     write_synthetic_chunks(tmp_path / "chunks", num_scenes=3, image_shape=(16, 16), num_frames=6, supersample=1)
     config = DataConfig(
-        dataset="chunks", roots=(str(tmp_path / "chunks"),), image_shape=(16, 16), num_target_views=1,
-        near=0.5, far=15.0, view_sampler=BoundedViewSamplerConfig(
-            num_target_views=1, min_distance_between_context_views=2, max_distance_between_context_views=4,
+        dataset="chunks",
+        roots=(str(tmp_path / "chunks"),),
+        image_shape=(16, 16),
+        num_target_views=1,
+        near=0.5,
+        far=15.0,
+        view_sampler=BoundedViewSamplerConfig(
+            num_target_views=1,
+            min_distance_between_context_views=2,
+            max_distance_between_context_views=4,
             warm_up_steps=0,
         ),
     )

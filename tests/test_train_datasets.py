@@ -15,16 +15,27 @@ from surfsplat.train.config import override
 
 # Short gaps: the test scenes have 8-49 frames, not RealEstate10K's hundreds.
 _SAMPLER = {
-    "num_context_views": 2, "num_target_views": 1, "min_distance_between_context_views": 2,
-    "max_distance_between_context_views": 6, "warm_up_steps": 0,
+    "num_context_views": 2,
+    "num_target_views": 1,
+    "min_distance_between_context_views": 2,
+    "max_distance_between_context_views": 6,
+    "warm_up_steps": 0,
 }
 
 
 def _chunk_config(out: Path, roots: list[Path], shape: tuple[int, int], **more):
     changes = {
-        "out_dir": str(out), "steps": 2, "log_every": 1, "checkpoint_every": 2, "val_every": 0, "progress": False,
-        "data.dataset": "chunks", "data.roots": [str(r) for r in roots], "data.image_shape": list(shape),
-        "data.num_target_views": 1, "data.view_sampler": _SAMPLER,
+        "out_dir": str(out),
+        "steps": 2,
+        "log_every": 1,
+        "checkpoint_every": 2,
+        "val_every": 0,
+        "progress": False,
+        "data.dataset": "chunks",
+        "data.roots": [str(r) for r in roots],
+        "data.image_shape": list(shape),
+        "data.num_target_views": 1,
+        "data.view_sampler": _SAMPLER,
     }
     changes.update(more)
     return override(train_preset("tiny"), changes)
@@ -38,14 +49,25 @@ def _check_trained(result, steps: int = 2) -> None:
 @pytest.mark.slow
 def test_chunks_with_evaluation_index_validation(tmp_path: Path) -> None:
     index = write_synthetic_chunks(tmp_path / "train", num_scenes=3, image_shape=(32, 32), num_frames=8, supersample=1)
-    held_out = write_synthetic_chunks(tmp_path / "test", num_scenes=2, seed=7, image_shape=(32, 32), num_frames=8, supersample=1)
+    held_out = write_synthetic_chunks(
+        tmp_path / "test", num_scenes=2, seed=7, image_shape=(32, 32), num_frames=8, supersample=1
+    )
     assert len(index) == 3
     eval_index = {key: {"context": [0, 7], "target": [3, 4]} for key in held_out}
     (tmp_path / "index.json").write_text(json.dumps(eval_index))
     config = _chunk_config(
-        tmp_path / "run", [tmp_path / "train"], (32, 32),
-        **{"val_every": 2, "val_factors": [1, 2], "data.val_roots": [str(tmp_path / "test")],
-           "data.val_index": str(tmp_path / "index.json"), "data.val_samples": 2, "data.near": 0.5, "data.far": 15.0},
+        tmp_path / "run",
+        [tmp_path / "train"],
+        (32, 32),
+        **{
+            "val_every": 2,
+            "val_factors": [1, 2],
+            "data.val_roots": [str(tmp_path / "test")],
+            "data.val_index": str(tmp_path / "index.json"),
+            "data.val_samples": 2,
+            "data.near": 0.5,
+            "data.far": 15.0,
+        },
     )
     result = fit(config)
     _check_trained(result)

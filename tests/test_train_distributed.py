@@ -28,8 +28,22 @@ from surfsplat.train.checkpoint import list_checkpoints, verify_checkpoint
 
 # A few steps of the tiny model on 32x32 synthetic rooms: seconds per run on a laptop CPU.
 _RUN = [
-    "--preset", "tiny", "--image-shape", "32", "32", "--val-every", "0", "--log-every", "1", "--no-progress",
-    "--set", "data.synthetic_length=6", "--set", "data.num_target_views=1", "--set", "keep_checkpoints=0",
+    "--preset",
+    "tiny",
+    "--image-shape",
+    "32",
+    "32",
+    "--val-every",
+    "0",
+    "--log-every",
+    "1",
+    "--no-progress",
+    "--set",
+    "data.synthetic_length=6",
+    "--set",
+    "data.num_target_views=1",
+    "--set",
+    "keep_checkpoints=0",
 ]
 # One thread per rank for the two-rank comparison (two ranks fill a 2-core machine).
 _ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
@@ -46,8 +60,19 @@ def _train(out: Path, *options: str, ranks: int = 1, env: dict[str, str] = _ENV)
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         launcher = [
-            sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", str(ranks),
-            "--master_addr", "127.0.0.1", "--master_port", str(port), "-m", "surfsplat.train",
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--nnodes",
+            "1",
+            "--nproc_per_node",
+            str(ranks),
+            "--master_addr",
+            "127.0.0.1",
+            "--master_port",
+            str(port),
+            "-m",
+            "surfsplat.train",
         ]
     proc = subprocess.run(
         [*launcher, *_RUN, *options, "--out", str(out)], env=env, capture_output=True, text=True, timeout=600
@@ -62,7 +87,10 @@ def _losses(out: Path) -> dict[int, float]:
 
 
 def _tensors(checkpoint: Path) -> dict[str, torch.Tensor]:
-    return {**load_file(str(checkpoint / "model.safetensors")), **load_file(str(checkpoint / "train_state.safetensors"))}
+    return {
+        **load_file(str(checkpoint / "model.safetensors")),
+        **load_file(str(checkpoint / "train_state.safetensors")),
+    }
 
 
 @pytest.mark.slow
@@ -88,14 +116,27 @@ def test_two_gloo_ranks_follow_the_single_process_loss_curve(tmp_path: Path) -> 
 @pytest.mark.slow
 def test_sigkill_and_resume_is_bit_identical(tmp_path: Path) -> None:
     # 64x64 renders: 16 tiles, so both renderer threads take tiles of every target view.
-    options = ["--steps", "8", "--batch-size", "1", "--checkpoint-every", "2", "--cpu-threads", "2",
-               "--image-shape", "64", "64"]
+    options = [
+        "--steps",
+        "8",
+        "--batch-size",
+        "1",
+        "--checkpoint-every",
+        "2",
+        "--cpu-threads",
+        "2",
+        "--image-shape",
+        "64",
+        "64",
+    ]
     _train(tmp_path / "straight", *options, env=_ENV_PARALLEL)
 
     interrupted = tmp_path / "interrupted"
     proc = subprocess.Popen(
         [sys.executable, "-m", "surfsplat.train", *_RUN, *options, "--out", str(interrupted)],
-        env=_ENV_PARALLEL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=_ENV_PARALLEL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     first = interrupted / "checkpoints" / "step-00000002"
     deadline = time.monotonic() + 600
@@ -112,7 +153,10 @@ def test_sigkill_and_resume_is_bit_identical(tmp_path: Path) -> None:
     # Only the run folder: the configuration comes from the checkpoint.
     resume = subprocess.run(
         [sys.executable, "-m", "surfsplat.train", "--resume", "--out", str(interrupted), "--no-progress"],
-        env=_ENV_PARALLEL, capture_output=True, text=True, timeout=600,
+        env=_ENV_PARALLEL,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert resume.returncode == 0, resume.stderr[-3000:]
     straight = _tensors(tmp_path / "straight" / "checkpoints" / "step-00000008")

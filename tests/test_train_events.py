@@ -101,7 +101,7 @@ def test_scalars_and_images_decode(tmp_path) -> None:
         (7, "train/lr", pytest.approx(2e-4, rel=1e-7)),
         (300, "val/x1/psnr", 21.5),
     ]
-    (step, tag, img), = image_events
+    ((step, tag, img),) = image_events
     assert (step, tag, img[1], img[2], img[3]) == (300, "train/grid", 5, 6, 3)
     decoded = torch.from_numpy(iio.imread(io.BytesIO(img[4]), extension=".png")).permute(2, 0, 1)
     assert torch.equal(decoded, (image * 255 + 0.5).to(torch.uint8))

@@ -28,9 +28,18 @@ from surfsplat.train.validation import validate
 def _quick(out: Path, **changes):
     """The tiny preset cut down to seconds: 32x32 rooms, one target view, two steps."""
     base = {
-        "out_dir": str(out), "steps": 2, "log_every": 1, "checkpoint_every": 2, "val_every": 2, "image_every": 2,
-        "progress": False, "val_factors": [1, 2], "data.image_shape": [32, 32], "data.num_target_views": 1,
-        "data.synthetic_length": 2, "data.val_samples": 1,
+        "out_dir": str(out),
+        "steps": 2,
+        "log_every": 1,
+        "checkpoint_every": 2,
+        "val_every": 2,
+        "image_every": 2,
+        "progress": False,
+        "val_factors": [1, 2],
+        "data.image_shape": [32, 32],
+        "data.num_target_views": 1,
+        "data.synthetic_length": 2,
+        "data.val_samples": 1,
     }
     base.update(changes)
     return override(train_preset("tiny"), base)
@@ -84,7 +93,10 @@ def test_resume_needs_a_checkpoint(tmp_path: Path) -> None:
 def test_command_errors_are_one_line(tmp_path: Path) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "surfsplat.train", "--preset", "tiny", "--out", str(tmp_path), "--set", "optim.lr=-1"],
-        capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=300,
     )
     assert proc.returncode == 2
     assert proc.stderr.strip() == "surfsplat train: error: optim.lr: expected a learning rate >= 0, got -1.0"
@@ -122,7 +134,9 @@ def test_precision_rules_and_float32_adapter_under_autocast() -> None:
     model = SurfSplat.from_preset("tiny")
     seen: list[tuple[bool, torch.dtype]] = []
     keep_adapter_in_float32(model, "cpu")
-    model.adapter.register_forward_pre_hook(lambda m, args: seen.append((torch.is_autocast_enabled("cpu"), args[0].dtype)))
+    model.adapter.register_forward_pre_hook(
+        lambda m, args: seen.append((torch.is_autocast_enabled("cpu"), args[0].dtype))
+    )
     images = torch.rand(1, 2, 3, 32, 32)
     c2w = torch.eye(4).repeat(2, 1, 1)
     c2w[1, 0, 3] = 0.2
@@ -139,11 +153,24 @@ def test_precision_rules_and_float32_adapter_under_autocast() -> None:
 def test_base_preset_adds_the_coarse_cascade_render_to_the_loss(tmp_path: Path) -> None:
     """base/large refine depth in two scales; the release also renders the coarse depth's surfels
     and adds 0.9 x their loss, so the logged total exceeds the final render's MSE."""
-    config = override(train_preset("base"), {
-        "out_dir": str(tmp_path), "steps": 1, "log_every": 1, "val_every": 0, "progress": False, "batch_size": 1,
-        "cpu_threads": 1, "loss.lpips_weight": 0.0, "data.dataset": "synthetic", "data.image_shape": [32, 32],
-        "data.num_target_views": 1, "data.synthetic_length": 1, "data.synthetic_supersample": 1,
-    })
+    config = override(
+        train_preset("base"),
+        {
+            "out_dir": str(tmp_path),
+            "steps": 1,
+            "log_every": 1,
+            "val_every": 0,
+            "progress": False,
+            "batch_size": 1,
+            "cpu_threads": 1,
+            "loss.lpips_weight": 0.0,
+            "data.dataset": "synthetic",
+            "data.image_shape": [32, 32],
+            "data.num_target_views": 1,
+            "data.synthetic_length": 1,
+            "data.synthetic_supersample": 1,
+        },
+    )
     fit(config)
     (row,) = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     # total = 0.9 * MSE(coarse render) + MSE(final render), both MSEs of the same images in (0, 1).
@@ -157,24 +184,34 @@ def _one_sample(size: int = 32):
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
     from surfsplat.train.data import to_train_batch
 
-    dataset = SyntheticDataset(SyntheticDatasetConfig(length=1, image_shape=(size, size), num_target_views=2,
-                                                      supersample=1))
+    dataset = SyntheticDataset(
+        SyntheticDatasetConfig(length=1, image_shape=(size, size), num_target_views=2, supersample=1)
+    )
     return to_train_batch(default_collate([dataset[0]]), [0])
 
 
 def _first_step(sample, amp_dtype, scaler=None, backend: str = "auto"):
     from surfsplat.model.decoder import decoder_mode
     from surfsplat.train import build_optimizer
-    from surfsplat.train.losses import ImageLoss
     from surfsplat.train.loop import training_step
+    from surfsplat.train.losses import ImageLoss
 
     config = train_preset("tiny")
     torch.manual_seed(0)
     model = build_model(config).train()
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
     hooks = keep_adapter_in_float32(model, "cpu") if amp_dtype is not None else []
-    out = training_step(model, model, sample, ImageLoss(config.loss), build_optimizer(model, config),
-                        mode=decoder_mode(model.cfg.adapter), backend=backend, amp_dtype=amp_dtype, scaler=scaler)
+    out = training_step(
+        model,
+        model,
+        sample,
+        ImageLoss(config.loss),
+        build_optimizer(model, config),
+        mode=decoder_mode(model.cfg.adapter),
+        backend=backend,
+        amp_dtype=amp_dtype,
+        scaler=scaler,
+    )
     for h in hooks:
         h.remove()
     moved = sum(not torch.equal(before[k], v) for k, v in model.state_dict().items())

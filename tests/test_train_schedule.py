@@ -14,8 +14,14 @@ def _one_cycle_reference(total: int, peak: float, pct: float, div: float, final_
     param = torch.nn.Parameter(torch.zeros(1))
     optimizer = torch.optim.AdamW([param], lr=peak)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, peak, total, pct_start=pct, cycle_momentum=False, anneal_strategy="cos",
-        div_factor=div, final_div_factor=final_div,
+        optimizer,
+        peak,
+        total,
+        pct_start=pct,
+        cycle_momentum=False,
+        anneal_strategy="cos",
+        div_factor=div,
+        final_div_factor=final_div,
     )
     rates = []
     for _ in range(total):

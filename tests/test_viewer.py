@@ -80,10 +80,19 @@ def test_port_in_use_is_one_clear_error(scene):
 def test_page_draws_the_splats_in_headless_chromium(tmp_path, scene):
     ply = save_ply(scene.gaussians, tmp_path / "surfels.ply")
     server = ViewerServer.from_ply(ply, port=0).start()
-    common = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--window-size=480,360", "--virtual-time-budget=10000"]
+    common = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--window-size=480,360",
+        "--virtual-time-budget=10000",
+    ]
     try:
         dom = subprocess.run([*common, "--dump-dom", server.url], capture_output=True, text=True, timeout=180)
-        shot = subprocess.run([*common, f"--screenshot={tmp_path / 'shot.png'}", server.url], capture_output=True, text=True, timeout=180)
+        shot = subprocess.run(
+            [*common, f"--screenshot={tmp_path / 'shot.png'}", server.url], capture_output=True, text=True, timeout=180
+        )
     finally:
         server.shutdown()
     assert dom.returncode == 0, dom.stderr[-500:]

@@ -15,14 +15,26 @@ from .checks import SurfSplatInputError
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "render-scene": ("surfsplat.commands.render_scene", "render the built-in procedural surfel scene to images"),
-    "demo": ("surfsplat.commands.demo", "train, evaluate (HRRC x1/x2/x4) and export on synthetic data: report.html in minutes"),
-    "reconstruct": ("surfsplat.commands.reconstruct", "posed images -> surfels (PLY), renders, depth/normal maps, videos, mesh"),
-    "eval": ("surfsplat.commands.eval", "standard and HRRC metrics over an evaluation index, in the paper's table layout"),
+    "demo": (
+        "surfsplat.commands.demo",
+        "train, evaluate (HRRC x1/x2/x4) and export on synthetic data: report.html in minutes",
+    ),
+    "reconstruct": (
+        "surfsplat.commands.reconstruct",
+        "posed images -> surfels (PLY), renders, depth/normal maps, videos, mesh",
+    ),
+    "eval": (
+        "surfsplat.commands.eval",
+        "standard and HRRC metrics over an evaluation index, in the paper's table layout",
+    ),
     "render": ("surfsplat.commands.render", "render a saved PLY from cameras at any scale"),
     "export": ("surfsplat.commands.export", "PLY, mesh (TSDF) and videos from a saved reconstruction"),
     "view": ("surfsplat.commands.view", "interactive browser viewer of a PLY on localhost"),
     "train": ("surfsplat.commands.train", "train a SurfSplat model (single process or torchrun data-parallel)"),
-    "convert": ("surfsplat.commands.convert", "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks"),
+    "convert": (
+        "surfsplat.commands.convert",
+        "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks",
+    ),
 }
 
 

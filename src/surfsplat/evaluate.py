@@ -59,7 +59,9 @@ class ModelSpec:
     checkpoint: str  # our .safetensors/.json pair, a training checkpoint folder, a run folder, or a release .ckpt/.pth
     name: str | None = None  # label in tables (default: derived from the path and overrides)
     preset: str = "small"  # encoder preset of a release checkpoint (ours store their configuration)
-    adapter_overrides: tuple[tuple[str, object], ...] = ()  # AdapterConfig fields to change, e.g. (("opacity_max", 1.0),)
+    adapter_overrides: tuple[
+        tuple[str, object], ...
+    ] = ()  # AdapterConfig fields to change, e.g. (("opacity_max", 1.0),)
     trust_pickle: bool = False  # release .ckpt files pickle their hyper-parameters; allow unpickling them
 
     @staticmethod
@@ -84,7 +86,13 @@ class ModelSpec:
             except ValueError:
                 parsed = value
             overrides.append((key.strip(), parsed))
-        return ModelSpec(checkpoint=head, name=name or None, preset=preset, adapter_overrides=tuple(overrides), trust_pickle=trust_pickle)
+        return ModelSpec(
+            checkpoint=head,
+            name=name or None,
+            preset=preset,
+            adapter_overrides=tuple(overrides),
+            trust_pickle=trust_pickle,
+        )
 
     def label(self) -> str:
         if self.name:
@@ -202,12 +210,19 @@ def iter_index_samples(
         if not chunks:
             raise SurfSplatInputError(f"{root}: no .torch chunks in this folder")
         folders.append(chunks)
-    return _samples(folders, index, image_shape, near, far, max_entries, counts if counts is not None else SampleCounts())
+    return _samples(
+        folders, index, image_shape, near, far, max_entries, counts if counts is not None else SampleCounts()
+    )
 
 
 def _samples(
-    folders: list[list[Path]], index: EvaluationIndex, image_shape: tuple[int, int] | None, near: float, far: float,
-    max_entries: int | None, counts: SampleCounts,
+    folders: list[list[Path]],
+    index: EvaluationIndex,
+    image_shape: tuple[int, int] | None,
+    near: float,
+    far: float,
+    max_entries: int | None,
+    counts: SampleCounts,
 ) -> Iterator[EvalSample]:
     found: set[str] = set()
     produced = 0
@@ -225,20 +240,30 @@ def _samples(
                         continue
                     if max_entries is not None and produced >= max_entries:
                         return
-                    yield _decode_entry(example, entry_key, entry.context, entry.target, str(chunk), image_shape, near, far)
+                    yield _decode_entry(
+                        example, entry_key, entry.context, entry.target, str(chunk), image_shape, near, far
+                    )
                     produced += 1
                     counts.evaluated += 1
     counts.missing = sorted(k for k, v in index.entries.items() if v is not None and k not in found)
 
 
 def _decode_entry(
-    example: dict, entry_key: str, context: tuple[int, ...], target: tuple[int, ...], source: str,
-    image_shape: tuple[int, int] | None, near: float, far: float,
+    example: dict,
+    entry_key: str,
+    context: tuple[int, ...],
+    target: tuple[int, ...],
+    source: str,
+    image_shape: tuple[int, int] | None,
+    near: float,
+    far: float,
 ) -> EvalSample:
     num_views = example["cameras"].shape[0]
     largest = max(context + target)
     if largest >= num_views:
-        raise SurfSplatInputError(f"{source}: index entry '{entry_key}' uses view {largest} but the scene has {num_views} views")
+        raise SurfSplatInputError(
+            f"{source}: index entry '{entry_key}' uses view {largest} but the scene has {num_views} views"
+        )
     views = list(context) + list(target)
     images = decode_views(example, views, source)
     width, height = image_size(example, views[0], source)
@@ -454,7 +479,9 @@ def format_results(results: dict[str, EvaluationResult]) -> str:
     lines += [head, "-" * len(head)]
     for name, r in results.items():
         cells = " | ".join(f"{r.seconds_render[s]:>11.3f}" for s in factors)
-        lines.append(f"{name.ljust(name_w)} | {r.seconds_forward:>9.3f} | {cells} | {r.peak_memory_bytes / 2**20:,.0f} MiB")
+        lines.append(
+            f"{name.ljust(name_w)} | {r.seconds_forward:>9.3f} | {cells} | {r.peak_memory_bytes / 2**20:,.0f} MiB"
+        )
     kinds = sorted({r.peak_memory_kind for r in results.values()})
     lines.append("peak memory: " + "; ".join(kinds))
     depth = {n: r.depth for n, r in results.items() if r.depth is not None}
@@ -476,11 +503,15 @@ def per_scene_csv(results: dict[str, EvaluationResult]) -> str:
             depth = r.per_scene_depth.get(entry, {})
             for s, metrics in per_factor.items():
                 values = ["" if metrics[m] is None else f"{metrics[m]:.6f}" for m in METRICS]
-                writer.writerow([name, entry, s, *values, *(f"{depth[m]:.6f}" if m in depth else "" for m in DEPTH_METRICS)])
+                writer.writerow(
+                    [name, entry, s, *values, *(f"{depth[m]:.6f}" if m in depth else "" for m in DEPTH_METRICS)]
+                )
     return buffer.getvalue()
 
 
-def write_results(results: dict[str, EvaluationResult], out_dir: str | Path, counts: SampleCounts | None = None) -> dict[str, Path]:
+def write_results(
+    results: dict[str, EvaluationResult], out_dir: str | Path, counts: SampleCounts | None = None
+) -> dict[str, Path]:
     """metrics.json (every number), per_scene.csv and table.txt in out_dir; each written atomically.
     `counts`: what happened to the index entries for one model (every model sees the same entries)."""
     from .export.figures import write_text

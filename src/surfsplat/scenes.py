@@ -32,10 +32,10 @@ class SurfelScene:
     resolution: int  # source image size (square)
 
 
-def look_at(eye: Tensor, target: Tensor, down: Tensor = torch.tensor([0.0, 1.0, 0.0])) -> Tensor:
+def look_at(eye: Tensor, target: Tensor, down: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> Tensor:
     """OpenCV camera-to-world [4, 4] at `eye` looking at `target`, image y axis as close to `down` as possible."""
     z = F.normalize(target - eye, dim=0)
-    x = F.normalize(torch.linalg.cross(down, z), dim=0)
+    x = F.normalize(torch.linalg.cross(torch.tensor(down, dtype=z.dtype), z), dim=0)
     y = torch.linalg.cross(z, x)
     c2w = torch.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye

@@ -57,8 +57,17 @@ class DemoConfig:
 
     @staticmethod
     def quick() -> DemoConfig:
-        return DemoConfig(image_size=32, train_scenes=4, steps=6, eval_scenes=1, eval_frames=4,
-                          eval_targets=2, figure_scenes=1, video_frames=8, mesh_resolution=40)
+        return DemoConfig(
+            image_size=32,
+            train_scenes=4,
+            steps=6,
+            eval_scenes=1,
+            eval_frames=4,
+            eval_targets=2,
+            figure_scenes=1,
+            video_frames=8,
+            mesh_resolution=40,
+        )
 
     def __post_init__(self) -> None:
         if self.image_size < 16 or self.image_size % 16:
@@ -77,15 +86,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     parser.add_argument("--quick", action="store_true", help="a reduced budget (32 px, a few steps; for tests)")
     parser.add_argument("--steps", type=int, default=None, help="training steps (default 150)")
-    parser.add_argument("--train-minutes", type=float, default=None,
-                        help="hard limit of training (default 4): stopped there, the newest checkpoint is used")
+    parser.add_argument(
+        "--train-minutes",
+        type=float,
+        default=None,
+        help="hard limit of training (default 4): stopped there, the newest checkpoint is used",
+    )
     parser.add_argument("--image-size", type=int, default=None, help="square image size, a multiple of 16 (default 64)")
     parser.add_argument("--eval-scenes", type=int, default=None, help="held-out rooms (default 3)")
 
 
 def run(args: argparse.Namespace) -> int:
     config = DemoConfig.quick() if args.quick else DemoConfig()
-    changes = {k: v for k, v in (("steps", args.steps), ("image_size", args.image_size), ("eval_scenes", args.eval_scenes)) if v is not None}
+    changes = {
+        k: v
+        for k, v in (("steps", args.steps), ("image_size", args.image_size), ("eval_scenes", args.eval_scenes))
+        if v is not None
+    }
     if args.train_minutes is not None:
         changes["train_seconds"] = args.train_minutes * 60
     config = replace(config, **changes)
@@ -93,7 +110,9 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--out {args.out}: exists and is not a folder")
     for stale in ("train", "data"):
         if (args.out / stale).exists() and any((args.out / stale).iterdir()):
-            raise SurfSplatInputError(f"--out {args.out}: already holds a demo run ({stale}/ is not empty); choose an empty folder")
+            raise SurfSplatInputError(
+                f"--out {args.out}: already holds a demo run ({stale}/ is not empty); choose an empty folder"
+            )
     run_demo(config, args.out)
     return 0
 
@@ -174,8 +193,14 @@ def run_demo(config: DemoConfig, out: Path) -> DemoResult:
     print()
     _say(f"finished in {total / 60:.1f} min (" + ", ".join(f"{p.name} {p.seconds:.0f} s" for p in result.phases) + ")")
     _say("outputs:")
-    for key, path in [("report", report), ("metrics", metrics_path), ("checkpoint", train["checkpoint"]),
-                      ("evaluation data", data_dir), ("evaluation index", index_path), *exports.items()]:
+    for key, path in [
+        ("report", report),
+        ("metrics", metrics_path),
+        ("checkpoint", train["checkpoint"]),
+        ("evaluation data", data_dir),
+        ("evaluation index", index_path),
+        *exports.items(),
+    ]:
         print(f"  {key:22s} {path}")
     print(f"  next: surfsplat eval --checkpoint {train['checkpoint']} --data {data_dir} --index {index_path}")
     print(f"        surfsplat view {exports['surfels (2DGS PLY)']}")
@@ -190,8 +215,14 @@ def write_eval_data(config: DemoConfig, folder: Path) -> tuple[Path, Path]:
     from ..export.figures import write_text
 
     chunks = folder / "eval"
-    keys = write_synthetic_chunks(chunks, config.eval_scenes, seed=EVAL_SEED, image_shape=(config.image_size,) * 2,
-                                  num_frames=config.eval_frames, supersample=2)
+    keys = write_synthetic_chunks(
+        chunks,
+        config.eval_scenes,
+        seed=EVAL_SEED,
+        image_shape=(config.image_size,) * 2,
+        num_frames=config.eval_frames,
+        supersample=2,
+    )
     index = {key: {"context": [0, config.eval_frames - 1], "target": eval_targets(config)} for key in sorted(keys)}
     path = write_text(folder / "evaluation_index.json", json.dumps(index, indent=1) + "\n")
     return path, chunks
@@ -215,27 +246,50 @@ def train_tiny(config: DemoConfig, folder: Path) -> dict:
     from ..train import latest_checkpoint, override, train_preset
 
     size = config.image_size
-    base = train_preset("tiny", out_dir=str(folder), seed=config.seed, val_every=0, image_every=0, steps=config.steps,
-                        log_every=1, keep_checkpoints=2, checkpoint_every=max(1, min(CHECKPOINT_EVERY, config.steps)))
-    train_config = override(base, {"data.image_shape": [size, size], "data.synthetic_length": config.train_scenes,
-                                   "loss.lpips_weight": 0.0})
+    base = train_preset(
+        "tiny",
+        out_dir=str(folder),
+        seed=config.seed,
+        val_every=0,
+        image_every=0,
+        steps=config.steps,
+        log_every=1,
+        keep_checkpoints=2,
+        checkpoint_every=max(1, min(CHECKPOINT_EVERY, config.steps)),
+    )
+    train_config = override(
+        base, {"data.image_shape": [size, size], "data.synthetic_length": config.train_scenes, "loss.lpips_weight": 0.0}
+    )
     limit = config.train_seconds + START_SECONDS
-    _say(f"training the tiny preset for {config.steps} steps on {config.train_scenes} synthetic rooms at {size}x{size} "
-         f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed; stopped after {limit / 60:.1f} min at the latest) -> {folder}")
+    _say(
+        f"training the tiny preset for {config.steps} steps on {config.train_scenes} synthetic rooms at {size}x{size} "
+        f"(MSE loss; lambda_lpips = 0, LPIPS weights are not needed; stopped after {limit / 60:.1f} min at the latest) -> {folder}"
+    )
     t0 = time.perf_counter()
     stopped_early = _fit_with_deadline(train_config, limit)
     seconds = time.perf_counter() - t0
     checkpoint = latest_checkpoint(folder)
     if checkpoint is None:
-        raise SurfSplatInputError(f"{folder}: training wrote no checkpoint within {limit:.0f} s; give a larger --train-minutes")
+        raise SurfSplatInputError(
+            f"{folder}: training wrote no checkpoint within {limit:.0f} s; give a larger --train-minutes"
+        )
     done = int(checkpoint.name.split("-")[1])
     losses = read_losses(folder / "metrics.jsonl", done)
     if stopped_early:
-        _say(f"the time limit stopped training after {seconds:.0f} s; continuing with the checkpoint of step {done} of {config.steps}")
+        _say(
+            f"the time limit stopped training after {seconds:.0f} s; continuing with the checkpoint of step {done} of {config.steps}"
+        )
     return {
-        "steps": done, "planned_steps": config.steps, "stopped_by_deadline": stopped_early, "seconds": seconds,
-        "first_loss": losses[0][1] if losses else None, "final_loss": losses[-1][1] if losses else None,
-        "losses": losses, "checkpoint": checkpoint, "image_size": size, "scenes": config.train_scenes,
+        "steps": done,
+        "planned_steps": config.steps,
+        "stopped_by_deadline": stopped_early,
+        "seconds": seconds,
+        "first_loss": losses[0][1] if losses else None,
+        "final_loss": losses[-1][1] if losses else None,
+        "losses": losses,
+        "checkpoint": checkpoint,
+        "image_size": size,
+        "scenes": config.train_scenes,
     }
 
 
@@ -289,8 +343,12 @@ def write_training_curve(losses: list[tuple[int, float]], path: Path) -> Path:
 
     points = [(s + 1, v) for s, v in losses]
     window = max(1, len(points) // 20)
-    svg = line_chart({"loss (MSE)": points, f"moving average ({window} steps)": smooth(points, window)},
-                     title="Training loss", y_label="loss", log_y=True)
+    svg = line_chart(
+        {"loss (MSE)": points, f"moving average ({window} steps)": smooth(points, window)},
+        title="Training loss",
+        y_label="loss",
+        log_y=True,
+    )
     return write_text(path, svg)
 
 
@@ -316,7 +374,9 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
         raise SurfSplatInputError(f"{index_path}: no evaluation entry found in {data_dir}")
     native = native_truth(config, samples, factors)
 
-    _say(f"evaluating {len(samples)} rooms x {len(samples[0].target_views)} target views at x{', x'.join(map(str, factors))}")
+    _say(
+        f"evaluating {len(samples)} rooms x {len(samples[0].target_views)} target views at x{', x'.join(map(str, factors))}"
+    )
     metrics, tables, keep = {}, {}, {}
     for name, model in models.items():
         upsampled = HrrcEvaluator(lpips, HrrcConfig(factors=factors, upsample="bicubic"))
@@ -340,7 +400,10 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
     figures = write_figures(config, samples, keep, native, out / "figures")
     table = format_hrrc_table(tables)
     return {
-        "metrics": metrics, "table": table, "figures": figures, "samples": samples,
+        "metrics": metrics,
+        "table": table,
+        "figures": figures,
+        "samples": samples,
         "lpips": None if not isinstance(lpips, Exception) else str(lpips),
         "scene0": (keep[0], trained),
     }
@@ -352,7 +415,9 @@ def native_truth(config: DemoConfig, samples, factors) -> list[dict[int, dict[st
     from ..data.synthetic import SyntheticDataset, SyntheticDatasetConfig, render_synthetic
 
     size = config.image_size
-    dataset = SyntheticDataset(SyntheticDatasetConfig(length=config.eval_scenes, seed=EVAL_SEED, image_shape=(size, size)))
+    dataset = SyntheticDataset(
+        SyntheticDatasetConfig(length=config.eval_scenes, seed=EVAL_SEED, image_shape=(size, size))
+    )
     positions = torch.linspace(0, 1, config.eval_frames, dtype=torch.float64)
     out = []
     for sample in tqdm(samples, desc="ray-cast native truth", unit="room", dynamic_ncols=True, leave=False):
@@ -378,7 +443,9 @@ def write_figures(config: DemoConfig, samples, predictions: dict, native, folder
         tag = f"room{k}"
         entry: dict = {"key": sample.key, "context": [], "rows": []}
         for c in range(sample.context_images.shape[0]):
-            entry["context"].append(str(write_png(folder / f"{tag}_context{c}.png", sample.context_images[c]).relative_to(folder.parent)))
+            entry["context"].append(
+                str(write_png(folder / f"{tag}_context{c}.png", sample.context_images[c]).relative_to(folder.parent))
+            )
         # One depth colour scale for every resolution: the true depth range of the x1 view.
         true_depth = native[k][1]["depth"][0]
         d_lo, d_hi = float(true_depth[true_depth > 0].min()), float(true_depth.max())
@@ -393,16 +460,37 @@ def write_figures(config: DemoConfig, samples, predictions: dict, native, folder
             files = {
                 "truth": write_png(folder / f"{tag}_x{s}_truth.png", native[k][s]["image"][v]),
                 "render": write_png(folder / f"{tag}_x{s}_render.png", r.color[v]),
-                "depth": write_png(folder / f"{tag}_x{s}_depth.png", colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi)),
+                "depth": write_png(
+                    folder / f"{tag}_x{s}_depth.png", colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi)
+                ),
                 "normal": write_png(folder / f"{tag}_x{s}_normal.png", normal_to_rgb(r.normal[v])),
-                "truth depth": write_png(folder / f"{tag}_x{s}_truth_depth.png", colorize_depth(native[k][s]["depth"][v], None, near=d_lo, far=d_hi)),
-                "truth normal": write_png(folder / f"{tag}_x{s}_truth_normal.png", normal_to_rgb(native[k][s]["normal"][v])),
+                "truth depth": write_png(
+                    folder / f"{tag}_x{s}_truth_depth.png",
+                    colorize_depth(native[k][s]["depth"][v], None, near=d_lo, far=d_hi),
+                ),
+                "truth normal": write_png(
+                    folder / f"{tag}_x{s}_truth_normal.png", normal_to_rgb(native[k][s]["normal"][v])
+                ),
             }
-            entry["rows"].append({"factor": s, "size": r.color.shape[-1], **{key: str(p.relative_to(folder.parent)) for key, p in files.items()}})
-            grid_rows.append([native[k][s]["image"][v], r.color[v], colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi),
-                              normal_to_rgb(r.normal[v])])
+            entry["rows"].append(
+                {
+                    "factor": s,
+                    "size": r.color.shape[-1],
+                    **{key: str(p.relative_to(folder.parent)) for key, p in files.items()},
+                }
+            )
+            grid_rows.append(
+                [
+                    native[k][s]["image"][v],
+                    r.color[v],
+                    colorize_depth(r.depth[v], shown[s], near=d_lo, far=d_hi),
+                    normal_to_rgb(r.normal[v]),
+                ]
+            )
         top = config.image_size * max(config.factors)
-        entry["grid"] = str(write_png(folder / f"{tag}_grid.png", image_grid(grid_rows, size=(top, top))).relative_to(folder.parent))
+        entry["grid"] = str(
+            write_png(folder / f"{tag}_grid.png", image_grid(grid_rows, size=(top, top))).relative_to(folder.parent)
+        )
         figures.append(entry)
     return figures
 
@@ -415,18 +503,40 @@ def export_demo_scene(config: DemoConfig, scene, folder: Path) -> dict[str, Path
     pred, model = scene
     sample = pred.sample
     options = ExportOptions(
-        scale=2.0, path_frames=config.video_frames, turntable_frames=config.video_frames, turntable_degrees=24.0,
-        fps=12.0, mesh_resolution=config.mesh_resolution, mode="surfel", alpha_threshold=model.adapter.alpha_threshold(),
+        scale=2.0,
+        path_frames=config.video_frames,
+        turntable_frames=config.video_frames,
+        turntable_degrees=24.0,
+        fps=12.0,
+        mesh_resolution=config.mesh_resolution,
+        mode="surfel",
+        alpha_threshold=model.adapter.alpha_threshold(),
     )
     _say(f"exporting room {sample.scene}: surfels, videos ({config.video_frames} frames), mesh -> {folder}")
     size = config.image_size
-    return export_reconstruction(pred.gaussians, sample.context_cameras, size, size, folder, options,
-                                 names=[f"context{i}" for i in range(len(sample.context_cameras))], near=0.5, far=15.0)
+    return export_reconstruction(
+        pred.gaussians,
+        sample.context_cameras,
+        size,
+        size,
+        folder,
+        options,
+        names=[f"context{i}" for i in range(len(sample.context_cameras))],
+        near=0.5,
+        far=15.0,
+    )
 
 
 # ----------------------------------------------------------------------------------------------- report
-def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: dict, exports: dict[str, Path],
-                      curve: Path, phases: list[Phase]) -> Path:
+def write_demo_report(
+    config: DemoConfig,
+    out: Path,
+    train: dict,
+    evaluation: dict,
+    exports: dict[str, Path],
+    curve: Path,
+    phases: list[Phase],
+) -> Path:
     from ..export.report import HtmlReport
 
     rel = lambda p: str(Path(p).resolve().relative_to(out.resolve()))  # noqa: E731 - a one-line path helper
@@ -440,14 +550,25 @@ def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: di
         "scene ray-cast natively at the higher resolution (exact, available for synthetic scenes only)."
     )
     if train["stopped_by_deadline"]:
-        report.paragraph(f"Training was stopped by its time limit at step {train['steps']} of the {train['planned_steps']} "
-                         "planned (a slow or busy machine); the learning-rate schedule did not finish.", note=True)
+        report.paragraph(
+            f"Training was stopped by its time limit at step {train['steps']} of the {train['planned_steps']} "
+            "planned (a slow or busy machine); the learning-rate schedule did not finish.",
+            note=True,
+        )
     if evaluation["lpips"] is not None:
         report.paragraph(evaluation["lpips"], note=True)
     report.heading("Metrics")
     factors = config.factors
-    header = ["Model", "Resolution", "PSNR (bicubic GT)", "SSIM (bicubic GT)", "LPIPS (bicubic GT)",
-              "PSNR (native GT)", "SSIM (native GT)", "Coverage (alpha > 0.5)"]
+    header = [
+        "Model",
+        "Resolution",
+        "PSNR (bicubic GT)",
+        "SSIM (bicubic GT)",
+        "LPIPS (bicubic GT)",
+        "PSNR (native GT)",
+        "SSIM (native GT)",
+        "Coverage (alpha > 0.5)",
+    ]
     rows = []
     for name, m in evaluation["metrics"].items():
         up = m["vs_bicubic_upsampled_truth"]
@@ -458,25 +579,35 @@ def write_demo_report(config: DemoConfig, out: Path, train: dict, evaluation: di
         avg = up["average"]
         rows.append([name, "average", avg["psnr"], avg["ssim"], avg["lpips"], None, None, None])
     report.table("Standard and HRRC metrics (means over target views)", header, rows)
-    report.paragraph("Coverage is the share of pixels whose accumulated alpha exceeds 0.5. Forced alpha blending "
-                     "divides colour, depth and normals by alpha wherever alpha >= 0.001 (paper Sec. 3.4), so a "
-                     "render can look complete while its surfels leave gaps between them at higher resolutions.")
+    report.paragraph(
+        "Coverage is the share of pixels whose accumulated alpha exceeds 0.5. Forced alpha blending "
+        "divides colour, depth and normals by alpha wherever alpha >= 0.001 (paper Sec. 3.4), so a "
+        "render can look complete while its surfels leave gaps between them at higher resolutions."
+    )
     report.paragraph("The same numbers in the paper's table layout:")
     report.preformatted(evaluation["table"])
 
     report.heading("Renders at x1, x2, x4")
-    report.paragraph("Each row: native ground truth, render, rendered depth, rendered normals; all shown at the "
-                     "same size, so the x1 row shows its pixels and the x4 row the detail a continuous surface keeps.")
+    report.paragraph(
+        "Each row: native ground truth, render, rendered depth, rendered normals; all shown at the "
+        "same size, so the x1 row shows its pixels and the x4 row the detail a continuous surface keeps."
+    )
     for fig in evaluation["figures"]:
         report.paragraph(f"Held-out room {fig['key']}; context views:")
         report.figure_row([(p, f"context {i}") for i, p in enumerate(fig["context"])], width=160, pixelated=True)
         for row in fig["rows"]:
             s = row["factor"]
             report.figure_row(
-                [(row["truth"], f"truth {row['size']} px (x{s})"), (row["render"], f"render x{s}"),
-                 (row["depth"], f"depth x{s}"), (row["normal"], f"normal x{s}"),
-                 (row["truth depth"], f"true depth x{s}"), (row["truth normal"], f"true normal x{s}")],
-                width=160, pixelated=True,
+                [
+                    (row["truth"], f"truth {row['size']} px (x{s})"),
+                    (row["render"], f"render x{s}"),
+                    (row["depth"], f"depth x{s}"),
+                    (row["normal"], f"normal x{s}"),
+                    (row["truth depth"], f"true depth x{s}"),
+                    (row["truth normal"], f"true normal x{s}"),
+                ],
+                width=160,
+                pixelated=True,
             )
         report.figure(fig["grid"], "grid: truth | render | depth | normal, rows x1, x2, x4", width=640, pixelated=True)
 

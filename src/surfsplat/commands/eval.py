@@ -21,34 +21,68 @@ from ..checks import SurfSplatInputError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     which = parser.add_argument_group("models")
-    which.add_argument("--checkpoint", help="our checkpoint (run folder, checkpoint folder, model.safetensors) or a release .ckpt/.pth")
-    which.add_argument("--compare", nargs="+", metavar="[NAME=]CKPT[:field=value,...]", default=None,
-                       help="several checkpoints or adapter ablations side by side (e.g. 'w/o FAB=runs/x:opacity_max=1.0')")
+    which.add_argument(
+        "--checkpoint", help="our checkpoint (run folder, checkpoint folder, model.safetensors) or a release .ckpt/.pth"
+    )
+    which.add_argument(
+        "--compare",
+        nargs="+",
+        metavar="[NAME=]CKPT[:field=value,...]",
+        default=None,
+        help="several checkpoints or adapter ablations side by side (e.g. 'w/o FAB=runs/x:opacity_max=1.0')",
+    )
     which.add_argument("--preset", default="small", help="encoder preset of release checkpoints")
-    which.add_argument("--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters")
+    which.add_argument(
+        "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
+    )
     data = parser.add_argument_group("data")
     data.add_argument("--data", nargs="+", required=True, type=Path, help="chunk folders (*.torch + index.json)")
-    data.add_argument("--index", required=True, type=Path, help="evaluation index JSON (context/target views per scene)")
-    data.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=None,
-                      help="rescale and centre-crop views to H x W first (the release uses 256 256 for RE10K)")
+    data.add_argument(
+        "--index", required=True, type=Path, help="evaluation index JSON (context/target views per scene)"
+    )
+    data.add_argument(
+        "--size",
+        nargs=2,
+        type=int,
+        metavar=("H", "W"),
+        default=None,
+        help="rescale and centre-crop views to H x W first (the release uses 256 256 for RE10K)",
+    )
     data.add_argument("--near", type=float, default=0.5, help="near depth bound (RealEstate10K: 0.5)")
     data.add_argument("--far", type=float, default=100.0, help="far depth bound (RealEstate10K: 100)")
     data.add_argument("--max-entries", type=int, default=None, help="evaluate only the first N entries")
     metric = parser.add_argument_group("metrics")
-    metric.add_argument("--hrrc-upsample", choices=("bicubic", "bilinear"), default="bicubic",
-                        help="HRRC ground-truth upsampling: bicubic (the paper) or bilinear (the release's code)")
+    metric.add_argument(
+        "--hrrc-upsample",
+        choices=("bicubic", "bilinear"),
+        default="bicubic",
+        help="HRRC ground-truth upsampling: bicubic (the paper) or bilinear (the release's code)",
+    )
     metric.add_argument("--factors", nargs="+", type=int, default=[1, 2, 4], help="render scales (1 = standard)")
-    metric.add_argument("--mode", choices=("auto", "surfel", "ewa"), default="auto", help="rasterization (auto follows the adapter)")
+    metric.add_argument(
+        "--mode", choices=("auto", "surfel", "ewa"), default="auto", help="rasterization (auto follows the adapter)"
+    )
     metric.add_argument("--lpips-vgg", default=None, help="torchvision's vgg16-397923af.pth")
     metric.add_argument("--lpips-lin", default=None, help="the lpips package's v0.1 vgg.pth")
-    parser.add_argument("--out", type=Path, default=Path("outputs/eval"), help="folder for metrics.json, per_scene.csv, table.txt")
+    parser.add_argument(
+        "--out", type=Path, default=Path("outputs/eval"), help="folder for metrics.json, per_scene.csv, table.txt"
+    )
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     parser.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..data.eval_index import EvaluationIndex
-    from ..evaluate import EvalConfig, ModelSpec, SampleCounts, evaluate, format_results, iter_index_samples, load_model, write_results
+    from ..evaluate import (
+        EvalConfig,
+        ModelSpec,
+        SampleCounts,
+        evaluate,
+        format_results,
+        iter_index_samples,
+        load_model,
+        write_results,
+    )
     from ..metrics.lpips import try_load_lpips
     from .reconstruct import _device
 
@@ -67,8 +101,13 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--size: expected positive H W, got {args.size}")
     if args.max_entries is not None and args.max_entries < 1:
         raise SurfSplatInputError(f"--max-entries: expected at least 1, got {args.max_entries}")
-    config = EvalConfig(factors=tuple(args.factors), upsample=args.hrrc_upsample, mode=args.mode,
-                        max_entries=args.max_entries, progress=not args.no_progress)
+    config = EvalConfig(
+        factors=tuple(args.factors),
+        upsample=args.hrrc_upsample,
+        mode=args.mode,
+        max_entries=args.max_entries,
+        progress=not args.no_progress,
+    )
     device = _device(args.device)
     models = [load_model(spec, device) for spec in specs]  # every checkpoint is read before the first scene runs
     names = [name for _, name in models]
@@ -80,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
     # before any model runs.
     counts = [SampleCounts() for _ in models]
     sample_sets = [
-        iter_index_samples(args.data, index, tuple(args.size) if args.size else None, args.near, args.far, args.max_entries, c)
+        iter_index_samples(
+            args.data, index, tuple(args.size) if args.size else None, args.near, args.far, args.max_entries, c
+        )
         for c in counts
     ]
     results = {}

@@ -55,8 +55,12 @@ class ExportOptions:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("ply", type=Path, help="surfels written by reconstruct (surfels.ply)")
-    parser.add_argument("--cameras", type=Path, required=True,
-                        help="the reconstruction's cameras.json, another JSON camera file, a COLMAP model or a scene folder")
+    parser.add_argument(
+        "--cameras",
+        type=Path,
+        required=True,
+        help="the reconstruction's cameras.json, another JSON camera file, a COLMAP model or a scene folder",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: beside the PLY)")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=["ply", "video", "mesh"], help="what to write")
     add_export_arguments(parser)
@@ -70,17 +74,32 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--degrees", type=float, default=30.0, help="total sweep of the turntable")
     group.add_argument("--fps", type=float, default=24.0)
     group.add_argument("--mesh-resolution", type=int, default=128, help="TSDF voxels along the longest side")
-    group.add_argument("--mode", choices=("surfel", "ewa"), default=None, help="rasterization (default: surfel; ewa for 3DGS-layout files)")
-    group.add_argument("--alpha-threshold", type=float, default=0.001,
-                       help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off")
+    group.add_argument(
+        "--mode",
+        choices=("surfel", "ewa"),
+        default=None,
+        help="rasterization (default: surfel; ewa for 3DGS-layout files)",
+    )
+    group.add_argument(
+        "--alpha-threshold",
+        type=float,
+        default=0.001,
+        help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off",
+    )
     group.add_argument("--no-progress", action="store_true")
 
 
 def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: str) -> ExportOptions:
     return ExportOptions(
-        formats=formats, scale=args.scale, path_frames=args.frames, turntable_frames=args.frames,
-        turntable_degrees=args.degrees, fps=args.fps, mesh_resolution=args.mesh_resolution,
-        mode=args.mode or mode, progress=not args.no_progress,
+        formats=formats,
+        scale=args.scale,
+        path_frames=args.frames,
+        turntable_frames=args.frames,
+        turntable_degrees=args.degrees,
+        fps=args.fps,
+        mesh_resolution=args.mesh_resolution,
+        mode=args.mode or mode,
+        progress=not args.no_progress,
         alpha_threshold=None if args.alpha_threshold < 0 else args.alpha_threshold,
     )
 
@@ -96,8 +115,18 @@ def run(args: argparse.Namespace) -> int:
     mode = "ewa" if gaussians.explicit_covariances is not None else "surfel"
     options = options_from_args(args, tuple(args.formats), mode)
     out = args.out or args.ply.parent
-    written = export_reconstruction(gaussians, cams.cameras.to(torch.float32), cams.width, cams.height, out, options,
-                                    names=cams.names, near=cams.near, far=cams.far, write_surfels="ply" in options.formats)
+    written = export_reconstruction(
+        gaussians,
+        cams.cameras.to(torch.float32),
+        cams.width,
+        cams.height,
+        out,
+        options,
+        names=cams.names,
+        near=cams.near,
+        far=cams.far,
+        write_surfels="ply" in options.formats,
+    )
     print_written(written)
     return 0
 
@@ -124,7 +153,7 @@ def export_reconstruction(
     """Write what people look at for one reconstruction; returns {what: path}. Each file is written
     under a temporary name and renamed, so an interrupted export leaves no half-written file."""
     from ..export.images import colorize_depth, normal_to_rgb, write_png
-    from ..export.mesh import mesh_from_renders, save_mesh, TsdfConfig
+    from ..export.mesh import TsdfConfig, mesh_from_renders, save_mesh
     from ..export.paths import focus_point, interpolate_cameras, save_cameras, turntable
     from ..export.ply import save_ply
     from ..export.video import video_unavailable, write_video
@@ -175,8 +204,12 @@ def export_reconstruction(
         views = [context] + ([path] if path is not None else [])
         fuse_cams = cameras if path_cams is None else _cat_cameras(cameras, path_cams)
         mesh = mesh_from_renders(
-            torch.cat([v.depth for v in views]), torch.cat([v.alpha for v in views]), torch.cat([v.color for v in views]),
-            fuse_cams.scaled(s), TsdfConfig(resolution=options.mesh_resolution), min_alpha=tau,
+            torch.cat([v.depth for v in views]),
+            torch.cat([v.alpha for v in views]),
+            torch.cat([v.color for v in views]),
+            fuse_cams.scaled(s),
+            TsdfConfig(resolution=options.mesh_resolution),
+            min_alpha=tau,
         )
         written["mesh (TSDF fusion)"] = save_mesh(mesh, out / "mesh.ply")
     return written
@@ -196,8 +229,14 @@ def render_frames(gaussians, cameras, width: int, height: int, options: ExportOp
     from ..render import render
 
     outs = []
-    for i in tqdm(range(len(cameras)), desc=f"render {what}", unit="frame", disable=not options.progress or len(cameras) < 4,
-                  dynamic_ncols=True, leave=False):
+    for i in tqdm(
+        range(len(cameras)),
+        desc=f"render {what}",
+        unit="frame",
+        disable=not options.progress or len(cameras) < 4,
+        dynamic_ncols=True,
+        leave=False,
+    ):
         r = render(gaussians, cameras[i], width, height, mode=options.mode, alpha_threshold=options.alpha_threshold)
         outs.append(r)
     return Frames(*(torch.cat([getattr(r, k) for r in outs]).cpu() for k in ("color", "alpha", "depth", "normal")))

@@ -25,18 +25,35 @@ from .export import FORMATS, add_export_arguments, export_reconstruction, option
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", required=True,
-                        help="our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth")
+    parser.add_argument(
+        "--checkpoint",
+        required=True,
+        help="our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
+    )
     parser.add_argument("--images", nargs="+", required=True, type=Path, help="two or more context images")
     parser.add_argument("--cameras", required=True, type=Path, help="JSON camera file, COLMAP model or scene folder")
     parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
-    parser.add_argument("--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)")
-    parser.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=None,
-                        help="network input size (multiples of 16; default: the largest crop of the images)")
-    parser.add_argument("--near", type=float, default=None, help="nearest scene depth (default: from the cameras, else 0.5)")
-    parser.add_argument("--far", type=float, default=None, help="farthest scene depth (default: from the cameras, else 100)")
+    parser.add_argument(
+        "--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)"
+    )
+    parser.add_argument(
+        "--size",
+        nargs=2,
+        type=int,
+        metavar=("H", "W"),
+        default=None,
+        help="network input size (multiples of 16; default: the largest crop of the images)",
+    )
+    parser.add_argument(
+        "--near", type=float, default=None, help="nearest scene depth (default: from the cameras, else 0.5)"
+    )
+    parser.add_argument(
+        "--far", type=float, default=None, help="farthest scene depth (default: from the cameras, else 100)"
+    )
     parser.add_argument("--preset", default="small", help="encoder preset of a release checkpoint")
-    parser.add_argument("--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters")
+    parser.add_argument(
+        "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
+    )
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
@@ -51,11 +68,15 @@ def run(args: argparse.Namespace) -> int:
 
     # ---- validate every input before any heavy work
     if len(args.images) < 2:
-        raise SurfSplatInputError(f"--images: the model matches views, expected at least 2 images, got {len(args.images)}")
+        raise SurfSplatInputError(
+            f"--images: the model matches views, expected at least 2 images, got {len(args.images)}"
+        )
     for path in args.images:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: image file not found")
-    cams = load_cameras(args.cameras, images=args.images_folder).select([p.name for p in args.images], str(args.cameras))
+    cams = load_cameras(args.cameras, images=args.images_folder).select(
+        [p.name for p in args.images], str(args.cameras)
+    )
     images = []
     for path in args.images:
         rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))
@@ -63,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     sizes = {tuple(im.shape[1:]) for im in images}
     if len(sizes) != 1:
         raise SurfSplatInputError(f"--images: all images must have one size, got {sorted(sizes)}")
-    (height, width), = sizes
+    ((height, width),) = sizes
     K = cams.resized(width, height, str(args.cameras)).K
     near, far = _depth_range(args, cams)
     device = _device(args.device)
@@ -81,21 +102,39 @@ def run(args: argparse.Namespace) -> int:
         prediction = model(stack[None].clamp(0, 1).to(device), cameras.to(device), near, far)
     seconds = time.perf_counter() - start
     gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
-    print(f"{label}: {len(gaussians):,} surfels from {len(args.images)} views at {shape[1]}x{shape[0]} in {seconds:.2f} s")
+    print(
+        f"{label}: {len(gaussians):,} surfels from {len(args.images)} views at {shape[1]}x{shape[0]} in {seconds:.2f} s"
+    )
 
     from ..model.decoder import decoder_mode
 
     mode = decoder_mode(model.cfg.adapter)
     options = options_from_args(args, tuple(args.formats), mode)
     options = dataclasses.replace(options, alpha_threshold=prediction.alpha_threshold)
-    written = export_reconstruction(gaussians, cameras, shape[1], shape[0], args.out, options,
-                                    names=[p.name for p in args.images], near=near, far=far)
+    written = export_reconstruction(
+        gaussians,
+        cameras,
+        shape[1],
+        shape[0],
+        args.out,
+        options,
+        names=[p.name for p in args.images],
+        near=near,
+        far=far,
+    )
     from ..export.figures import write_text
 
     summary = {
-        "checkpoint": str(args.checkpoint), "model": label, "images": [str(p) for p in args.images],
-        "size": list(shape), "near": near, "far": far, "surfels": len(gaussians), "seconds_forward": seconds,
-        "render_mode": mode, "alpha_threshold": prediction.alpha_threshold,
+        "checkpoint": str(args.checkpoint),
+        "model": label,
+        "images": [str(p) for p in args.images],
+        "size": list(shape),
+        "near": near,
+        "far": far,
+        "surfels": len(gaussians),
+        "seconds_forward": seconds,
+        "render_mode": mode,
+        "alpha_threshold": prediction.alpha_threshold,
         "files": {k: str(v) for k, v in written.items()},
     }
     written["summary"] = write_text(args.out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")

@@ -25,12 +25,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("ply", type=Path, help="surfels (2DGS or 3DGS layout PLY)")
     parser.add_argument("--cameras", type=Path, required=True, help="JSON camera file, COLMAP model or scene folder")
     parser.add_argument("--scale", type=float, default=1.0, help="resolution factor over the cameras' image size")
-    parser.add_argument("--views", nargs="+", type=int, default=None, help="indices of the cameras to render (default: all)")
+    parser.add_argument(
+        "--views", nargs="+", type=int, default=None, help="indices of the cameras to render (default: all)"
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/render"), help="output folder")
-    parser.add_argument("--mode", choices=("surfel", "ewa"), default=None,
-                        help="rasterization (default: surfel; ewa for files carrying 3D covariances)")
-    parser.add_argument("--alpha-threshold", type=float, default=0.001,
-                        help="forced alpha blending tau (paper Sec. 3.4); a negative value turns it off")
+    parser.add_argument(
+        "--mode",
+        choices=("surfel", "ewa"),
+        default=None,
+        help="rasterization (default: surfel; ewa for files carrying 3D covariances)",
+    )
+    parser.add_argument(
+        "--alpha-threshold",
+        type=float,
+        default=0.001,
+        help="forced alpha blending tau (paper Sec. 3.4); a negative value turns it off",
+    )
     parser.add_argument("--background", nargs=3, type=float, default=[0.0, 0.0, 0.0], metavar=("R", "G", "B"))
     parser.add_argument("--images-folder", default=None, help="image folder of a scene folder given as --cameras")
 
@@ -59,8 +69,15 @@ def run(args: argparse.Namespace) -> int:
     if width < 1 or height < 1:
         raise SurfSplatInputError(f"--scale: {args.scale} gives an empty {width}x{height} image")
     cameras = cams.cameras.to(torch.float32).scaled(args.scale)
-    report = {"ply": str(args.ply), "surfels": len(gaussians), "mode": mode, "scale": args.scale,
-              "width": width, "height": height, "views": []}
+    report = {
+        "ply": str(args.ply),
+        "surfels": len(gaussians),
+        "mode": mode,
+        "scale": args.scale,
+        "width": width,
+        "height": height,
+        "views": [],
+    }
     for v in tqdm(views, desc=f"render x{args.scale:g}", unit="view", disable=len(views) < 2, dynamic_ncols=True):
         start = time.perf_counter()
         with torch.no_grad():

@@ -39,8 +39,14 @@ def run(args: argparse.Namespace) -> int:
         size = round(args.resolution * s)
         t = time.perf_counter()
         with torch.no_grad():
-            r = render(scene.gaussians, scene.target.scaled(size / args.resolution), size, size,
-                       mode=args.mode, backend=args.backend)
+            r = render(
+                scene.gaussians,
+                scene.target.scaled(size / args.resolution),
+                size,
+                size,
+                mode=args.mode,
+                backend=args.backend,
+            )
         seconds = time.perf_counter() - t
         tag = f"x{s:g}"
         write_png(out / f"color_{tag}.png", r.color[0])

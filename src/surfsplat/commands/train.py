@@ -57,10 +57,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_argument_group("what to train")
     source.add_argument("--preset", choices=sorted(TRAIN_PRESETS), help="start from a preset configuration")
     source.add_argument("--config", help="start from a JSON configuration (e.g. a run's config.json)")
-    source.add_argument("--resume", nargs="?", const="latest", default=None, metavar="CHECKPOINT",
-                        help="continue a run: its newest checkpoint under --out, or the given checkpoint folder")
-    source.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                        help="override any field by dotted path, VALUE in JSON (repeatable)")
+    source.add_argument(
+        "--resume",
+        nargs="?",
+        const="latest",
+        default=None,
+        metavar="CHECKPOINT",
+        help="continue a run: its newest checkpoint under --out, or the given checkpoint folder",
+    )
+    source.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any field by dotted path, VALUE in JSON (repeatable)",
+    )
     common = parser.add_argument_group("common overrides")
     common.add_argument("--out", help="output folder (checkpoints/, tensorboard/, metrics.jsonl)")
     common.add_argument("--steps", type=int, help="total optimizer steps")
@@ -68,9 +79,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--seed", type=int)
     common.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"))
     common.add_argument("--device", choices=("auto", "cpu", "cuda"))
-    common.add_argument("--render-backend", choices=BACKENDS,
-                        help="renderer of the training views (auto: gsplat on CUDA, the compiled one on CPU)")
-    common.add_argument("--cpu-threads", type=int, help="CPU threads per rank (torch and the compiled renderer; 0: defaults)")
+    common.add_argument(
+        "--render-backend",
+        choices=BACKENDS,
+        help="renderer of the training views (auto: gsplat on CUDA, the compiled one on CPU)",
+    )
+    common.add_argument(
+        "--cpu-threads", type=int, help="CPU threads per rank (torch and the compiled renderer; 0: defaults)"
+    )
     common.add_argument("--dataset", choices=("synthetic", "chunks"))
     common.add_argument("--roots", nargs="+", help="training chunk folders")
     common.add_argument("--val-roots", nargs="+", help="held-out chunk folders for validation")
@@ -79,7 +95,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--num-workers", type=int, help="data-loader workers per rank")
     common.add_argument("--lr", type=float, help="peak learning rate (all but the ViT)")
     common.add_argument("--vit-lr", type=float, help="peak learning rate of the pretrained ViT")
-    common.add_argument("--lpips-weight", type=float, help="lambda of the LPIPS term (0: MSE only, no VGG files needed)")
+    common.add_argument(
+        "--lpips-weight", type=float, help="lambda of the LPIPS term (0: MSE only, no VGG files needed)"
+    )
     common.add_argument("--lpips-vgg", help="torchvision's vgg16-397923af.pth")
     common.add_argument("--lpips-lin", help="the lpips package's v0.1 vgg.pth")
     common.add_argument("--checkpoint-every", type=int)
@@ -144,7 +162,9 @@ def run(args: argparse.Namespace) -> int:
     if result.rank != 0:
         return 0  # rank 0 reports for the whole run
     if result.losses:
-        print(f"trained steps {result.start_step}..{result.step}: loss {result.losses[0][1]:.5f} -> {result.losses[-1][1]:.5f}")
+        print(
+            f"trained steps {result.start_step}..{result.step}: loss {result.losses[0][1]:.5f} -> {result.losses[-1][1]:.5f}"
+        )
     for step, metrics in sorted(result.validation.items()):
         shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k != "num_images")
         print(f"validation at step {step} ({int(metrics['num_images'])} images): {shown}")

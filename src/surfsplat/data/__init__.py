@@ -12,7 +12,13 @@ from .load import detect_format, load_scene
 from .scene import Scene
 from .synthetic import SyntheticDataset, SyntheticDatasetConfig, make_scene, render_synthetic, write_synthetic_chunks
 from .transforms import center_crop, horizontal_flip, rescale_and_crop, resize_views
-from .view_sampler import BoundedViewSampler, BoundedViewSamplerConfig, EvaluationViewSampler, NotEnoughViews, StepCounter
+from .view_sampler import (
+    BoundedViewSampler,
+    BoundedViewSamplerConfig,
+    EvaluationViewSampler,
+    NotEnoughViews,
+    StepCounter,
+)
 
 __all__ = [
     "BoundedViewSampler",

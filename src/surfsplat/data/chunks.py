@@ -46,7 +46,12 @@ def validate_example(example: object, source: str) -> Example:
     if not isinstance(example["key"], str) or not example["key"]:
         raise SurfSplatInputError(f"{where}: field 'key' must be a non-empty string")
     cameras = example["cameras"]
-    if not isinstance(cameras, Tensor) or cameras.ndim != 2 or cameras.shape[1] != 18 or not cameras.is_floating_point():
+    if (
+        not isinstance(cameras, Tensor)
+        or cameras.ndim != 2
+        or cameras.shape[1] != 18
+        or not cameras.is_floating_point()
+    ):
         shape = tuple(cameras.shape) if isinstance(cameras, Tensor) else type(cameras).__name__
         raise SurfSplatInputError(f"{where}: field 'cameras' must be a float tensor [V, 18], got {shape}")
     v = cameras.shape[0]
@@ -65,7 +70,9 @@ def validate_example(example: object, source: str) -> Example:
             raise SurfSplatInputError(f"{where}: field '{field}' must be a list of {v} byte tensors, got {n}")
         for i, item in enumerate(value):
             if not isinstance(item, Tensor) or item.dtype != torch.uint8 or item.ndim != 1 or item.numel() == 0:
-                raise SurfSplatInputError(f"{where}: {field}[{i}] must be a non-empty 1-D uint8 tensor of encoded bytes")
+                raise SurfSplatInputError(
+                    f"{where}: {field}[{i}] must be a non-empty 1-D uint8 tensor of encoded bytes"
+                )
     return example
 
 
@@ -124,7 +131,9 @@ def image_size(example: Example, view: int, source: str) -> tuple[int, int]:
     return image_bytes_size(example["images"][view], f"{source} ('{example['key']}') image {view}")
 
 
-def example_cameras(example: Example, width: int, height: int, source: str, dtype: torch.dtype = torch.float32) -> Cameras:
+def example_cameras(
+    example: Example, width: int, height: int, source: str, dtype: torch.dtype = torch.float32
+) -> Cameras:
     """All V cameras of an example with pixel K for width x height images."""
     return rows_to_cameras(example["cameras"].to(torch.float64), width, height, f"{source} ('{example['key']}')", dtype)
 
@@ -277,7 +286,9 @@ class ChunkWriter:
             self.abort()
 
 
-def write_chunks(examples: Iterable[Example], out_dir: str | Path, target_bytes: int = int(1e8), append: bool = False) -> dict[str, str]:
+def write_chunks(
+    examples: Iterable[Example], out_dir: str | Path, target_bytes: int = int(1e8), append: bool = False
+) -> dict[str, str]:
     """Write examples as chunks plus index.json (see ChunkWriter); returns the index."""
     with ChunkWriter(out_dir, target_bytes=target_bytes, append=append) as writer:
         for example in examples:

@@ -66,8 +66,15 @@ def _scene_dirs(src: Path, is_scene: Callable[[Path], bool], what: str) -> list[
 
 
 # ------------------------------------------------------------------------- single-scene formats
-def _scene_examples(fmt: str, dirs: list[Path], images: str | None, image_format: str, quality: int,
-                    report: ConvertReport, skip_bad: bool) -> Iterator[Example]:
+def _scene_examples(
+    fmt: str,
+    dirs: list[Path],
+    images: str | None,
+    image_format: str,
+    quality: int,
+    report: ConvertReport,
+    skip_bad: bool,
+) -> Iterator[Example]:
     for scene_dir in dirs:
         try:
             scene = load_scene(scene_dir, format=fmt, images=images)
@@ -76,12 +83,16 @@ def _scene_examples(fmt: str, dirs: list[Path], images: str | None, image_format
                 raise
             report.skipped.append(f"{scene_dir}: {err}")
             continue
-        yield scene_to_example(scene, key=scene_dir.name, url=str(scene_dir.name), image_format=image_format, quality=quality)
+        yield scene_to_example(
+            scene, key=scene_dir.name, url=str(scene_dir.name), image_format=image_format, quality=quality
+        )
 
 
 # ---------------------------------------------------------------------------------------- DL3DV
 def _is_dl3dv(path: Path) -> bool:
-    return path.is_dir() and ((path / "transforms.json").is_file() or (path / "nerfstudio" / "transforms.json").is_file())
+    return path.is_dir() and (
+        (path / "transforms.json").is_file() or (path / "nerfstudio" / "transforms.json").is_file()
+    )
 
 
 def _frame_number(file_path: str, source: str) -> int:
@@ -193,9 +204,16 @@ def convert(
         dirs = _scene_dirs(src, DETECTORS[fmt], fmt)
         examples: Iterator[Example] = _scene_examples(fmt, dirs, images, image_format, quality, report, skip_bad)
     elif fmt == "dl3dv":
-        examples = _raw_examples(_scene_dirs(src, _is_dl3dv, "DL3DV"), lambda d: (dl3dv_example(d, images or "images_8"), 0), report, skip_bad)
+        examples = _raw_examples(
+            _scene_dirs(src, _is_dl3dv, "DL3DV"),
+            lambda d: (dl3dv_example(d, images or "images_8"), 0),
+            report,
+            skip_bad,
+        )
     else:
-        examples = _raw_examples(_scene_dirs(src, _is_scannet, "ScanNet"), lambda d: scannet_example(d, frame_step), report, skip_bad)
+        examples = _raw_examples(
+            _scene_dirs(src, _is_scannet, "ScanNet"), lambda d: scannet_example(d, frame_step), report, skip_bad
+        )
     with ChunkWriter(out, target_bytes=target_bytes, append=append) as writer:
         for example in examples:
             writer.add(example)
@@ -206,8 +224,9 @@ def convert(
     return report
 
 
-def _raw_examples(dirs: list[Path], make: Callable[[Path], tuple[Example, int]], report: ConvertReport,
-                  skip_bad: bool) -> Iterator[Example]:
+def _raw_examples(
+    dirs: list[Path], make: Callable[[Path], tuple[Example, int]], report: ConvertReport, skip_bad: bool
+) -> Iterator[Example]:
     for d in dirs:
         try:
             example, dropped = make(d)
@@ -219,4 +238,3 @@ def _raw_examples(dirs: list[Path], make: Callable[[Path], tuple[Example, int]],
         if dropped:
             report.skipped.append(f"{d}: {dropped} frames with an invalid (inf/NaN) pose")
         yield example
-

@@ -175,7 +175,9 @@ class ChunkDataset(IterableDataset):
                 counter += 1
                 if not mine:
                     continue
-                yield from self._samples(path, examples[example_id], mix_seed(self.config.seed, epoch, chunk_id, example_id), summary)
+                yield from self._samples(
+                    path, examples[example_id], mix_seed(self.config.seed, epoch, chunk_id, example_id), summary
+                )
         if summary.num_skipped:
             logger.warning("%s shard %d/%d: %s", type(self).__name__, shard, num_shards, summary)
 
@@ -190,7 +192,10 @@ class ChunkDataset(IterableDataset):
             return
         fov = torch.rad2deg(2 * torch.atan(width / (2 * cameras.K[:, 0, 0])))
         if bool((fov > self.config.max_fov_deg).any()):
-            summary.skip("field of view too wide", f"{where}: field of view {float(fov.max()):.1f} deg > {self.config.max_fov_deg}")
+            summary.skip(
+                "field of view too wide",
+                f"{where}: field of view {float(fov.max()):.1f} deg > {self.config.max_fov_deg}",
+            )
             return
         num_views = len(cameras)
         if isinstance(self.sampler, EvaluationViewSampler):

@@ -54,7 +54,9 @@ class EvaluationIndex:
                 entries[key] = None
                 continue
             if not isinstance(value, dict):
-                raise SurfSplatInputError(f"{source}: entry '{key}' must be an object or null, got {type(value).__name__}")
+                raise SurfSplatInputError(
+                    f"{source}: entry '{key}' must be an object or null, got {type(value).__name__}"
+                )
             views = {}
             for field in ("context", "target"):
                 if field not in value:
@@ -65,7 +67,9 @@ class EvaluationIndex:
                     or not items
                     or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in items)
                 ):
-                    raise SurfSplatInputError(f"{source}: entry '{key}' field '{field}' must be a non-empty list of view indices >= 0, got {items!r}")
+                    raise SurfSplatInputError(
+                        f"{source}: entry '{key}' field '{field}' must be a non-empty list of view indices >= 0, got {items!r}"
+                    )
                 views[field] = tuple(items)
             unknown = set(value) - {"context", "target"}
             if unknown:

@@ -36,7 +36,9 @@ def list_images(folder: Path) -> list[Path]:
 def _to_array(image: Image.Image, source: str) -> np.ndarray:
     """Pillow image -> float32 array [H, W, C] in [0, 1] (C = 1, 3 or 4)."""
     if image.mode in ("I;16", "I;16B", "I;16L", "I"):
-        raise SurfSplatInputError(f"{source}: 16/32-bit single-channel image (mode {image.mode}); expected a colour image")
+        raise SurfSplatInputError(
+            f"{source}: 16/32-bit single-channel image (mode {image.mode}); expected a colour image"
+        )
     if image.mode == "P":
         image = image.convert("RGBA" if "transparency" in image.info else "RGB")
     elif image.mode in ("L", "LA", "RGB", "RGBA"):
@@ -60,7 +62,9 @@ def _decode(stream: io.BufferedIOBase | io.BytesIO, source: str) -> np.ndarray:
         raise SurfSplatInputError(f"{source}: cannot decode image ({type(err).__name__}: {err})") from None
 
 
-def _compose(arr: np.ndarray, background: tuple[float, float, float] | None, source: str) -> tuple[Tensor, Tensor | None]:
+def _compose(
+    arr: np.ndarray, background: tuple[float, float, float] | None, source: str
+) -> tuple[Tensor, Tensor | None]:
     """[H, W, C] array -> (rgb [3, H, W], alpha [1, H, W] or None)."""
     channels = arr.shape[2]
     alpha = None
@@ -72,7 +76,9 @@ def _compose(arr: np.ndarray, background: tuple[float, float, float] | None, sou
         rgb = rgb.expand(3, -1, -1).clone()
     if alpha is not None:
         if background is None:
-            raise SurfSplatInputError(f"{source}: image has an alpha channel; pass a background colour to composite it on")
+            raise SurfSplatInputError(
+                f"{source}: image has an alpha channel; pass a background colour to composite it on"
+            )
         bg = torch.tensor(background, dtype=rgb.dtype)[:, None, None]
         # Straight (non-premultiplied) alpha, as PNG stores it.
         rgb = rgb * alpha + bg * (1 - alpha)

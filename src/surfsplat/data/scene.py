@@ -73,7 +73,9 @@ class Scene:
         """The sub-scene of the given views, in the given order."""
         idx = torch.as_tensor(indices, dtype=torch.long)
         if idx.numel() and (int(idx.min()) < -len(self) or int(idx.max()) >= len(self)):
-            raise SurfSplatInputError(f"{self.source or 'scene'}: view index out of range for {len(self)} views: {idx.tolist()}")
+            raise SurfSplatInputError(
+                f"{self.source or 'scene'}: view index out of range for {len(self)} views: {idx.tolist()}"
+            )
 
         def pick(t: Tensor | None) -> Tensor | None:
             return None if t is None else t[idx]
@@ -132,4 +134,4 @@ def check_finite_rows(array: Tensor, source: str, what: str) -> None:
 def downscale_from_folder(folder: Path) -> bool:
     """Whether an image folder is a downscaled copy by naming convention (`images_4`, `images_8`, ...)."""
     name = folder.name
-    return name.startswith("images_") and name[len("images_"):].isdigit()
+    return name.startswith("images_") and name[len("images_") :].isdigit()

@@ -79,9 +79,9 @@ def center_crop(
     if h > H or w > W:
         raise SurfSplatInputError(f"size: crop {h}x{w} (HxW) is larger than the images ({H}x{W})")
     row, col = (H - h) // 2, (W - w) // 2
-    images = images[..., row:row + h, col:col + w]
+    images = images[..., row : row + h, col : col + w]
     if depths is not None:
-        depths = depths[..., row:row + h, col:col + w]
+        depths = depths[..., row : row + h, col : col + w]
     K = K.clone()
     K[..., 0, 2] -= col
     K[..., 1, 2] -= row

@@ -1,8 +1,8 @@
 """Pictures for reports: image grids and line charts, written without a plotting library.
 
-    grid = image_grid([[gt, render_x1], [depth, normal]], size=(128, 128))   # [3, 2*128+pad, ...]
-    write_png("grid.png", grid)
-    svg = line_chart({"loss": [(step, value), ...]}, log_y=True)             # an SVG document
+grid = image_grid([[gt, render_x1], [depth, normal]], size=(128, 128))   # [3, 2*128+pad, ...]
+write_png("grid.png", grid)
+svg = line_chart({"loss": [(step, value), ...]}, log_y=True)             # an SVG document
 """
 
 from __future__ import annotations
@@ -41,7 +41,9 @@ def image_grid(
         raise SurfSplatInputError("rows: expected at least one image")
     for k, im in enumerate(images):
         if not isinstance(im, Tensor) or im.ndim != 3 or im.shape[0] not in (1, 3):
-            raise SurfSplatInputError(f"rows: image {k} must be a [3 or 1, H, W] tensor, got {getattr(im, 'shape', type(im).__name__)}")
+            raise SurfSplatInputError(
+                f"rows: image {k} must be a [3 or 1, H, W] tensor, got {getattr(im, 'shape', type(im).__name__)}"
+            )
     if size is None:
         size = (max(im.shape[1] for im in images), max(im.shape[2] for im in images))
     h, w = size
@@ -68,10 +70,15 @@ def line_chart(
     size: tuple[int, int] = (640, 320),
 ) -> str:
     """An SVG line chart of named (x, y) series with axes, ticks and a legend."""
-    clean = {name: [(float(x), float(y)) for x, y in pts if math.isfinite(x) and math.isfinite(y) and (y > 0 or not log_y)] for name, pts in series.items()}
+    clean = {
+        name: [(float(x), float(y)) for x, y in pts if math.isfinite(x) and math.isfinite(y) and (y > 0 or not log_y)]
+        for name, pts in series.items()
+    }
     clean = {k: v for k, v in clean.items() if v}
     if not clean:
-        raise SurfSplatInputError("series: expected at least one finite point" + (" (log_y needs positive values)" if log_y else ""))
+        raise SurfSplatInputError(
+            "series: expected at least one finite point" + (" (log_y needs positive values)" if log_y else "")
+        )
     width, height = size
     left, right, top, bottom = 64, 16, 28 if title else 12, 40
     xs = [x for pts in clean.values() for x, _ in pts]
@@ -101,14 +108,18 @@ def line_chart(
     if title:
         parts.append(f'<text x="{width / 2}" y="16" text-anchor="middle" font-size="13">{html.escape(title)}</text>')
     for t in _ticks(x0, x1):
-        parts.append(f'<line x1="{px(t):.1f}" x2="{px(t):.1f}" y1="{height - bottom}" y2="{height - bottom + 4}" stroke="#888"/>')
+        parts.append(
+            f'<line x1="{px(t):.1f}" x2="{px(t):.1f}" y1="{height - bottom}" y2="{height - bottom + 4}" stroke="#888"/>'
+        )
         parts.append(f'<text x="{px(t):.1f}" y="{height - bottom + 16}" text-anchor="middle">{_fmt(t)}</text>')
     for t in _ticks(y0, y1):
         value = 10**t if log_y else t
         y = top + (1 - (t - y0) / (y1 - y0)) * (height - top - bottom)
         parts.append(f'<line x1="{left - 4}" x2="{width - right}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
         parts.append(f'<text x="{left - 6}" y="{y + 4:.1f}" text-anchor="end">{_fmt(value)}</text>')
-    parts.append(f'<text x="{(left + width - right) / 2}" y="{height - 6}" text-anchor="middle">{html.escape(x_label)}</text>')
+    parts.append(
+        f'<text x="{(left + width - right) / 2}" y="{height - 6}" text-anchor="middle">{html.escape(x_label)}</text>'
+    )
     if y_label:
         parts.append(
             f'<text x="14" y="{(top + height - bottom) / 2}" text-anchor="middle" '
@@ -119,7 +130,9 @@ def line_chart(
         coords = " ".join(f"{px(x):.1f},{py(y):.1f}" for x, y in pts)
         parts.append(f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" points="{coords}"/>')
         ly = top + 14 + 14 * k
-        parts.append(f'<line x1="{width - right - 120}" x2="{width - right - 100}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colour}" stroke-width="2"/>')
+        parts.append(
+            f'<line x1="{width - right - 120}" x2="{width - right - 100}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colour}" stroke-width="2"/>'
+        )
         parts.append(f'<text x="{width - right - 96}" y="{ly}">{html.escape(name)}</text>')
     parts.append("</svg>")
     return "\n".join(parts) + "\n"

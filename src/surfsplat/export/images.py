@@ -19,7 +19,9 @@ def to_uint8(image: Tensor) -> np.ndarray:
     return (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def colorize_depth(depth: Tensor, alpha: Tensor | None = None, near: float | None = None, far: float | None = None) -> Tensor:
+def colorize_depth(
+    depth: Tensor, alpha: Tensor | None = None, near: float | None = None, far: float | None = None
+) -> Tensor:
     """Depth [1, H, W] -> [3, H, W]: near yellow, far blue (inverse depth, robust range), black where empty."""
     d = depth.detach().float()[0]
     valid = d > 0 if alpha is None else (alpha.detach()[0] > 0.5) & (d > 0)

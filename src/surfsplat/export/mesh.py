@@ -76,7 +76,9 @@ def backproject(depths: Tensor, cameras: Cameras, valid: Tensor) -> Tensor:
     """World points [P, 3] (float64) of the valid pixels of depths [V, 1, H, W]."""
     v, _, h, w = depths.shape
     K_inv = torch.linalg.inv(cameras.K.to(torch.float64))
-    jj, ii = torch.meshgrid(torch.arange(w, dtype=torch.float64) + 0.5, torch.arange(h, dtype=torch.float64) + 0.5, indexing="xy")
+    jj, ii = torch.meshgrid(
+        torch.arange(w, dtype=torch.float64) + 0.5, torch.arange(h, dtype=torch.float64) + 0.5, indexing="xy"
+    )
     pix = torch.stack([jj, ii, torch.ones_like(jj)], -1)  # [H, W, 3]
     rays = torch.einsum("vij,hwj->vhwi", K_inv, pix)  # camera z = 1
     cam = rays * depths.to(torch.float64)[:, 0, :, :, None]
@@ -103,13 +105,17 @@ def tsdf_fusion(
     if valid is None:
         valid = depths > 0
     elif tuple(valid.shape) != (v, 1, h, w) or valid.dtype != torch.bool:
-        raise SurfSplatInputError(f"valid: expected a bool tensor of shape {(v, 1, h, w)}, got {valid.dtype} {tuple(valid.shape)}")
+        raise SurfSplatInputError(
+            f"valid: expected a bool tensor of shape {(v, 1, h, w)}, got {valid.dtype} {tuple(valid.shape)}"
+        )
     valid = valid & (depths > 0)
     if config.resolution < 2 or config.truncation_voxels <= 0:
         raise SurfSplatInputError(
             f"config: expected resolution >= 2 and truncation_voxels > 0, got {config.resolution}, {config.truncation_voxels}"
         )
-    lo, hi = bounds if bounds is not None else fusion_bounds(depths, cameras, valid, config.bounds_quantile, config.margin)
+    lo, hi = (
+        bounds if bounds is not None else fusion_bounds(depths, cameras, valid, config.bounds_quantile, config.margin)
+    )
     lo, hi = lo.to(torch.float64), hi.to(torch.float64)
     if bool((hi <= lo).any()):
         raise SurfSplatInputError(f"bounds: expected low < high on every axis, got {lo.tolist()} and {hi.tolist()}")
@@ -217,7 +223,11 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     faces = mesh.faces.detach().cpu().numpy().astype(np.int32)
     try:
         if suffix == ".ply":
-            vertex = np.empty(len(verts), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")])
+            vertex = np.empty(
+                len(verts),
+                dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
+                + [(k, "u1") for k in ("red", "green", "blue")],
+            )
             for k, name in enumerate(("x", "y", "z")):
                 vertex[name] = verts[:, k]
             for k, name in enumerate(("nx", "ny", "nz")):
@@ -226,7 +236,9 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
                 vertex[name] = rgb[:, k]
             face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
             face["vertex_indices"] = faces
-            PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False).write(str(tmp))
+            PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False).write(
+                str(tmp)
+            )
         else:
             with open(tmp, "w") as f:
                 f.write("# surfsplat mesh: TSDF fusion of rendered depth\n")

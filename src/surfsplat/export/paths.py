@@ -133,7 +133,9 @@ def focus_point(depths: Tensor, valid: Tensor, cameras: Cameras) -> Tensor:
     the same shape, e.g. alpha >= the forced-alpha-blending threshold)."""
     check_tensor("depths", depths, ("V", 1, "H", "W"))
     if tuple(valid.shape) != tuple(depths.shape) or valid.dtype != torch.bool:
-        raise SurfSplatInputError(f"valid: expected a bool tensor of shape {tuple(depths.shape)}, got {valid.dtype} {tuple(valid.shape)}")
+        raise SurfSplatInputError(
+            f"valid: expected a bool tensor of shape {tuple(depths.shape)}, got {valid.dtype} {tuple(valid.shape)}"
+        )
     valid = valid & (depths > 0)
     if not bool(valid.any()):
         raise SurfSplatInputError("depths: no rendered pixel is valid (covered); nothing to turn around")
@@ -177,7 +179,14 @@ class CameraSet:
             else:
                 shown = ", ".join(self.names[:8]) + (", ..." if len(self.names) > 8 else "")
                 raise SurfSplatInputError(f"{source}: no camera for image {name!r} (cameras exist for: {shown})")
-        return CameraSet(self.cameras[torch.tensor(picked)], self.width, self.height, [self.names[i] for i in picked], self.near, self.far)
+        return CameraSet(
+            self.cameras[torch.tensor(picked)],
+            self.width,
+            self.height,
+            [self.names[i] for i in picked],
+            self.near,
+            self.far,
+        )
 
     def resized(self, width: int, height: int, source: str) -> Cameras:
         """K for images of width x height: a uniform rescale of the calibrated size (K' = diag(sx, sy, 1) K)."""
@@ -194,8 +203,13 @@ class CameraSet:
 
 
 def save_cameras(
-    path: str | os.PathLike, cameras: Cameras, width: int, height: int, names: list[str] | None = None,
-    near: float | None = None, far: float | None = None,
+    path: str | os.PathLike,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    names: list[str] | None = None,
+    near: float | None = None,
+    far: float | None = None,
 ) -> Path:
     """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height."""
     from .figures import write_text
@@ -285,7 +299,9 @@ def _load_camera_json(path: Path) -> CameraSet:
         raise SurfSplatInputError(f"{path}: give both 'near' and 'far' or neither")
     if near is not None:
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (near, far)) or not 0 < near < far:
-            raise SurfSplatInputError(f"{path}: 'near' and 'far' must be numbers with 0 < near < far, got {near!r}, {far!r}")
+            raise SurfSplatInputError(
+                f"{path}: 'near' and 'far' must be numbers with 0 < near < far, got {near!r}, {far!r}"
+            )
     return CameraSet(cameras, data["width"], data["height"], names, near, far)
 
 
@@ -321,6 +337,8 @@ def _load_colmap_model(model_dir: Path) -> CameraSet:
         w2c[i, :3, :3] = quat_to_matrix(torch.tensor(r.qvec, dtype=torch.float64))
         w2c[i, :3, 3] = torch.tensor(r.tvec, dtype=torch.float64)
     if len(sizes) != 1:
-        raise SurfSplatInputError(f"{model_dir}: cameras of different image sizes {sorted(sizes)}; give a JSON camera file instead")
-    (width, height), = sizes
+        raise SurfSplatInputError(
+            f"{model_dir}: cameras of different image sizes {sorted(sizes)}; give a JSON camera file instead"
+        )
+    ((width, height),) = sizes
     return CameraSet(Cameras(rigid_inverse(w2c), torch.stack(Ks)), width, height, [r.name for r in ordered])

@@ -52,8 +52,12 @@ def save_ply(gaussians: Gaussians, path: str | os.PathLike, precision: Precision
         normals = g.rotations.double()[:, :, 2]
     opac = g.opacities.double().clamp(1e-12, 1 - 1e-12)
     columns: list[tuple[str, np.ndarray]] = [
-        ("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2]),
-        ("nx", normals[:, 0]), ("ny", normals[:, 1]), ("nz", normals[:, 2]),
+        ("x", means[:, 0]),
+        ("y", means[:, 1]),
+        ("z", means[:, 2]),
+        ("nx", normals[:, 0]),
+        ("ny", normals[:, 1]),
+        ("nz", normals[:, 2]),
     ]
     sh = g.sh.double()
     columns += [(f"f_dc_{c}", sh[:, c, 0]) for c in range(3)]
@@ -90,7 +94,21 @@ def load_ply(path: str | os.PathLike, dtype: torch.dtype = torch.float32) -> Gau
     except (PlyParseError, ValueError, KeyError, EOFError, OSError, struct.error) as err:
         raise SurfSplatInputError(f"{path}: not a readable PLY file ({err})") from None
     names = set(v.data.dtype.names)
-    required = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"}
+    required = {
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    }
     missing = sorted(required - names)
     if missing:
         raise SurfSplatInputError(f"{path}: not a Gaussian-splat PLY, missing vertex properties {missing}")

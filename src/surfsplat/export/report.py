@@ -53,7 +53,13 @@ class HtmlReport:
     def preformatted(self, text: str) -> None:
         self.blocks.append(f"<pre>{html.escape(text)}</pre>")
 
-    def table(self, caption: str, header: Sequence[str], rows: Sequence[Sequence[object]], header_rows: Sequence[Sequence[tuple[str, int]]] = ()) -> None:
+    def table(
+        self,
+        caption: str,
+        header: Sequence[str],
+        rows: Sequence[Sequence[object]],
+        header_rows: Sequence[Sequence[tuple[str, int]]] = (),
+    ) -> None:
         """A table; `header_rows` are extra header lines above `header` as (text, column span) cells."""
         width = len(header)
         for r, row in enumerate(rows):
@@ -61,7 +67,9 @@ class HtmlReport:
                 raise SurfSplatInputError(f"table {caption!r}: row {r} has {len(row)} cells, the header {width}")
         parts = ["<table>", f"<caption>{html.escape(caption)}</caption>" if caption else ""]
         for extra in header_rows:
-            parts.append("<tr>" + "".join(f'<th colspan="{span}">{html.escape(text)}</th>' for text, span in extra) + "</tr>")
+            parts.append(
+                "<tr>" + "".join(f'<th colspan="{span}">{html.escape(text)}</th>' for text, span in extra) + "</tr>"
+            )
         parts.append("<tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr>")
         for row in rows:
             parts.append("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in row) + "</tr>")
@@ -97,13 +105,15 @@ class HtmlReport:
 
     def links(self, caption: str, items: Sequence[tuple[str, str]]) -> None:
         """A list of (relative path, description) links to the other outputs."""
-        rows = "".join(f'<li><a href="{html.escape(p, quote=True)}">{html.escape(p)}</a>: {html.escape(d)}</li>' for p, d in items)
+        rows = "".join(
+            f'<li><a href="{html.escape(p, quote=True)}">{html.escape(p)}</a>: {html.escape(d)}</li>' for p, d in items
+        )
         self.blocks.append(f"<p>{html.escape(caption)}</p><ul>{rows}</ul>")
 
     def render(self) -> str:
         body = "\n".join(self.blocks)
         return (
-            "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
             f"<title>{html.escape(self.title)}</title><style>{_STYLE}</style></head>\n"
             f"<body><h1>{html.escape(self.title)}</h1>\n{body}\n</body></html>\n"
         )

@@ -46,7 +46,7 @@ _E3NN_FROM_3DGS = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0
 _NUM_SAMPLES = 32
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _fit_operators(degree: int) -> tuple[Tensor, Tensor]:
     """Sample directions [S, 3] and, per degree l <= `degree`, pinv(Y_l(samples)) stacked block-wise.
 

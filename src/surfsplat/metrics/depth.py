@@ -40,7 +40,9 @@ class DepthMetrics:
         keep = self.num_valid > 0
         if not bool(keep.any()):
             raise SurfSplatInputError("depth metrics: no image has a valid ground-truth pixel")
-        out = {f.name: float(getattr(self, f.name)[keep].double().mean()) for f in fields(self) if f.name != "num_valid"}
+        out = {
+            f.name: float(getattr(self, f.name)[keep].double().mean()) for f in fields(self) if f.name != "num_valid"
+        }
         out["num_images"] = int(keep.sum())
         return out
 
@@ -72,7 +74,9 @@ def depth_metrics(
     valid = torch.isfinite(target) & (target > min_depth) & (target < max_depth)
     if mask is not None:
         if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
-            raise SurfSplatInputError(f"mask: expected a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
+            raise SurfSplatInputError(
+                f"mask: expected a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}"
+            )
         if mask.ndim == 4 and mask.shape[1] == 1:
             mask = mask[:, 0]
         if tuple(mask.shape) != tuple(prediction.shape):

@@ -46,7 +46,9 @@ def upsample_ground_truth(images: Tensor, factor: int, mode: UpsampleMode = "bic
     if mode not in UPSAMPLE_MODES:
         raise SurfSplatInputError(f"mode: expected one of {UPSAMPLE_MODES}, got {mode!r}")
     if not isinstance(images, Tensor) or images.ndim < 3:
-        raise SurfSplatInputError(f"images: expected a [..., C, H, W] tensor, got {getattr(images, 'shape', type(images).__name__)}")
+        raise SurfSplatInputError(
+            f"images: expected a [..., C, H, W] tensor, got {getattr(images, 'shape', type(images).__name__)}"
+        )
     check_tensor("images", images, (None,) * images.ndim)
     if factor == 1:
         return images.clamp(0.0, 1.0)
@@ -145,7 +147,9 @@ class HrrcEvaluator:
         if not config.factors or any(not isinstance(s, int) or s < 1 for s in config.factors):
             raise SurfSplatInputError(f"config.factors: expected positive integers, got {config.factors!r}")
         if config.max_batch_pixels < 1:
-            raise SurfSplatInputError(f"config.max_batch_pixels: expected a positive integer, got {config.max_batch_pixels}")
+            raise SurfSplatInputError(
+                f"config.max_batch_pixels: expected a positive integer, got {config.max_batch_pixels}"
+            )
         self.config = config
         self.lpips = lpips
         self._all = _Accumulator()
@@ -195,7 +199,9 @@ class HrrcEvaluator:
             upsample=self.config.upsample,
             base_size=next(iter(self._sizes)) if len(self._sizes) == 1 else None,
             mean={s: {m: self._all.mean(s, m) for m in METRICS} for s in factors},
-            per_scene={n: {s: {m: acc.mean(s, m) for m in METRICS} for s in factors} for n, acc in self._scenes.items()},
+            per_scene={
+                n: {s: {m: acc.mean(s, m) for m in METRICS} for s in factors} for n, acc in self._scenes.items()
+            },
             num_images=self._num_images,
             lpips_unavailable=str(self.lpips) if isinstance(self.lpips, LpipsUnavailable) else None,
         )
@@ -260,6 +266,8 @@ def format_hrrc_table(rows: Mapping[str, HrrcReport]) -> str:
     for name, row in zip(rows, body):
         lines.append(name.ljust(name_w) + " | " + " | ".join(fmt_group(g) for g in row))
     upsample = ", ".join(sorted({r.upsample for r in reports}))
-    lines.append(f"HRRC ground truth upsampled {upsample}; images per method: {', '.join(str(r.num_images) for r in reports)}")
+    lines.append(
+        f"HRRC ground truth upsampled {upsample}; images per method: {', '.join(str(r.num_images) for r in reports)}"
+    )
     lines += [f"{name}: {r.lpips_unavailable}" for name, r in rows.items() if r.lpips_unavailable is not None]
     return "\n".join(line.rstrip() for line in lines)

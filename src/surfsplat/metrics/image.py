@@ -101,4 +101,3 @@ def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tens
     denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
     ssim_map = numerator / denominator  # [B, C, H - 10, W - 10]: scikit-image's cropped map
     return ssim_map.mean(dim=(1, 2, 3))
-

@@ -291,7 +291,9 @@ class GaussianAdapter(torch.nn.Module):
         # Per-degree SH damping 0.1 * 0.25^l for l >= 1 (the release's), so at initialisation colour
         # is dominated by the DC term: [1, 0.025 x3, 0.00625 x5, ...]. Kept as Python floats and
         # made in the working dtype, so float64 runs get float64 constants.
-        self.sh_mask_values = [1.0] + [0.1 * 0.25**l for l in range(1, self.cfg.sh_degree + 1) for _ in range(2 * l + 1)]
+        self.sh_mask_values = [1.0] + [
+            0.1 * 0.25**l for l in range(1, self.cfg.sh_degree + 1) for _ in range(2 * l + 1)
+        ]
 
     # ------------------------------------------------------------------ channel layout
     @property

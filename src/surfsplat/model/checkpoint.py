@@ -121,7 +121,9 @@ def read_state_dict(path: str | Path, *, trust_pickle: bool = False) -> dict[str
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
     if not isinstance(obj, Mapping):
-        raise SurfSplatInputError(f"{path}: expected a state dict (a mapping of names to tensors), got {type(obj).__name__}")
+        raise SurfSplatInputError(
+            f"{path}: expected a state dict (a mapping of names to tensors), got {type(obj).__name__}"
+        )
     bad = [k for k, v in obj.items() if not isinstance(v, Tensor)]
     if bad:
         raise SurfSplatInputError(f"{path}: entries that are not tensors: {_listing(bad)}")
@@ -202,9 +204,7 @@ def load_release_weights(
         else:
             mapped[ours] = value
     if unmapped:
-        raise SurfSplatInputError(
-            f"{name}: {len(unmapped)} keys are not release encoder names: {_listing(unmapped)}"
-        )
+        raise SurfSplatInputError(f"{name}: {len(unmapped)} keys are not release encoder names: {_listing(unmapped)}")
     size = sum(p.numel() for p in encoder.parameters())
     loaded = _load_exact(encoder, mapped, name, f"{size:,}-parameter encoder (release layout)")
     return LoadReport(loaded=loaded, ignored=ignored)
@@ -243,7 +243,9 @@ def load_depth_anything_v2(model: nn.Module, source: str | Path | Mapping[str, T
             stray.append(key)
     if stray:
         raise SurfSplatInputError(f"{name}: not a Depth Anything V2 file; unexpected keys: {_listing(stray)}")
-    loaded = _load_exact(encoder.vit, vit, name, f"ViT ({encoder.cfg.vit.embed_dim}-wide, {encoder.cfg.vit.depth} blocks)")
+    loaded = _load_exact(
+        encoder.vit, vit, name, f"ViT ({encoder.cfg.vit.embed_dim}-wide, {encoder.cfg.vit.depth} blocks)"
+    )
     return LoadReport(loaded=loaded, ignored=ignored)
 
 
@@ -284,9 +286,13 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"):
         raise FileNotFoundError(f"{config_path}: configuration file of the checkpoint is missing")
     meta = read_json(config_path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
-        raise SurfSplatInputError(f"{config_path}: not a SurfSplat model configuration (format must be '{FORMAT_NAME}')")
+        raise SurfSplatInputError(
+            f"{config_path}: not a SurfSplat model configuration (format must be '{FORMAT_NAME}')"
+        )
     if meta.get("version") != FORMAT_VERSION:
-        raise SurfSplatInputError(f"{config_path}: unsupported version {meta.get('version')} (expected {FORMAT_VERSION})")
+        raise SurfSplatInputError(
+            f"{config_path}: unsupported version {meta.get('version')} (expected {FORMAT_VERSION})"
+        )
     cfg = SurfSplatConfig.from_dict(meta.get("config"), source=str(config_path))
     model = SurfSplat(cfg)
     tensors = read_state_dict(weights_path)

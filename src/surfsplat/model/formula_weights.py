@@ -87,6 +87,6 @@ def iter_formula_weights(spec: dict) -> Iterator[tuple[str, np.ndarray]]:
         yield entry["key"], formula_tensor(entry["key"], tuple(entry["shape"]), entry["mean"], entry["std"])
 
 
-def formula_state_dict(path: str | Path) -> dict[str, "np.ndarray"]:
+def formula_state_dict(path: str | Path) -> dict[str, np.ndarray]:
     """The whole release-layout state dict as numpy arrays, keyed by the release's names."""
     return dict(iter_formula_weights(read_spec(path)))

@@ -147,7 +147,9 @@ def _depth_bound(name: str, value: float | Tensor, b: int, v: int, like: Tensor)
     """A near/far plane as a positive [B, V] tensor."""
     if isinstance(value, Tensor):
         if value.shape != (b, v):
-            raise SurfSplatInputError(f"{name}: expected a float or a [{b}, {v}] tensor, got shape {tuple(value.shape)}")
+            raise SurfSplatInputError(
+                f"{name}: expected a float or a [{b}, {v}] tensor, got shape {tuple(value.shape)}"
+            )
         t = value.to(like)
     elif isinstance(value, (int, float)):
         t = torch.full((b, v), float(value), dtype=like.dtype, device=like.device)

@@ -17,7 +17,12 @@ from .torch_backend import TorchRenderSettings, render_torch
 from .types import BACKENDS, Backend, RenderMode, RenderOutput
 
 __all__ = [
-    "render", "RenderOutput", "TorchRenderSettings", "CpuRenderSettings", "normalize_by_alpha", "gsplat_available",
+    "render",
+    "RenderOutput",
+    "TorchRenderSettings",
+    "CpuRenderSettings",
+    "normalize_by_alpha",
+    "gsplat_available",
     "resolve_backend",
 ]
 
@@ -154,8 +159,19 @@ def _render_torch_all(
     centers = cameras.centers.to(g.means)
     outs = [
         render_torch(
-            g.means, rotations, g.scales, covariances, g.opacities, g.sh,
-            w2c[c], K[c], centers[c], width, height, mode, settings,
+            g.means,
+            rotations,
+            g.scales,
+            covariances,
+            g.opacities,
+            g.sh,
+            w2c[c],
+            K[c],
+            centers[c],
+            width,
+            height,
+            mode,
+            settings,
         )
         for c in range(len(cameras))
     ]

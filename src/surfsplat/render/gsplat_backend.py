@@ -38,17 +38,34 @@ def render_gsplat(
         features = torch.cat((rgb, facing), dim=-1)  # [N, 6]
         if mode == "surfel":
             out = gsplat.rasterization_2dgs(
-                means=g.means, quats=g.quats, scales=torch.cat((g.scales, torch.zeros_like(g.scales[:, :1])), -1),
-                opacities=g.opacities, colors=features, viewmats=w2c[c : c + 1], Ks=K[c : c + 1],
-                width=width, height=height, render_mode="RGB+D", near_plane=0.01,
+                means=g.means,
+                quats=g.quats,
+                scales=torch.cat((g.scales, torch.zeros_like(g.scales[:, :1])), -1),
+                opacities=g.opacities,
+                colors=features,
+                viewmats=w2c[c : c + 1],
+                Ks=K[c : c + 1],
+                width=width,
+                height=height,
+                render_mode="RGB+D",
+                near_plane=0.01,
             )
             rendered, alpha = out[0], out[1]
         else:
             covars = g.covariances
             rendered, alpha, _ = gsplat.rasterization(
-                means=g.means, quats=g.quats, scales=torch.cat((g.scales, torch.full_like(g.scales[:, :1], 1e-10)), -1),
-                opacities=g.opacities, colors=features, viewmats=w2c[c : c + 1], Ks=K[c : c + 1],
-                width=width, height=height, render_mode="RGB+D", near_plane=0.01, eps2d=EWA_DILATION,
+                means=g.means,
+                quats=g.quats,
+                scales=torch.cat((g.scales, torch.full_like(g.scales[:, :1], 1e-10)), -1),
+                opacities=g.opacities,
+                colors=features,
+                viewmats=w2c[c : c + 1],
+                Ks=K[c : c + 1],
+                width=width,
+                height=height,
+                render_mode="RGB+D",
+                near_plane=0.01,
+                eps2d=EWA_DILATION,
                 covars=covars,
             )
         rendered = rendered[0].permute(2, 0, 1)  # [7, H, W]

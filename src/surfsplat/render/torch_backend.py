@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..geometry.sh import sh_to_color
-from .types import ALPHA_MAX, ALPHA_MIN, LOG_ALPHA_MIN, EWA_DILATION, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN, RenderMode
+from .types import ALPHA_MAX, ALPHA_MIN, EWA_DILATION, LOG_ALPHA_MIN, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN, RenderMode
 
 
 @dataclass
@@ -99,8 +99,17 @@ def _colors(sh: Tensor, means: Tensor, center: Tensor) -> Tensor:
 
 
 def project_surfels(
-    means: Tensor, rotations: Tensor, scales: Tensor, opacities: Tensor, sh: Tensor,
-    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, settings: TorchRenderSettings,
+    means: Tensor,
+    rotations: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    cam_center: Tensor,
+    width: int,
+    height: int,
+    settings: TorchRenderSettings,
 ) -> Projected:
     """2DGS projection (Huang et al. 2024): T = K [R S e1, R S e2, mu_cam] maps surfel (u, v, 1) to pixels.
 
@@ -160,8 +169,17 @@ def project_surfels(
 
 
 def project_ewa(
-    means: Tensor, covariances: Tensor, normals: Tensor, opacities: Tensor, sh: Tensor,
-    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, settings: TorchRenderSettings,
+    means: Tensor,
+    covariances: Tensor,
+    normals: Tensor,
+    opacities: Tensor,
+    sh: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    cam_center: Tensor,
+    width: int,
+    height: int,
+    settings: TorchRenderSettings,
 ) -> Projected:
     """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean."""
     dt = torch.float64
@@ -192,8 +210,12 @@ def project_ewa(
     k2 = _opacity_extent(opacities)
     hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
     box = _pixel_box(
-        (center[:, 0] - hx).detach(), (center[:, 0] + hx).detach(),
-        (center[:, 1] - hy).detach(), (center[:, 1] + hy).detach(), width, height,
+        (center[:, 0] - hx).detach(),
+        (center[:, 0] + hx).detach(),
+        (center[:, 1] - hy).detach(),
+        (center[:, 1] + hy).detach(),
+        width,
+        height,
     )
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
 
@@ -277,7 +299,14 @@ def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tu
         return coef, geometry[..., 9:11]
     ca, cb, cc = geometry[..., 0], geometry[..., 1], geometry[..., 2]
     coef = torch.stack(
-        (ca * ex * ex + 2 * cb * ex * ey + cc * ey * ey, 2 * (ca * ex + cb * ey), 2 * (cb * ex + cc * ey), ca, 2 * cb, cc),
+        (
+            ca * ex * ex + 2 * cb * ex * ey + cc * ey * ey,
+            2 * (ca * ex + cb * ey),
+            2 * (cb * ex + cc * ey),
+            ca,
+            2 * cb,
+            cc,
+        ),
         dim=-1,
     )
     return coef, None
@@ -389,7 +418,12 @@ class _CompositeBlock(torch.autograd.Function):
 
 
 def composite(
-    mode: RenderMode, proj: Projected, bins: Bins, width: int, height: int, settings: TorchRenderSettings,
+    mode: RenderMode,
+    proj: Projected,
+    bins: Bins,
+    width: int,
+    height: int,
+    settings: TorchRenderSettings,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Returns per-pixel (features [H, W, F], alpha [H, W], surfel depth sum [H, W]) before normalization."""
     tile = settings.tile_size
@@ -470,8 +504,18 @@ def composite(
 
 
 def render_torch(
-    means: Tensor, rotations: Tensor, scales: Tensor, covariances: Tensor | None, opacities: Tensor, sh: Tensor,
-    w2c: Tensor, K: Tensor, cam_center: Tensor, width: int, height: int, mode: RenderMode,
+    means: Tensor,
+    rotations: Tensor,
+    scales: Tensor,
+    covariances: Tensor | None,
+    opacities: Tensor,
+    sh: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    cam_center: Tensor,
+    width: int,
+    height: int,
+    mode: RenderMode,
     settings: TorchRenderSettings,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])."""

@@ -9,7 +9,16 @@ train ...` runs the same loop data-parallel.
 """
 
 from .checkpoint import CorruptCheckpoint, TrainingState, latest_checkpoint, list_checkpoints, verify_checkpoint
-from .config import TRAIN_PRESETS, DataConfig, ModelConfig, OptimConfig, TrainConfig, config_from_dict, override, train_preset
+from .config import (
+    TRAIN_PRESETS,
+    DataConfig,
+    ModelConfig,
+    OptimConfig,
+    TrainConfig,
+    config_from_dict,
+    override,
+    train_preset,
+)
 from .loop import TrainResult, build_model, build_optimizer, fit, read_checkpoint_config
 from .losses import ImageLoss, LossConfig, LossTerms, cascade_loss, cascade_weights
 from .schedule import learning_rate

@@ -72,7 +72,9 @@ def intermediate_gaussians(
     inv = coarse_inverse_depth(inter[_LOGITS], near.reshape(-1), far.reshape(-1))
     inv = F.interpolate(inv, scale_factor=MATCHING_STRIDE, mode="bilinear", align_corners=True)
     if inv.shape[-2:] != (height, width):
-        raise SurfSplatInputError(f"prediction: coarse depth upsampled to {tuple(inv.shape[-2:])}, images are {height}x{width}")
+        raise SurfSplatInputError(
+            f"prediction: coarse depth upsampled to {tuple(inv.shape[-2:])}, images are {height}x{width}"
+        )
     depths = rearrange(1.0 / inv, "(b v) 1 h w -> b v h w", b=b)
     raw = rearrange(inter[_RAW], "(b v) c h w -> b v c h w", b=b)
     K = cameras.K.to(images).reshape(b, v, 3, 3)

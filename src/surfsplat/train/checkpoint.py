@@ -144,12 +144,14 @@ def _flatten_state(state: TrainingState) -> tuple[dict[str, Tensor], dict[str, A
         optimizer_state[str(param_id)] = slot
     rng = []
     for rank, states in enumerate(state.rng):
-        rng.append({
-            "torch": put(f"rng.{rank}.torch", states["torch"]),
-            "cuda": [put(f"rng.{rank}.cuda.{i}", s) for i, s in enumerate(states["cuda"])],
-            "numpy": states["numpy"],
-            "python": states["python"],
-        })
+        rng.append(
+            {
+                "torch": put(f"rng.{rank}.torch", states["torch"]),
+                "cuda": [put(f"rng.{rank}.cuda.{i}", s) for i, s in enumerate(states["cuda"])],
+                "numpy": states["numpy"],
+                "python": states["python"],
+            }
+        )
     document = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -242,7 +244,11 @@ def verify_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CorruptCheckpoint(f"{manifest_path}: missing; the checkpoint was not written completely") from None
     except ValueError as err:
         raise CorruptCheckpoint(f"{manifest_path}: not valid JSON ({err})") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_NAME or not isinstance(manifest.get("files"), dict):
+    if (
+        not isinstance(manifest, dict)
+        or manifest.get("format") != FORMAT_NAME
+        or not isinstance(manifest.get("files"), dict)
+    ):
         raise CorruptCheckpoint(f"{manifest_path}: not a SurfSplat training manifest")
     for name in MODEL_FILES + STATE_FILES:
         entry = manifest["files"].get(name)
@@ -265,7 +271,9 @@ def _restore_tensors(node: Any, tensors: Mapping[str, Tensor], where: str) -> An
     return node
 
 
-def load_training_checkpoint(path: str | Path, model: nn.Module, map_location: str | torch.device = "cpu") -> TrainingState:
+def load_training_checkpoint(
+    path: str | Path, model: nn.Module, map_location: str | torch.device = "cpu"
+) -> TrainingState:
     """Verify `path`, load its weights into `model` (same configuration required), return the rest."""
     path = Path(path)
     verify_checkpoint(path)
@@ -281,7 +289,9 @@ def load_training_checkpoint(path: str | Path, model: nn.Module, map_location: s
         raise CorruptCheckpoint(f"{path}: unreadable safetensors file ({err})") from None
     missing, unexpected = model.load_state_dict(weights, strict=False)
     if missing or unexpected:
-        raise SurfSplatInputError(f"{path / MODEL_FILES[0]}: missing keys {missing[:10]}, unexpected keys {unexpected[:10]}")
+        raise SurfSplatInputError(
+            f"{path / MODEL_FILES[0]}: missing keys {missing[:10]}, unexpected keys {unexpected[:10]}"
+        )
     document = json.loads((path / STATE_FILES[1]).read_text())
     if document.get("format") != FORMAT_NAME or document.get("version") != FORMAT_VERSION:
         raise SurfSplatInputError(

@@ -127,7 +127,12 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(o.weight_decay >= 0, "optim.weight_decay", "a value >= 0", o.weight_decay)
     need(o.grad_clip >= 0, "optim.grad_clip", "a norm >= 0 (0 = off)", o.grad_clip)
     need(0 <= o.warmup_fraction < 1, "optim.warmup_fraction", "a value in [0, 1)", o.warmup_fraction)
-    need(o.initial_div >= 1 and o.final_div >= 1, "optim.initial_div/final_div", "values >= 1", (o.initial_div, o.final_div))
+    need(
+        o.initial_div >= 1 and o.final_div >= 1,
+        "optim.initial_div/final_div",
+        "values >= 1",
+        (o.initial_div, o.final_div),
+    )
     need(d.dataset in ("synthetic", "chunks"), "data.dataset", "synthetic or chunks", d.dataset)
     h, w = d.image_shape
     need(h > 0 and w > 0 and h % 16 == 0 and w % 16 == 0, "data.image_shape", "(H, W) multiples of 16", d.image_shape)
@@ -141,7 +146,9 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(d.num_workers >= 0, "data.num_workers", "a count >= 0", d.num_workers)
     need(config.steps >= 1, "steps", "at least 1", config.steps)
     need(config.batch_size >= 1, "batch_size", "at least 1", config.batch_size)
-    need(config.precision in ("auto", "fp32", "bf16", "fp16"), "precision", "auto, fp32, bf16 or fp16", config.precision)
+    need(
+        config.precision in ("auto", "fp32", "bf16", "fp16"), "precision", "auto, fp32, bf16 or fp16", config.precision
+    )
     need(config.device in ("auto", "cpu", "cuda"), "device", "auto, cpu or cuda", config.device)
     for name in ("cpu_threads", "checkpoint_every", "keep_checkpoints", "log_every", "image_every", "val_every"):
         value = getattr(config, name)
@@ -150,7 +157,9 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(config.log_every > 0, "log_every", "at least 1", config.log_every)
     need(
         len(config.val_factors) > 0 and all(s >= 1 for s in config.val_factors),
-        "val_factors", "positive integers", config.val_factors,
+        "val_factors",
+        "positive integers",
+        config.val_factors,
     )
     return config
 

@@ -214,7 +214,14 @@ class MapBatches:
     """Endless batches of a map-style dataset, starting at `start_step`."""
 
     def __init__(
-        self, dataset: Dataset, global_batch: int, rank: int, world_size: int, seed: int, start_step: int, num_workers: int
+        self,
+        dataset: Dataset,
+        global_batch: int,
+        rank: int,
+        world_size: int,
+        seed: int,
+        start_step: int,
+        num_workers: int,
     ) -> None:
         self.sampler = StepBatchSampler(len(dataset), global_batch, rank, world_size, seed, start_step)  # type: ignore[arg-type]
         self.loader = DataLoader(
@@ -263,8 +270,12 @@ class StreamBatches:
     def _start_epoch(self) -> None:
         self.dataset.set_epoch(self.epoch)
         loader = DataLoader(
-            self.dataset, batch_size=self.local_batch, drop_last=True, num_workers=self.num_workers,
-            collate_fn=default_collate, generator=_loader_generator(self.dataset.config.seed, self.rank, self.epoch),
+            self.dataset,
+            batch_size=self.local_batch,
+            drop_last=True,
+            num_workers=self.num_workers,
+            collate_fn=default_collate,
+            generator=_loader_generator(self.dataset.config.seed, self.rank, self.epoch),
         )
         self._iter = iter(loader)
         self.batches = 0
@@ -308,15 +319,17 @@ class StreamBatches:
 def synthetic_dataset(config: DataConfig, validation: bool = False) -> SyntheticDataset:
     length = config.val_samples if validation else config.synthetic_length
     seed = config.synthetic_seed + (VALIDATION_SEED_OFFSET if validation else 0)
-    return SyntheticDataset(SyntheticDatasetConfig(
-        length=max(length, 1),
-        seed=seed,
-        image_shape=config.image_shape,
-        num_context_views=config.num_context_views,
-        num_target_views=config.num_target_views,
-        supersample=config.synthetic_supersample,
-        with_depth=validation,
-    ))
+    return SyntheticDataset(
+        SyntheticDatasetConfig(
+            length=max(length, 1),
+            seed=seed,
+            image_shape=config.image_shape,
+            num_context_views=config.num_context_views,
+            num_target_views=config.num_target_views,
+            supersample=config.synthetic_supersample,
+            with_depth=validation,
+        )
+    )
 
 
 def _chunk_config(config: DataConfig, roots: tuple[str, ...], seed: int, shuffle: bool) -> ChunkDatasetConfig:
@@ -331,7 +344,12 @@ def _chunk_config(config: DataConfig, roots: tuple[str, ...], seed: int, shuffle
 
 
 def build_train_batches(
-    config: DataConfig, global_batch: int, rank: int, world_size: int, seed: int, start_step: int,
+    config: DataConfig,
+    global_batch: int,
+    rank: int,
+    world_size: int,
+    seed: int,
+    start_step: int,
     stream_state: dict[str, Any] | None = None,
 ) -> MapBatches | StreamBatches:
     """The training batch source of this rank, positioned at `start_step`."""
@@ -349,8 +367,12 @@ def build_train_batches(
     )
     counter = StepCounter(start_step)
     sampler = BoundedViewSampler(sampler_config, counter)
-    dataset = ChunkDataset(_chunk_config(config, config.roots, seed, shuffle=True), sampler, rank=rank, world_size=world_size)
-    return StreamBatches(dataset, global_batch // world_size, config.num_workers, counter, rank, stream_state, start_step)
+    dataset = ChunkDataset(
+        _chunk_config(config, config.roots, seed, shuffle=True), sampler, rank=rank, world_size=world_size
+    )
+    return StreamBatches(
+        dataset, global_batch // world_size, config.num_workers, counter, rank, stream_state, start_step
+    )
 
 
 def build_validation_samples(config: DataConfig, rank: int, world_size: int, seed: int) -> list[TrainBatch]:
@@ -364,16 +386,24 @@ def build_validation_samples(config: DataConfig, rank: int, world_size: int, see
     if not config.val_roots:
         return []
     if config.val_index is not None:
-        sampler: BoundedViewSampler | EvaluationViewSampler = EvaluationViewSampler(EvaluationIndex.load(config.val_index))
+        sampler: BoundedViewSampler | EvaluationViewSampler = EvaluationViewSampler(
+            EvaluationIndex.load(config.val_index)
+        )
     else:
         # Final gap range from the start: validation should not change with the training step.
-        sampler = BoundedViewSampler(replace(
-            config.view_sampler, num_context_views=config.num_context_views,
-            num_target_views=config.num_target_views, warm_up_steps=0,
-        ))
+        sampler = BoundedViewSampler(
+            replace(
+                config.view_sampler,
+                num_context_views=config.num_context_views,
+                num_target_views=config.num_target_views,
+                warm_up_steps=0,
+            )
+        )
     dataset = ChunkDataset(
-        _chunk_config(config, config.val_roots, seed + VALIDATION_SEED_OFFSET, shuffle=False), sampler,
-        rank=rank, world_size=world_size,
+        _chunk_config(config, config.val_roots, seed + VALIDATION_SEED_OFFSET, shuffle=False),
+        sampler,
+        rank=rank,
+        world_size=world_size,
     )
     share = len(range(rank, config.val_samples, world_size))
     out: list[TrainBatch] = []

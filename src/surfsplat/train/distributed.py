@@ -72,8 +72,12 @@ def init_distributed(device: Literal["auto", "cpu", "cuda"] = "auto") -> Distrib
     if world_size > 1 and not dist.is_initialized():
         for name in ("MASTER_ADDR", "MASTER_PORT"):
             if name not in os.environ:
-                raise SurfSplatInputError(f"environment: WORLD_SIZE={world_size} but {name} is not set (launch with torchrun)")
-        dist.init_process_group(backend="nccl" if use_cuda else "gloo", init_method="env://", rank=rank, world_size=world_size)
+                raise SurfSplatInputError(
+                    f"environment: WORLD_SIZE={world_size} but {name} is not set (launch with torchrun)"
+                )
+        dist.init_process_group(
+            backend="nccl" if use_cuda else "gloo", init_method="env://", rank=rank, world_size=world_size
+        )
     return DistributedContext(rank=rank, world_size=world_size, local_rank=local_rank, device=dev)
 
 

@@ -97,7 +97,12 @@ def _scalar_value(tag: str, value: float) -> bytes:
 
 def _image_value(tag: str, png: bytes, height: int, width: int, channels: int) -> bytes:
     image = (
-        _key(1, 0) + _varint(height) + _key(2, 0) + _varint(width) + _key(3, 0) + _varint(channels)
+        _key(1, 0)
+        + _varint(height)
+        + _key(2, 0)
+        + _varint(width)
+        + _key(3, 0)
+        + _varint(channels)
         + _bytes_field(4, png)
     )
     return _bytes_field(1, _bytes_field(1, tag.encode()) + _bytes_field(4, image))

@@ -132,7 +132,9 @@ def resolve_precision(config: TrainConfig, device: torch.device) -> torch.dtype 
     if device.type != "cuda":
         if config.precision == "auto":
             return None
-        raise SurfSplatInputError(f"precision: {config.precision!r} mixed precision needs a CUDA device (use fp32 on CPU)")
+        raise SurfSplatInputError(
+            f"precision: {config.precision!r} mixed precision needs a CUDA device (use fp32 on CPU)"
+        )
     if config.precision == "fp16":
         return torch.float16
     if config.precision == "bf16" or torch.cuda.is_bf16_supported():
@@ -181,7 +183,9 @@ class _Reporter:
         (self.out / "config.json").write_text(json.dumps(config.to_dict(), indent=1))
         self.events = EventWriter(self.out / "tensorboard")
         self.jsonl = open(self.out / "metrics.jsonl", "a")
-        self.bar = tqdm(total=config.steps, initial=start_step, disable=not config.progress, unit="step", dynamic_ncols=True)
+        self.bar = tqdm(
+            total=config.steps, initial=start_step, disable=not config.progress, unit="step", dynamic_ncols=True
+        )
 
     def scalars(self, step: int, values: dict[str, float]) -> None:
         if not self.active:
@@ -283,8 +287,15 @@ def training_step(
     # renderer always works in float32, at the training tau_alpha the adapter reports.
     coarse = intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far)
     renders = [
-        render_views(g.to(torch.float32), target.cameras(), w, h, mode=mode, alpha_threshold=prediction.alpha_threshold,
-                     backend=backend).color
+        render_views(
+            g.to(torch.float32),
+            target.cameras(),
+            w,
+            h,
+            mode=mode,
+            alpha_threshold=prediction.alpha_threshold,
+            backend=backend,
+        ).color
         for g in [*coarse, prediction.gaussians]
     ]
     loss, terms = cascade_loss(loss_fn, renders, target.images)
@@ -376,11 +387,15 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         elif ctx.is_main:
             logger.warning(
                 "resuming %d ranks from a checkpoint of %d: random generators reseeded, streams restart their epoch; "
-                "the run continues but is not bit-identical to an uninterrupted one", ctx.world_size, len(state.rng),
+                "the run continues but is not bit-identical to an uninterrupted one",
+                ctx.world_size,
+                len(state.rng),
             )
         extra = state.extra or {}
     if start_step >= config.steps:
-        raise SurfSplatInputError(f"steps: the checkpoint is at step {start_step}, nothing left of {config.steps} steps")
+        raise SurfSplatInputError(
+            f"steps: the checkpoint is at step {start_step}, nothing left of {config.steps} steps"
+        )
 
     net: nn.Module = model
     if ctx.is_distributed:
@@ -390,7 +405,9 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     source = build_train_batches(
         config.data, config.batch_size, ctx.rank, ctx.world_size, config.seed, start_step, stream_state
     )
-    val_samples = build_validation_samples(config.data, ctx.rank, ctx.world_size, config.seed) if config.val_every else []
+    val_samples = (
+        build_validation_samples(config.data, ctx.rank, ctx.world_size, config.seed) if config.val_every else []
+    )
     val_lpips: Lpips | LpipsUnavailable = LpipsUnavailable("no validation scenes")
     if val_samples:
         # The loss's LPIPS when it has one (loaded once), else whatever the standard locations hold.
@@ -422,18 +439,31 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
             context, target = batch.context, batch.target
 
             out = training_step(
-                net, model, batch, loss_fn, optimizer,
-                mode=mode, backend=config.model.render_backend, amp_dtype=amp_dtype, scaler=scaler,
-                grad_clip=config.optim.grad_clip, cascade=cascade,
+                net,
+                model,
+                batch,
+                loss_fn,
+                optimizer,
+                mode=mode,
+                backend=config.model.render_backend,
+                amp_dtype=amp_dtype,
+                scaler=scaler,
+                grad_clip=config.optim.grad_clip,
+                cascade=cascade,
             )
             loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
 
             final = terms[-1]
-            pending.append(torch.stack([
-                loss.detach().float(), final.mse.detach().float(),
-                (final.lpips.detach().float() if final.lpips is not None else torch.zeros((), device=device)),
-                grad_norm.detach().float(),
-            ]))
+            pending.append(
+                torch.stack(
+                    [
+                        loss.detach().float(),
+                        final.mse.detach().float(),
+                        (final.lpips.detach().float() if final.lpips is not None else torch.zeros((), device=device)),
+                        grad_norm.detach().float(),
+                    ]
+                )
+            )
             done = step + 1
             window_steps += 1
             is_last = done == config.steps
@@ -448,15 +478,20 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 last = reduced[-1]
                 _stop_if_diverged(reduced[:, 0], first, result.checkpoint)
                 values = {
-                    "loss/total": float(last[0]), "loss/mse": float(last[1]), "train/grad_norm": float(last[3]),
-                    "train/lr": lr, "train/samples_per_second": config.batch_size / seconds_per_step,
+                    "loss/total": float(last[0]),
+                    "loss/mse": float(last[1]),
+                    "train/grad_norm": float(last[3]),
+                    "train/lr": lr,
+                    "train/samples_per_second": config.batch_size / seconds_per_step,
                     "train/seconds_per_step": seconds_per_step,
                 }
                 if final.lpips is not None:
                     values["loss/lpips"] = float(last[2])
                 reporter.scalars(done, values)
                 reporter.progress(
-                    loss=f"{float(last[0]):.4f}", lr=f"{lr:.2e}", rate=f"{config.batch_size / seconds_per_step:.2f} samples/s"
+                    loss=f"{float(last[0]):.4f}",
+                    lr=f"{lr:.2e}",
+                    rate=f"{config.batch_size / seconds_per_step:.2f} samples/s",
                 )
                 pending.clear()
                 window_start, window_steps = now, 0
@@ -468,9 +503,15 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 reporter.image(done, "train/context_target_render", picture)
 
             if validating and (done % config.val_every == 0 or is_last):
-                metrics = validate(net.module if isinstance(net, DistributedDataParallel) else net, val_samples, ctx,
-                                   mode=mode, backend=config.model.render_backend, lpips=val_lpips,
-                                   factors=config.val_factors)
+                metrics = validate(
+                    net.module if isinstance(net, DistributedDataParallel) else net,
+                    val_samples,
+                    ctx,
+                    mode=mode,
+                    backend=config.model.render_backend,
+                    lpips=val_lpips,
+                    factors=config.val_factors,
+                )
                 result.validation[done] = metrics
                 reporter.scalars(done, {f"val/{k}": v for k, v in metrics.items()})
                 shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("x"))
@@ -492,7 +533,9 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                         grad_scaler=scaler.state_dict() if scaler is not None else None,
                         extra=extra,
                     )
-                    result.checkpoint = save_training_checkpoint(config.out_dir, model, state, keep=config.keep_checkpoints)
+                    result.checkpoint = save_training_checkpoint(
+                        config.out_dir, model, state, keep=config.keep_checkpoints
+                    )
                 barrier(ctx)
             result.step = done
     finally:

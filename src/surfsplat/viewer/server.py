@@ -84,8 +84,16 @@ def initial_view(meta: dict, cameras=None) -> InitialView:
 class ViewerServer:
     """Serves one scene on host:port (port 0 picks a free one) from a background thread."""
 
-    def __init__(self, gaussians: Gaussians, host: str = "127.0.0.1", port: int = 8080, cameras=None,
-                 title: str = "surfsplat viewer", max_splats: int = 300_000, alpha_threshold: float | None = 0.001) -> None:
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        cameras=None,
+        title: str = "surfsplat viewer",
+        max_splats: int = 300_000,
+        alpha_threshold: float | None = 0.001,
+    ) -> None:
         if not 0 <= port <= 65535:
             raise SurfSplatInputError(f"port: expected 0..65535, got {port}")
         if alpha_threshold is not None and not 0 < alpha_threshold <= 1:
@@ -127,8 +135,15 @@ class ViewerServer:
         self.thread: threading.Thread | None = None
 
     @classmethod
-    def from_ply(cls, path: str | Path, host: str = "127.0.0.1", port: int = 8080, cameras_path: str | Path | None = None,
-                 max_splats: int = 300_000, alpha_threshold: float | None | str = "auto") -> ViewerServer:
+    def from_ply(
+        cls,
+        path: str | Path,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        cameras_path: str | Path | None = None,
+        max_splats: int = 300_000,
+        alpha_threshold: float | None | str = "auto",
+    ) -> ViewerServer:
         """A server for a PLY; the reconstruction's cameras.json beside it (or `cameras_path`) sets the
         first view, and its reconstruction.json the forced-alpha-blending tau ("auto"; else 0.001)."""
         from ..export.paths import load_cameras
@@ -147,7 +162,9 @@ class ViewerServer:
                     alpha_threshold = json.loads(summary.read_text()).get("alpha_threshold", 0.001)
                 except ValueError:
                     raise SurfSplatInputError(f"{summary}: not valid JSON") from None
-        return cls(gaussians, host, port, cameras, title=path.name, max_splats=max_splats, alpha_threshold=alpha_threshold)
+        return cls(
+            gaussians, host, port, cameras, title=path.name, max_splats=max_splats, alpha_threshold=alpha_threshold
+        )
 
     @property
     def url(self) -> str:

@@ -136,7 +136,9 @@ def read_transforms(
         else:
             raise SurfSplatInputError(f"{where}: no intrinsics (expected 'fl_x' or 'camera_angle_x')")
         K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        Ks.append(fit_intrinsics(K, (cw, ch), size, str(paths[i]), allow_downscale=downscale_from_folder(paths[i].parent)))
+        Ks.append(
+            fit_intrinsics(K, (cw, ch), size, str(paths[i]), allow_downscale=downscale_from_folder(paths[i].parent))
+        )
 
     # OpenGL -> OpenCV flips the camera's y and z axes (the same matrix as Cameras.from_opengl,
     # applied here so that validation errors name the JSON file).

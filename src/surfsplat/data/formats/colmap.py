@@ -43,7 +43,14 @@ CAMERA_MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
 }
 MODEL_IDS = {name: i for i, (name, _, _) in CAMERA_MODELS.items()}
 # Fisheye models are not pinhole even with zero distortion (equidistant projection).
-_FISHEYE = {"OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE", "FOV"}
+_FISHEYE = {
+    "OPENCV_FISHEYE",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE",
+    "FOV",
+}
 
 
 @dataclass
@@ -87,7 +94,9 @@ class _Reader:
     def read(self, fmt: str) -> tuple:
         size = struct.calcsize("<" + fmt)
         if self.pos + size > len(self.data):
-            raise SurfSplatInputError(f"{self.path}: truncated file (needed {size} bytes at offset {self.pos}, have {len(self.data) - self.pos})")
+            raise SurfSplatInputError(
+                f"{self.path}: truncated file (needed {size} bytes at offset {self.pos}, have {len(self.data) - self.pos})"
+            )
         out = struct.unpack_from("<" + fmt, self.data, self.pos)
         self.pos += size
         return out
@@ -96,7 +105,7 @@ class _Reader:
         end = self.data.find(b"\x00", self.pos)
         if end < 0:
             raise SurfSplatInputError(f"{self.path}: truncated file (unterminated image name at offset {self.pos})")
-        out = self.data[self.pos:end].decode("utf-8")
+        out = self.data[self.pos : end].decode("utf-8")
         self.pos = end + 1
         return out
 
@@ -288,7 +297,9 @@ def load_colmap(
     off = (norms - 1).abs() > 1e-3
     if bool(off.any()):
         i = int(off.nonzero()[0])
-        raise SurfSplatInputError(f"{src}: image '{ordered[i].name}' quaternion has norm {float(norms[i]):.6g}, expected a unit quaternion")
+        raise SurfSplatInputError(
+            f"{src}: image '{ordered[i].name}' quaternion has norm {float(norms[i]):.6g}, expected a unit quaternion"
+        )
     R = quat_to_matrix(q)
     w2c = torch.eye(4, dtype=torch.float64).repeat(len(ordered), 1, 1)
     w2c[:, :3, :3] = R
@@ -302,7 +313,9 @@ def load_colmap(
             raise SurfSplatInputError(f"{src}: image '{r.name}' refers to missing camera {r.camera_id}")
         cam = cameras[r.camera_id]
         K = pinhole_matrix(cam, f"{model_dir}/cameras: camera {r.camera_id}")
-        Ks.append(fit_intrinsics(K, (cam.width, cam.height), size, str(p), allow_downscale=downscale_from_folder(folder)))
+        Ks.append(
+            fit_intrinsics(K, (cam.width, cam.height), size, str(p), allow_downscale=downscale_from_folder(folder))
+        )
     cams = make_cameras(c2w, torch.stack(Ks), src, dtype)
 
     near = far = None

@@ -158,7 +158,9 @@ def load_dtu(
     masks = None
     if (root / "mask").is_dir():
         masks = _read_masks(root / "mask", n, sizes[0]).to(rgb.dtype)
-    extras: dict[str, object] = {"world_mats": torch.stack([torch.from_numpy(world[i].astype(np.float64)) for i in range(n)])}
+    extras: dict[str, object] = {
+        "world_mats": torch.stack([torch.from_numpy(world[i].astype(np.float64)) for i in range(n)])
+    }
     if scale:
         extras["scale_mats"] = torch.stack([torch.from_numpy(scale[i].astype(np.float64)) for i in sorted(scale)])
     return Scene(

@@ -51,9 +51,7 @@ def load_llff(
     folder = pick_image_folder(root, images, ("images",), f" beside {POSES_FILE}")
     paths = list_images(folder)
     if len(paths) != poses.shape[0]:
-        raise SurfSplatInputError(
-            f"{poses_path}: {poses.shape[0]} camera rows but {len(paths)} images in {folder}"
-        )
+        raise SurfSplatInputError(f"{poses_path}: {poses.shape[0]} camera rows but {len(paths)} images in {folder}")
     for i, (h, w, f) in enumerate(poses[:, :, 4].tolist()):
         if not (h >= 1 and w >= 1):
             raise SurfSplatInputError(f"{poses_path}: row {i} has image size H={h:g}, W={w:g}; expected positive")

@@ -51,7 +51,9 @@ def read_camera_file(path: Path) -> tuple[str, Tensor, Tensor]:
         if not tokens:
             continue
         if len(tokens) != 19:
-            raise SurfSplatInputError(f"{path}:{line_no}: expected a timestamp and 18 numbers, got {len(tokens)} fields")
+            raise SurfSplatInputError(
+                f"{path}:{line_no}: expected a timestamp and 18 numbers, got {len(tokens)} fields"
+            )
         try:
             timestamps.append(int(tokens[0]))
             rows.append([float(v) for v in tokens[1:]])

@@ -139,10 +139,15 @@ def write_synthetic_chunks(
     path, and write them as chunks (key `synthetic-{seed}-{i}`) with 16-bit PNG depths in
     millimetres. PNG images keep the rendering exact up to 8-bit quantization. Pair it with a
     `BoundedViewSampler` whose gaps fit num_frames. Returns the index."""
-    dataset = SyntheticDataset(SyntheticDatasetConfig(
-        length=num_scenes, seed=seed, image_shape=image_shape, supersample=supersample,
-        scene=config or SyntheticConfig(),
-    ))
+    dataset = SyntheticDataset(
+        SyntheticDatasetConfig(
+            length=num_scenes,
+            seed=seed,
+            image_shape=image_shape,
+            supersample=supersample,
+            scene=config or SyntheticConfig(),
+        )
+    )
     h, w = image_shape
     with ChunkWriter(out_dir, target_bytes=target_bytes) as writer:
         for i in range(num_scenes):
@@ -150,5 +155,7 @@ def write_synthetic_chunks(
             cams = dataset.trajectory(i, scene).cameras(torch.linspace(0, 1, num_frames, dtype=torch.float64), w, h)
             out = render_synthetic(scene, cams, w, h, supersample=supersample)
             record = Scene(images=out.image, cameras=cams, names=[str(k) for k in range(num_frames)], depths=out.depth)
-            writer.add(scene_to_example(record, key=f"synthetic-{seed}-{i}", url="synthetic", image_format=image_format))
+            writer.add(
+                scene_to_example(record, key=f"synthetic-{seed}-{i}", url="synthetic", image_format=image_format)
+            )
     return dict(writer.index)

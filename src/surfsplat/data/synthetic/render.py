@@ -139,7 +139,7 @@ def render_synthetic(
     d = rearrange(dirs, "c s h w k -> (c s h w) k")
     colors, depths, normals, prims = [], [], [], []
     for start in range(0, o.shape[0], chunk):
-        rgb, t, n, p = render_rays(scene, o[start:start + chunk], d[start:start + chunk])
+        rgb, t, n, p = render_rays(scene, o[start : start + chunk], d[start : start + chunk])
         colors.append(rgb)
         depths.append(t)
         normals.append(n)
@@ -156,10 +156,12 @@ def render_synthetic(
         offsets = torch.stack(torch.meshgrid(grid, grid, indexing="xy"), -1).reshape(-1, 2)  # [s*s, 2] (ox, oy)
         image = torch.zeros(C, 3, height, width, dtype=dtype)
         for k in range(offsets.shape[0]):
-            origins, dirs = pixel_rays(cameras, width, height, offsets[k:k + 1], dtype)
+            origins, dirs = pixel_rays(cameras, width, height, offsets[k : k + 1], dtype)
             o = rearrange(origins, "c s h w k -> (c s h w) k")
             d = rearrange(dirs, "c s h w k -> (c s h w) k")
-            sub = torch.cat([render_rays(scene, o[i:i + chunk], d[i:i + chunk])[0] for i in range(0, o.shape[0], chunk)])
+            sub = torch.cat(
+                [render_rays(scene, o[i : i + chunk], d[i : i + chunk])[0] for i in range(0, o.shape[0], chunk)]
+            )
             image += rearrange(sub, "(c h w) k -> c k h w", c=C, h=height)
         image /= offsets.shape[0]
     return SyntheticRender(image=image, depth=depth, normal=normal, primitive=primitive)

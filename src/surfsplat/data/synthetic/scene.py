@@ -96,8 +96,12 @@ def make_scene(seed: int, config: SyntheticConfig | None = None) -> SyntheticSce
         ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), floor_tex),  # floor
         ((0.0, 0.0, height), (0.0, 0.0, -1.0), random_texture(g, pattern="noise")),  # ceiling
     ]
-    for point, normal in (((-a, 0.0, 0.0), (1.0, 0.0, 0.0)), ((a, 0.0, 0.0), (-1.0, 0.0, 0.0)),
-                          ((0.0, -b, 0.0), (0.0, 1.0, 0.0)), ((0.0, b, 0.0), (0.0, -1.0, 0.0))):
+    for point, normal in (
+        ((-a, 0.0, 0.0), (1.0, 0.0, 0.0)),
+        ((a, 0.0, 0.0), (-1.0, 0.0, 0.0)),
+        ((0.0, -b, 0.0), (0.0, 1.0, 0.0)),
+        ((0.0, b, 0.0), (0.0, -1.0, 0.0)),
+    ):
         pattern = wall_patterns[int(torch.randint(len(wall_patterns), (), generator=g))]
         walls.append((point, normal, random_texture(g, pattern=pattern)))
     for point, normal, tex in walls:
@@ -121,17 +125,32 @@ def make_scene(seed: int, config: SyntheticConfig | None = None) -> SyntheticSce
             angle = _uniform(g, 0.3, 1.27)
             hx, hy = r * math.cos(angle), r * math.sin(angle)
             hz = _uniform(g, 0.2, 1.0)
-            prims.append(Primitive("box", torch.tensor([x, y, hz]), _rot_z(_uniform(g, 0, math.pi)),
-                                   torch.tensor([hx, hy, hz]), tex))
+            prims.append(
+                Primitive(
+                    "box", torch.tensor([x, y, hz]), _rot_z(_uniform(g, 0, math.pi)), torch.tensor([hx, hy, hz]), tex
+                )
+            )
         elif kind == "sphere":
-            prims.append(Primitive("sphere", torch.tensor([x, y, r]), _rot_z(_uniform(g, 0, math.pi)),
-                                   torch.tensor([r, 0.0, 0.0]), tex))
+            prims.append(
+                Primitive(
+                    "sphere", torch.tensor([x, y, r]), _rot_z(_uniform(g, 0, math.pi)), torch.tensor([r, 0.0, 0.0]), tex
+                )
+            )
         else:
             hz = _uniform(g, 0.25, 0.9)
-            prims.append(Primitive("cylinder", torch.tensor([x, y, hz]), _rot_z(_uniform(g, 0, math.pi)),
-                                   torch.tensor([r, hz, 0.0]), tex))
+            prims.append(
+                Primitive(
+                    "cylinder",
+                    torch.tensor([x, y, hz]),
+                    _rot_z(_uniform(g, 0, math.pi)),
+                    torch.tensor([r, hz, 0.0]),
+                    tex,
+                )
+            )
     lighting = Lighting(
-        direction=torch.nn.functional.normalize(torch.tensor([_uniform(g, -0.5, 0.5), _uniform(g, -0.5, 0.5), 1.0]), dim=0),
+        direction=torch.nn.functional.normalize(
+            torch.tensor([_uniform(g, -0.5, 0.5), _uniform(g, -0.5, 0.5), 1.0]), dim=0
+        ),
         position=torch.tensor([_uniform(g, -0.5 * a, 0.5 * a), _uniform(g, -0.5 * b, 0.5 * b), height - 0.3]),
     )
     return SyntheticScene(
@@ -211,11 +230,14 @@ def make_trajectory(
         half_w = math.tan(math.radians(fov) / 2)
         half_diag = math.atan(half_w * math.sqrt(1 + 1 / aspect**2))
         clearance = cfg.near / math.cos(half_diag) + 0.05
-        eye0 = torch.tensor([
-            _uniform(generator, float(lo[0]) + clearance, float(hi[0]) - clearance),
-            _uniform(generator, float(lo[1]) + clearance, float(hi[1]) - clearance),
-            _uniform(generator, *cfg.camera_height),
-        ], dtype=torch.float64)
+        eye0 = torch.tensor(
+            [
+                _uniform(generator, float(lo[0]) + clearance, float(hi[0]) - clearance),
+                _uniform(generator, float(lo[1]) + clearance, float(hi[1]) - clearance),
+                _uniform(generator, *cfg.camera_height),
+            ],
+            dtype=torch.float64,
+        )
         if objects:
             target = objects[int(torch.randint(len(objects), (), generator=generator))].center.double()
         else:
@@ -224,7 +246,9 @@ def make_trajectory(
         forward = target - eye0
         if forward.norm() < cfg.min_look_distance or abs(float(forward[2] / forward.norm())) > 0.6:
             continue
-        forward_h = torch.nn.functional.normalize(torch.tensor([float(forward[0]), float(forward[1]), 0.0], dtype=torch.float64), dim=0)
+        forward_h = torch.nn.functional.normalize(
+            torch.tensor([float(forward[0]), float(forward[1]), 0.0], dtype=torch.float64), dim=0
+        )
         right = torch.tensor([float(forward_h[1]), -float(forward_h[0]), 0.0], dtype=torch.float64)
         theta = math.radians(_uniform(generator, -60.0, 60.0))
         sign = 1.0 if float(torch.rand((), generator=generator)) < 0.5 else -1.0
@@ -242,4 +266,6 @@ def make_trajectory(
         if float((target1 - eye1).norm()) < cfg.min_look_distance:
             continue
         return Trajectory(eye0.float(), eye1.float(), target.float(), target1.float(), fov)
-    raise SurfSplatInputError(f"synthetic scene {scene.seed}: no camera path satisfies the clearance after {max_tries} tries")
+    raise SurfSplatInputError(
+        f"synthetic scene {scene.seed}: no camera path satisfies the clearance after {max_tries} tries"
+    )

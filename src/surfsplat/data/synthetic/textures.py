@@ -173,11 +173,13 @@ def random_texture(generator: torch.Generator, pattern: Pattern | None = None) -
         pattern = PATTERNS[int(torch.randint(len(PATTERNS), (), generator=generator))]
     base = torch.rand(3, generator=generator) * 0.7 + 0.2
     # Palette: a base colour, a contrasting one, and a third for grout / secondary blends.
-    colors = torch.stack([
-        base,
-        (1 - base) * 0.8 + 0.1 * torch.rand(3, generator=generator),
-        torch.rand(3, generator=generator) * 0.8 + 0.1,
-    ])
+    colors = torch.stack(
+        [
+            base,
+            (1 - base) * 0.8 + 0.1 * torch.rand(3, generator=generator),
+            torch.rand(3, generator=generator) * 0.8 + 0.1,
+        ]
+    )
     frequency = {"checker": (2.0, 6.0), "tiles": (2.0, 5.0), "stripes": (3.0, 10.0)}.get(pattern, (0.8, 3.0))
     return Texture(
         pattern=pattern,

@@ -134,7 +134,12 @@ class DPTHead(nn.Module):
         for i, parts in enumerate(concat):
             layers[i] = self.concat_projects[i](torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
         s = self.scratch
-        l1, l2, l3, l4 = (s.layer1_rn(layers[0]), s.layer2_rn(layers[1]), s.layer3_rn(layers[2]), s.layer4_rn(layers[3]))
+        l1, l2, l3, l4 = (
+            s.layer1_rn(layers[0]),
+            s.layer2_rn(layers[1]),
+            s.layer3_rn(layers[2]),
+            s.layer4_rn(layers[3]),
+        )
         path = s.refinenet4(l4, size=l3.shape[-2:])
         path = s.refinenet3(path, l3, size=l2.shape[-2:])
         path = s.refinenet2(path, l2, size=l1.shape[-2:])

@@ -29,7 +29,7 @@ from .dpt import DPTHead, DPTLayout, FeaturePyramid
 from .gaussian_head import GaussianHead
 from .mv_transformer import MultiViewTransformer, select_neighbours
 from .unet import UNet
-from .vit import ViTConfig, VisionTransformer, vit_patch_grid
+from .vit import VisionTransformer, ViTConfig, vit_patch_grid
 
 # ImageNet statistics: both the ViT and the CNN were pretrained on images normalised with them.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

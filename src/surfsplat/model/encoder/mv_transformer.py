@@ -106,7 +106,9 @@ class AttentionLayer(nn.Module):
         self.norm1 = nn.LayerNorm(dim)
         if ffn:
             hidden = 2 * dim * ffn_expansion
-            self.mlp = nn.Sequential(nn.Linear(2 * dim, hidden, bias=False), nn.GELU(), nn.Linear(hidden, dim, bias=False))
+            self.mlp = nn.Sequential(
+                nn.Linear(2 * dim, hidden, bias=False), nn.GELU(), nn.Linear(hidden, dim, bias=False)
+            )
             self.norm2 = nn.LayerNorm(dim)
         else:
             self.mlp = None

@@ -23,8 +23,12 @@ from . import kernels
 from .settings import CpuRenderSettings
 
 _SCRATCH = 64 + kernels.GRAD_SIZE  # per-thread work space of the projection kernels (SH basis, gradient row)
-_NP_DTYPES = {torch.float64: np.float64, torch.float32: np.float32, torch.float16: np.float16,
-              torch.bfloat16: np.float32}
+_NP_DTYPES = {
+    torch.float64: np.float64,
+    torch.float32: np.float32,
+    torch.float16: np.float16,
+    torch.bfloat16: np.float32,
+}
 
 
 @dataclass
@@ -72,7 +76,11 @@ def _tensor(a: np.ndarray, dtype: torch.dtype) -> Tensor:
 
 def _inputs(means, quats, scales, opacities, sh, covariances):
     return (
-        _np64(means), _np64(quats), _np64(scales), _np64(opacities), _np64(sh),
+        _np64(means),
+        _np64(quats),
+        _np64(scales),
+        _np64(opacities),
+        _np64(sh),
         _np64(covariances) if covariances is not None else np.zeros((0, 3, 3)),
     )
 
@@ -82,8 +90,9 @@ def _cameras(cameras: Cameras, width: int, height: int) -> list[_Camera]:
     K = _np64(cameras.K)
     centers = _np64(cameras.centers)
     return [
-        _Camera(np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c],
-                width, height)
+        _Camera(
+            np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height
+        )
         for c in range(len(cameras))
     ]
 
@@ -102,9 +111,29 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
     features = np.empty((n, kernels.FEATURES))
     flip = np.empty(n)
     kernels.project(
-        surfel, x, rot, sc, op, shc, cov, camera.R_cw, camera.t_cw, camera.center, camera.K, camera.width,
-        camera.height, settings.near_plane, settings.far_plane, geom, box, keep, depth, features, flip,
-        np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
+        surfel,
+        x,
+        rot,
+        sc,
+        op,
+        shc,
+        cov,
+        camera.R_cw,
+        camera.t_cw,
+        camera.center,
+        camera.K,
+        camera.width,
+        camera.height,
+        settings.near_plane,
+        settings.far_plane,
+        geom,
+        box,
+        keep,
+        depth,
+        features,
+        flip,
+        np.empty((threads, _SCRATCH)),
+        np.empty((threads, 2, 3, 3)),
     )
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
@@ -114,8 +143,17 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(
-        rot, kernels.gather_rows(geom, order), box, kernels.gather_rows(features, order), flip,
-        tile_start, tile_ids, pair_start, pair_of, rank, tiles_x,
+        rot,
+        kernels.gather_rows(geom, order),
+        box,
+        kernels.gather_rows(features, order),
+        flip,
+        tile_start,
+        tile_ids,
+        pair_start,
+        pair_of,
+        rank,
+        tiles_x,
     )
 
 
@@ -129,8 +167,18 @@ class _Rasterize(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, sh, covariances, surfel: bool, camera: _Camera,
-                settings: CpuRenderSettings):
+    def forward(
+        ctx,
+        means,
+        quats,
+        scales,
+        opacities,
+        sh,
+        covariances,
+        surfel: bool,
+        camera: _Camera,
+        settings: CpuRenderSettings,
+    ):
         plan = _prepare(surfel, _inputs(means, quats, scales, opacities, sh, covariances), camera, settings)
         W, H = camera.width, camera.height
         color, normal = np.empty((3, H, W)), np.empty((3, H, W))
@@ -138,8 +186,21 @@ class _Rasterize(torch.autograd.Function):
         last = np.empty((H, W), dtype=np.int64)
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_forward(
-                surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
-                settings.tile_size, plan.tiles_x, color, normal, depth[0], trans[0], last,
+                surfel,
+                plan.geom,
+                plan.features,
+                plan.box,
+                plan.tile_start,
+                plan.tile_ids,
+                W,
+                H,
+                settings.tile_size,
+                plan.tiles_x,
+                color,
+                normal,
+                depth[0],
+                trans[0],
+                last,
             )
         ctx.surfel, ctx.camera, ctx.settings = surfel, camera, settings
         ctx.plan, ctx.trans, ctx.last = plan, trans[0], last
@@ -158,8 +219,18 @@ class _Rasterize(torch.autograd.Function):
         pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE))  # every row gets written
         with numba.parallel_chunksize(settings.parallel_chunk):
             kernels.composite_backward(
-                ctx.surfel, plan.geom, plan.features, plan.box, plan.tile_start, plan.tile_ids, W, H,
-                settings.tile_size, plan.tiles_x, ctx.trans, ctx.last,
+                ctx.surfel,
+                plan.geom,
+                plan.features,
+                plan.box,
+                plan.tile_start,
+                plan.tile_ids,
+                W,
+                H,
+                settings.tile_size,
+                plan.tiles_x,
+                ctx.trans,
+                ctx.last,
                 np.zeros((3, H, W)) if g_color is None else _np64(g_color),
                 np.zeros((3, H, W)) if g_normal is None else _np64(g_normal),
                 np.zeros((H, W)) if g_alpha is None else _np64(g_alpha[0]),
@@ -171,10 +242,31 @@ class _Rasterize(torch.autograd.Function):
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
         kernels.project_backward(
-            ctx.surfel, plan.rank, plan.pair_start, plan.pair_of, pair_grads, x, plan.rotations, sc, op, shc, cov,
-            camera.R_cw, camera.t_cw, camera.center, camera.K, plan.geom, plan.flip, g_means, g_rot, g_scales, g_opac,
-            g_sh, g_cov,
-            np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3)),
+            ctx.surfel,
+            plan.rank,
+            plan.pair_start,
+            plan.pair_of,
+            pair_grads,
+            x,
+            plan.rotations,
+            sc,
+            op,
+            shc,
+            cov,
+            camera.R_cw,
+            camera.t_cw,
+            camera.center,
+            camera.K,
+            plan.geom,
+            plan.flip,
+            g_means,
+            g_rot,
+            g_scales,
+            g_opac,
+            g_sh,
+            g_cov,
+            np.empty((threads, _SCRATCH)),
+            np.empty((threads, 2, 3, 3)),
         )
         g_quats = np.empty((n, 4))
         kernels.quats_backward(q, g_rot, g_quats)
@@ -185,8 +277,15 @@ class _Rasterize(torch.autograd.Function):
             return _tensor(grad, like.dtype)
 
         return (
-            out(g_means, means, 0), out(g_quats, quats, 1), out(g_scales, scales, 2), out(g_opac, opacities, 3),
-            out(g_sh, sh, 4), out(g_cov, covariances, 5), None, None, None,
+            out(g_means, means, 0),
+            out(g_quats, quats, 1),
+            out(g_scales, scales, 2),
+            out(g_opac, opacities, 3),
+            out(g_sh, sh, 4),
+            out(g_cov, covariances, 5),
+            None,
+            None,
+            None,
         )
 
 
@@ -200,7 +299,11 @@ def _check(gaussians: Gaussians, cameras: Cameras) -> None:
 
 
 def render_cpu(
-    gaussians: Gaussians, cameras: Cameras, width: int, height: int, mode: RenderMode,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    mode: RenderMode,
     settings: CpuRenderSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
@@ -222,7 +325,11 @@ def render_cpu(
 
 
 def contributing_pairs(
-    gaussians: Gaussians, cameras: Cameras, width: int, height: int, mode: RenderMode,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    mode: RenderMode,
     settings: CpuRenderSettings | None = None,
 ) -> list[int]:
     """Per camera, the number of (pixel, Gaussian) pairs with alpha >= 1/255 (termination ignored).
@@ -232,13 +339,23 @@ def contributing_pairs(
     settings = settings or CpuRenderSettings()
     g = gaussians
     _check(g, cameras)
-    inputs = _inputs(g.means, g.quats, g.scales, g.opacities, g.sh,
-                     g.explicit_covariances if mode == "ewa" else None)
+    inputs = _inputs(g.means, g.quats, g.scales, g.opacities, g.sh, g.explicit_covariances if mode == "ewa" else None)
     counts = []
     for cam in _cameras(cameras, width, height):
         plan = _prepare(mode == "surfel", inputs, cam, settings)
-        counts.append(int(kernels.count_contributing_pairs(
-            mode == "surfel", plan.geom, plan.box, plan.tile_start, plan.tile_ids, width, height,
-            settings.tile_size, plan.tiles_x,
-        )))
+        counts.append(
+            int(
+                kernels.count_contributing_pairs(
+                    mode == "surfel",
+                    plan.geom,
+                    plan.box,
+                    plan.tile_start,
+                    plan.tile_ids,
+                    width,
+                    height,
+                    settings.tile_size,
+                    plan.tiles_x,
+                )
+            )
+        )
     return counts

@@ -121,12 +121,36 @@ def quats_backward(quats, g_rotations, g_quats):
         w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
         G = g_rotations[i]
         gw = 2.0 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
-        gx = 2.0 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2.0 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
-                    + w * G[2, 1] - 2.0 * x * G[2, 2])
-        gy = 2.0 * (-2.0 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
-                    + z * G[2, 1] - 2.0 * y * G[2, 2])
-        gz = 2.0 * (-2.0 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2.0 * z * G[1, 1] + y * G[1, 2]
-                    + x * G[2, 0] + y * G[2, 1])
+        gx = 2.0 * (
+            y * G[0, 1]
+            + z * G[0, 2]
+            + y * G[1, 0]
+            - 2.0 * x * G[1, 1]
+            - w * G[1, 2]
+            + z * G[2, 0]
+            + w * G[2, 1]
+            - 2.0 * x * G[2, 2]
+        )
+        gy = 2.0 * (
+            -2.0 * y * G[0, 0]
+            + x * G[0, 1]
+            + w * G[0, 2]
+            + x * G[1, 0]
+            + z * G[1, 2]
+            - w * G[2, 0]
+            + z * G[2, 1]
+            - 2.0 * y * G[2, 2]
+        )
+        gz = 2.0 * (
+            -2.0 * z * G[0, 0]
+            - w * G[0, 1]
+            + x * G[0, 2]
+            + w * G[1, 0]
+            - 2.0 * z * G[1, 1]
+            + y * G[1, 2]
+            + x * G[2, 0]
+            + y * G[2, 1]
+        )
         # q_hat = q / |q|: dL/dq = (dL/dq_hat - q_hat (q_hat . dL/dq_hat)) / |q|
         dot = w * gw + x * gx + y * gy + z * gz if raw > _QUAT_NORM_MIN else 0.0
         g_quats[i, 0] = (gw - w * dot) / norm
@@ -244,8 +268,31 @@ def _view_direction(x, cam_center):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, t_cw, cam_center, K,
-            width, height, near, far, geom, box, keep, depth, features, flip, scratch, cov_scratch):
+def project(
+    surfel,
+    means,
+    rotations,
+    scales,
+    opacities,
+    sh,
+    covariances,
+    R_cw,
+    t_cw,
+    cam_center,
+    K,
+    width,
+    height,
+    near,
+    far,
+    geom,
+    box,
+    keep,
+    depth,
+    features,
+    flip,
+    scratch,
+    cov_scratch,
+):
     """Per-Gaussian coefficients, pixel boxes, culling, colour and oriented normal (parallel over N).
 
     means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
@@ -343,6 +390,7 @@ def project(surfel, means, rotations, scales, opacities, sh, covariances, R_cw, 
         for r in range(3):
             features[i, 3 + r] = flip[i] * R[r, 2]
 
+
 # ---------------------------------------------------------------------------------------------
 # Sorting and binning
 # ---------------------------------------------------------------------------------------------
@@ -413,8 +461,18 @@ def gather_rows(src, index):
 
 _EXP_MIN = LOG_ALPHA_MIN - 2.0  # exponents below this give alpha < ALPHA_MIN anyway
 _TAYLOR = (
-    1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5040, 1.0 / 40320, 1.0 / 362880,
-    1.0 / 3628800, 1.0 / 39916800,
+    1.0,
+    1.0,
+    1.0 / 2,
+    1.0 / 6,
+    1.0 / 24,
+    1.0 / 120,
+    1.0 / 720,
+    1.0 / 5040,
+    1.0 / 40320,
+    1.0 / 362880,
+    1.0 / 3628800,
+    1.0 / 39916800,
 )
 
 
@@ -508,8 +566,23 @@ def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                      out_color, out_normal, out_depth, out_trans, out_last):
+def composite_forward(
+    surfel,
+    geom,
+    features,
+    box,
+    tile_start,
+    tile_ids,
+    width,
+    height,
+    tile,
+    tiles_x,
+    out_color,
+    out_normal,
+    out_depth,
+    out_trans,
+    out_last,
+):
     """Front-to-back alpha compositing of every tile (tiles in parallel).
 
     geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
@@ -584,8 +657,25 @@ def composite_forward(surfel, geom, features, box, tile_start, tile_ids, width, 
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def composite_backward(surfel, geom, features, box, tile_start, tile_ids, width, height, tile, tiles_x,
-                       trans_final, last, g_color, g_normal, g_alpha, g_depth, pair_grads):
+def composite_backward(
+    surfel,
+    geom,
+    features,
+    box,
+    tile_start,
+    tile_ids,
+    width,
+    height,
+    tile,
+    tiles_x,
+    trans_final,
+    last,
+    g_color,
+    g_normal,
+    g_alpha,
+    g_depth,
+    pair_grads,
+):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
@@ -864,9 +954,33 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def project_backward(surfel, rank, pair_start, pair_of, pair_grads, means, rotations, scales, opacities, sh,
-                     covariances, R_cw, t_cw, cam_center, K, geom, flip, g_means, g_rotations, g_scales, g_opacities,
-                     g_sh, g_covariances, scratch, cov_scratch):
+def project_backward(
+    surfel,
+    rank,
+    pair_start,
+    pair_of,
+    pair_grads,
+    means,
+    rotations,
+    scales,
+    opacities,
+    sh,
+    covariances,
+    R_cw,
+    t_cw,
+    cam_center,
+    K,
+    geom,
+    flip,
+    g_means,
+    g_rotations,
+    g_scales,
+    g_opacities,
+    g_sh,
+    g_covariances,
+    scratch,
+    cov_scratch,
+):
     """Chain rule from the survivors' compositing gradients to the Gaussian parameters.
 
     rank [N] is each Gaussian's position m among the sorted survivors (-1: culled); a survivor's
@@ -895,8 +1009,17 @@ def project_backward(surfel, rank, pair_start, pair_of, pair_grads, means, rotat
         mu = _camera_point(means[i], R_cw, t_cw)
         if surfel:
             gm0, gm1, gm2 = _surfel_backward(
-                mu, R, scales[i, 0], scales[i, 1], R_cw, K, gr, geom[m, GEOM_CX], geom[m, GEOM_CY],
-                g_rotations[i], g_scales[i],
+                mu,
+                R,
+                scales[i, 0],
+                scales[i, 1],
+                R_cw,
+                K,
+                gr,
+                geom[m, GEOM_CX],
+                geom[m, GEOM_CY],
+                g_rotations[i],
+                g_scales[i],
             )
         else:
             if explicit:
@@ -952,6 +1075,7 @@ def project_backward(surfel, rank, pair_start, pair_of, pair_grads, means, rotat
             g_means[i, 0] += (gd0 - dx * proj) / norm
             g_means[i, 1] += (gd1 - dy * proj) / norm
             g_means[i, 2] += (gd2 - dz * proj) / norm
+
 
 # ---------------------------------------------------------------------------------------------
 # Diagnostics
