@@ -94,9 +94,11 @@ def test_validation_pictures_are_what_the_metrics_scored(run) -> None:
     truth = sample.target.images[0, 0]  # [3, H, W], the held-out view validation scored
     for s in FACTORS:
         (image,) = events.Images(f"val/x{s}")
-        assert (image.step, image.height, image.width) == (3, SIZE * s, 2 * SIZE * s)
+        n = SIZE * s  # two n x n cells in a 2-pixel white border
+        assert (image.step, image.height, image.width) == (3, n + 4, 2 * n + 6)
         picture = _decode(image)
-        left, right = picture[:, : SIZE * s], picture[:, SIZE * s :]
+        left, right = picture[2 : 2 + n, 2 : 2 + n], picture[2 : 2 + n, n + 4 : 2 * n + 4]
+        assert np.all(picture[:2] == 1) and np.all(picture[:, n + 2 : n + 4] == 1)
         # The left half is the truth the metric compares with: upsampled bicubically at s > 1.
         reference = upsample_ground_truth(truth, s).permute(1, 2, 0).double().numpy()
         assert np.abs(left - reference).max() <= 1.5 / 255
@@ -107,7 +109,7 @@ def test_validation_pictures_are_what_the_metrics_scored(run) -> None:
         assert logged.value < 40  # a 3-step model is far from the truth: not a copy of the left half
     # Training picture: context (2 views), target (1) and render rows of 32x32 views.
     (train_image,) = events.Images("train/context_target_render")
-    assert (train_image.step, train_image.height, train_image.width) == (3, 3 * SIZE, 2 * SIZE)
+    assert (train_image.step, train_image.height, train_image.width) == (3, 3 * SIZE + 8, 2 * SIZE + 6)
 
 
 def test_config_text_holds_the_run_configuration(run) -> None:

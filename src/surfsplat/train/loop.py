@@ -41,6 +41,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
+from ..export.figures import image_grid
 from ..log import progress
 from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
@@ -69,7 +70,7 @@ from .distributed import (
 )
 from .losses import ImageLoss, LossTerms, cascade_loss
 from .schedule import learning_rate
-from .validation import image_grid, validate
+from .validation import validate
 
 logger = logging.getLogger("surfsplat.train")
 
@@ -504,7 +505,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 reporter.progress()
 
             if config.image_every and (done % config.image_every == 0 or is_last) and ctx.is_main:
-                picture = image_grid([context.images[0], target.images[0], renders[-1][0]])
+                picture = image_grid([list(context.images[0]), list(target.images[0]), list(renders[-1][0])])
                 reporter.image(done, "train/context_target_render", picture)
 
             if validating and (done % config.val_every == 0 or is_last):

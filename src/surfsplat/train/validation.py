@@ -15,6 +15,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from ..export.figures import image_grid
 from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator, upsample_ground_truth
 from ..metrics.lpips import Lpips, LpipsUnavailable
@@ -24,17 +25,6 @@ from .data import TrainBatch
 from .distributed import DistributedContext, all_reduce_sum
 
 _DEPTH_METRICS = ("abs_rel", "delta1")
-
-
-def image_grid(rows: Sequence[Tensor]) -> Tensor:
-    """Rows of [N_i, 3, H, W] images -> one [3, rows*H, max(N_i)*W] picture in [0, 1] (black padding)."""
-    width = max(r.shape[0] for r in rows)
-    _, c, h, w = rows[0].shape
-    grid = torch.zeros(c, len(rows) * h, width * w)
-    for i, row in enumerate(rows):
-        for j, image in enumerate(row):
-            grid[:, i * h : (i + 1) * h, j * w : (j + 1) * w] = image.detach().float().clamp(0, 1).cpu()
-    return grid
 
 
 @torch.no_grad()
@@ -53,8 +43,8 @@ def validate(
     true depth exists, and "num_images". LPIPS is absent when its weights are (see `lpips`).
 
     `grids`, when given, receives a picture per factor s of this rank's first scene and its first
-    target view: [3, s*H, 2*s*W], the truth the metric compares with (upsampled) left of the render
-    at s times the resolution."""
+    target view, the truth the metric compares with (upsampled) left of the render at s times the
+    resolution (`surfsplat.export.figures.image_grid`: [3, s*H + 4, 2*s*W + 6], 2-pixel white borders)."""
     was_training = model.training
     model.eval()
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=factors))
@@ -79,7 +69,7 @@ def validate(
             renders[s] = views.color[0]
             if grids is not None and i == 0:
                 truth = upsample_ground_truth(target.images[0], s, evaluator.config.upsample)
-                grids[s] = image_grid([torch.stack([truth[0], views.color[0, 0]])])
+                grids[s] = image_grid([[truth[0], views.color[0, 0]]])
         evaluator.add_scene(f"{ctx.rank}:{i}:{batch.scenes[0]}", target.images[0], renders)
         if context.depths is not None:
             errors = depth_metrics(prediction.depths[0].float(), context.depths[0, :, 0].float())
