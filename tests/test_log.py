@@ -81,7 +81,6 @@ def test_warnings_are_named_and_other_ranks_keep_only_them(monkeypatch, capsys) 
     logger.warning("no held-out scenes")
     assert capsys.readouterr().err == "starting\nwarning: no held-out scenes\n"
     monkeypatch.setenv("RANK", "1")
-    monkeypatch.setenv("WORLD_SIZE", "2")
     log.configure(logging.DEBUG)
     logger.info("starting")
     logger.warning("no held-out scenes")

@@ -87,14 +87,13 @@ def configure(level: int = logging.INFO) -> None:
     for handler in [h for h in root.handlers if isinstance(h, _Handler)]:
         root.removeHandler(handler)
     r = rank()
-    distributed = int(os.environ.get("WORLD_SIZE", "1") or 1) > 1
     handler = _Handler()
-    handler.setFormatter(_Formatter(verbose=level <= logging.DEBUG, rank_prefix=f"rank {r}: " if distributed else ""))
+    handler.setFormatter(_Formatter(verbose=level <= logging.DEBUG, rank_prefix=f"rank {r}: " if r != 0 else ""))
     root.addHandler(handler)
     root.setLevel(level if r == 0 else max(level, logging.WARNING))
 
 
-def level() -> int:
+def configured_level() -> int:
     """The level `configure` set (NOTSET when the package's logging was never configured)."""
     return logging.getLogger(ROOT).level
 

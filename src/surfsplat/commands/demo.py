@@ -302,7 +302,7 @@ def _fit_with_deadline(train_config, deadline: float) -> bool:
     import multiprocessing
 
     process = multiprocessing.get_context("spawn").Process(
-        target=_fit_child, args=(train_config, log.level()), daemon=True
+        target=_fit_child, args=(train_config, log.configured_level()), daemon=True
     )
     process.start()
     try:

@@ -371,6 +371,18 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         keep_adapter_in_float32(model, device.type)
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     cascade = num_intermediate_depths(model) > 0
+    if ctx.is_main:
+        logger.debug(
+            "model %s: %s parameters on %s (%d ranks), autocast %s, %s rendering (%s backend)%s",
+            config.model.preset,
+            f"{sum(p.numel() for p in model.parameters()):,}",
+            device,
+            ctx.world_size,
+            amp_dtype or "off",
+            mode,
+            config.model.render_backend,
+            ", cascade loss" if cascade else "",
+        )
 
     start_step, data_state, rng_state, extra = 0, None, None, {}
     rank_seed = mix_seed(config.seed, ctx.rank)
@@ -546,6 +558,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     result.checkpoint = save_training_checkpoint(
                         config.out_dir, model, state, keep=config.keep_checkpoints
                     )
+                    logger.debug("checkpoint %s", result.checkpoint)
                 barrier(ctx)
             result.step = done
     finally:
