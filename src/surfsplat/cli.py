@@ -2,15 +2,21 @@
 
 Each sub-command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
 modules are imported only when their command runs, so `surfsplat --help` stays fast.
+-q/--quiet and -v/--verbose (see `surfsplat.log`) are accepted before or after the command;
+`surfsplat --version` prints the installed version.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
+from . import log
 from .checks import SurfSplatInputError
+
+logger = logging.getLogger(__name__)
 
 # command name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -38,12 +44,28 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def package_version() -> str:
+    """The installed distribution's version; the source tree's when it is not installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("surfsplat")
+    except PackageNotFoundError:
+        from . import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surfsplat", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"surfsplat {package_version()}")
+    log.add_options(parser)
+    messages = argparse.ArgumentParser(add_help=False)
+    log.add_options(messages, subcommand=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module_name, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text, parents=[messages])
         p.set_defaults(_module=module_name)
         importlib.import_module(module_name).add_arguments(p)
     return parser
@@ -52,6 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    log.configure(args.log_level)
+    logger.debug(
+        "surfsplat %s on Python %s: %s",
+        package_version(),
+        sys.version.split()[0],
+        sys.argv[1:] if argv is None else argv,
+    )
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)

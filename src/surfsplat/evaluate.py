@@ -33,13 +33,13 @@ from typing import Literal
 
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
 from .checks import SurfSplatInputError
 from .data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
 from .data.eval_index import EvaluationIndex
 from .data.transforms import rescale_and_crop
 from .geometry.cameras import Cameras
+from .log import progress
 from .metrics.depth import depth_metrics
 from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
 from .metrics.lpips import Lpips, LpipsUnavailable
@@ -350,7 +350,7 @@ class EvalConfig:
     upsample: Literal["bicubic", "bilinear"] = "bicubic"  # HRRC ground truth: the paper; bilinear = the release's code
     mode: Literal["auto", "surfel", "ewa"] = "auto"  # rasterization; auto follows the adapter
     max_entries: int | None = None  # stop after this many index entries (smoke runs)
-    progress: bool = True  # tqdm bar over the entries
+    progress: bool = True  # progress over the entries (a bar on a terminal, log lines elsewhere)
 
     def __post_init__(self) -> None:
         if self.upsample not in UPSAMPLE_MODES:
@@ -408,7 +408,7 @@ def evaluate(
     forward, renders = [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     started = time.perf_counter()
-    bar = tqdm(samples, total=total, disable=not config.progress, desc=f"eval {name}", unit="scene", dynamic_ncols=True)
+    bar = progress(samples, total=total, enabled=config.progress, desc=f"eval {name}", unit="scene")
     for sample in bar:
         pred = predict_sample(model, sample, config.factors, config.mode)
         evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
+
+logger = logging.getLogger(__name__)
 
 # The formats of surfsplat.data.convert.CONVERTERS, spelled out so `surfsplat --help` does not
 # import the data stack (a test keeps the two equal).
@@ -51,7 +53,5 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"{args.out}: {report}")
     if report.skipped:
-        print(
-            f"surfsplat convert: {len(report.skipped)} scenes or frame groups skipped (listed above)", file=sys.stderr
-        )
+        logger.warning(f"{len(report.skipped)} scenes or frame groups skipped (listed above)")
     return 0

@@ -20,15 +20,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
+from .. import log
 from ..checks import SurfSplatInputError
+from ..log import progress
+
+logger = logging.getLogger(__name__)
 
 EVAL_SEED = 90210  # held-out evaluation rooms (training rooms are drawn from the preset's seed)
 CHECKPOINT_EVERY = 10  # training steps between checkpoints (what a deadline stop can lose)
@@ -133,7 +137,7 @@ class DemoResult:
 
 
 def _say(text: str) -> None:
-    print(f"[demo] {text}", flush=True)
+    logger.info(text)
 
 
 def run_demo(config: DemoConfig, out: Path) -> DemoResult:
@@ -192,7 +196,7 @@ def run_demo(config: DemoConfig, out: Path) -> DemoResult:
     print(evaluation["table"])
     print()
     _say(f"finished in {total / 60:.1f} min (" + ", ".join(f"{p.name} {p.seconds:.0f} s" for p in result.phases) + ")")
-    _say("outputs:")
+    print("outputs:")
     for key, path in [
         ("report", report),
         ("metrics", metrics_path),
@@ -297,7 +301,9 @@ def _fit_with_deadline(train_config, deadline: float) -> bool:
     """Run fit(train_config) in a spawned process; True when the deadline stopped it."""
     import multiprocessing
 
-    process = multiprocessing.get_context("spawn").Process(target=_fit_child, args=(train_config,), daemon=True)
+    process = multiprocessing.get_context("spawn").Process(
+        target=_fit_child, args=(train_config, log.configured_level()), daemon=True
+    )
     process.start()
     try:
         process.join(timeout=deadline)
@@ -314,9 +320,11 @@ def _fit_with_deadline(train_config, deadline: float) -> bool:
     return stopped
 
 
-def _fit_child(train_config) -> None:
+def _fit_child(train_config, log_level: int) -> None:
     from ..train import fit
 
+    if log_level:  # a spawned process starts without the parent's logging setup
+        log.configure(log_level)
     fit(train_config)
 
 
@@ -382,7 +390,7 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
         upsampled = HrrcEvaluator(lpips, HrrcConfig(factors=factors, upsample="bicubic"))
         natives = {s: HrrcEvaluator(lpips, HrrcConfig(factors=(1,))) for s in factors}
         coverage = {s: [] for s in factors}
-        for k, sample in enumerate(tqdm(samples, desc=f"score {name}", unit="room", dynamic_ncols=True, leave=False)):
+        for k, sample in enumerate(progress(samples, desc=f"score {name}", unit="room", leave=False)):
             pred = predict_sample(model, sample, factors)
             upsampled.add_scene(sample.key, sample.target_images, {s: r.color for s, r in pred.renders.items()})
             for s in factors:
@@ -420,7 +428,7 @@ def native_truth(config: DemoConfig, samples, factors) -> list[dict[int, dict[st
     )
     positions = torch.linspace(0, 1, config.eval_frames, dtype=torch.float64)
     out = []
-    for sample in tqdm(samples, desc="ray-cast native truth", unit="room", dynamic_ncols=True, leave=False):
+    for sample in progress(samples, desc="ray-cast native truth", unit="room", leave=False):
         i = int(sample.scene.rsplit("-", 1)[1])
         scene = dataset.scene(i)
         cams = dataset.trajectory(i, scene).cameras(positions[list(sample.target_views)], size, size)

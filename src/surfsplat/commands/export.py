@@ -21,9 +21,9 @@ from typing import Literal
 
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
 from ..checks import SurfSplatInputError
+from ..log import progress
 
 FORMATS = ("ply", "renders", "video", "mesh")
 
@@ -41,7 +41,7 @@ class ExportOptions:
     mesh_resolution: int = 128  # TSDF voxels along the longest side
     mode: Literal["surfel", "ewa"] = "surfel"  # rasterization
     alpha_threshold: float | None = 0.001  # forced alpha blending tau (None: plain compositing)
-    progress: bool = True  # tqdm bars over frames
+    progress: bool = True  # progress over frames (a bar on a terminal, log lines elsewhere)
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.formats) - set(FORMATS))
@@ -229,12 +229,11 @@ def render_frames(gaussians, cameras, width: int, height: int, options: ExportOp
     from ..render import render
 
     outs = []
-    for i in tqdm(
+    for i in progress(
         range(len(cameras)),
         desc=f"render {what}",
         unit="frame",
-        disable=not options.progress or len(cameras) < 4,
-        dynamic_ncols=True,
+        enabled=options.progress and len(cameras) >= 4,
         leave=False,
     ):
         r = render(gaussians, cameras[i], width, height, mode=options.mode, alpha_threshold=options.alpha_threshold)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -22,6 +23,8 @@ import torch
 
 from ..checks import SurfSplatInputError
 from .export import FORMATS, add_export_arguments, export_reconstruction, options_from_args, print_written
+
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         prediction = model(stack[None].clamp(0, 1).to(device), cameras.to(device), near, far)
     seconds = time.perf_counter() - start
     gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
-    print(
+    logger.info(
         f"{label}: {len(gaussians):,} surfels from {len(args.images)} views at {shape[1]}x{shape[0]} in {seconds:.2f} s"
     )
 

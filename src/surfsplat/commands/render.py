@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from ..checks import SurfSplatInputError
+from ..log import progress
+
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         "height": height,
         "views": [],
     }
-    for v in tqdm(views, desc=f"render x{args.scale:g}", unit="view", disable=len(views) < 2, dynamic_ncols=True):
+    for v in progress(views, desc=f"render x{args.scale:g}", unit="view", enabled=len(views) >= 2):
         start = time.perf_counter()
         with torch.no_grad():
             r = render(gaussians, cameras[v], width, height, mode=mode, alpha_threshold=tau, background=args.background)
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         write_png(args.out / f"{stem}_normal.png", normal_to_rgb(r.normal[0]))
         coverage = float((r.alpha[0] > 0.5).float().mean())
         report["views"].append({"name": cams.names[v], "seconds": seconds, "coverage": coverage})
-        print(f"{cams.names[v]}: {width}x{height} in {seconds:.2f} s, coverage {coverage:.3f}")
+        logger.info(f"{cams.names[v]}: {width}x{height} in {seconds:.2f} s, coverage {coverage:.3f}")
     from ..export.figures import write_text
 
     write_text(args.out / "render.json", json.dumps(report, indent=1) + "\n")

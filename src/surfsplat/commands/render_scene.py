@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -11,6 +12,8 @@ import torch
 
 from ..checks import SurfSplatInputError
 from ..render.types import BACKENDS
+
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         write_png(out / f"normal_{tag}.png", normal_to_rgb(r.normal[0]))
         holes = float((r.alpha[0] < 0.5).float().mean())
         report["renders"].append({"scale": s, "size": size, "seconds": seconds, "hole_fraction": holes})
-        print(f"x{s:g}: {size}x{size} in {seconds:.2f} s, hole fraction {holes:.4f}")
+        logger.info(f"x{s:g}: {size}x{size} in {seconds:.2f} s, hole fraction {holes:.4f}")
     save_ply(scene.gaussians, out / "scene.ply")
     (out / "report.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out}/ (color_*.png, depth_*.png, normal_*.png, scene.ply, report.json)")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .. import log
 from ..checks import SurfSplatInputError
 from ..commands import train as command
 
@@ -13,7 +14,9 @@ from ..commands import train as command
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="surfsplat train", description=(command.__doc__ or "").splitlines()[0])
     command.add_arguments(parser)
+    log.add_options(parser)
     args = parser.parse_args(argv)
+    log.configure(args.log_level)
     try:
         return command.run(args)
     except (SurfSplatInputError, FileNotFoundError) as err:

@@ -104,7 +104,7 @@ class TrainConfig:
     image_every: int = 1000  # steps between image grids in TensorBoard (0: never)
     val_every: int = 5000  # steps between validations (0: never; also run at the end when > 0)
     val_factors: tuple[int, ...] = (1, 2, 4)  # render scales of validation: 1 = standard, 2 and 4 = HRRC
-    progress: bool = True  # tqdm progress bar on rank 0
+    progress: bool = True  # rank 0 shows progress: a bar on a terminal, a log line every few seconds elsewhere
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

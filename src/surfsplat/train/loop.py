@@ -7,7 +7,17 @@ Read top to bottom, one step is: learning rate from the step (pure function), th
 step (a function of seed and step), forward under autocast, render the target views (surfel or
 EWA, training tau_alpha), MSE + lambda LPIPS (+ the cascade's coarse renders), backward (DDP
 averages gradients over ranks), clip, AdamW. Rank 0 alone writes checkpoints, TensorBoard events,
-metrics.jsonl and the progress bar; every number it reports is first reduced over all ranks.
+metrics.jsonl and the progress; every number it reports is first reduced over all ranks.
+
+TensorBoard (`tensorboard --logdir <out_dir>/tensorboard`), written with torch's SummaryWriter:
+- scalars: loss/total, loss/mse, loss/lpips; train/grad_norm, train/lr (the main group's rate),
+  train/lr_vit (the pretrained ViT's), train/seconds_per_step, train/samples_per_second; at each
+  validation val/x{s}/{psnr,ssim,lpips}, val/depth/{abs_rel,delta1}, val/num_images. metrics.jsonl
+  holds the same values, one JSON line per logged step.
+- images: train/context_target_render (context, target and render rows of one training sample)
+  every image_every steps; val/x{s} (a held-out view's truth, upsampled as the metric compares it,
+  beside the render at s times the resolution) at each validation.
+- text: config, the run's full configuration as JSON (also config.json).
 """
 
 from __future__ import annotations
@@ -28,10 +38,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
-from tqdm import tqdm
 
 from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
+from ..export.figures import image_grid
+from ..log import progress
 from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
 from ..model.decoder import decoder_mode, render_views
@@ -57,7 +68,6 @@ from .distributed import (
     init_distributed,
     shutdown,
 )
-from .events import EventWriter
 from .losses import ImageLoss, LossTerms, cascade_loss
 from .schedule import learning_rate
 from .validation import validate
@@ -158,47 +168,43 @@ def keep_adapter_in_float32(model: SurfSplat, device_type: str) -> list[Any]:
     return [model.adapter.register_forward_pre_hook(before), model.adapter.register_forward_hook(after)]
 
 
-def _image_grid(rows: list[Tensor]) -> Tensor:
-    """Rows of [N_i, 3, H, W] images -> one [3, rows*H, max(N_i)*W] picture (black padding)."""
-    width = max(r.shape[0] for r in rows)
-    _, c, h, w = rows[0].shape
-    grid = torch.zeros(c, len(rows) * h, width * w)
-    for i, row in enumerate(rows):
-        for j, image in enumerate(row):
-            grid[:, i * h : (i + 1) * h, j * w : (j + 1) * w] = image.detach().float().clamp(0, 1).cpu()
-    return grid
-
-
 class _Reporter:
-    """Rank 0's outputs: TensorBoard events, metrics.jsonl and the progress bar."""
+    """Rank 0's outputs: TensorBoard events, metrics.jsonl and progress (a bar on a terminal, log
+    lines elsewhere). Other ranks hold an inactive reporter."""
 
     def __init__(self, config: TrainConfig, ctx: DistributedContext, start_step: int) -> None:
         self.active = ctx.is_main
         self.out = Path(config.out_dir)
-        self.events: EventWriter | None = None
-        self.bar: tqdm | None = None
+        self.writer: Any = None
+        self.bar: Any = None
         if not self.active:
             return
+        # Imported here: only rank 0 writes events, and the command line's start-up stays fast.
+        from torch.utils.tensorboard import SummaryWriter
+
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.json").write_text(json.dumps(config.to_dict(), indent=1))
-        self.events = EventWriter(self.out / "tensorboard")
+        config_json = json.dumps(config.to_dict(), indent=1)
+        (self.out / "config.json").write_text(config_json)
+        self.writer = SummaryWriter(log_dir=str(self.out / "tensorboard"))
+        # Fenced so that TensorBoard's markdown keeps the JSON's layout.
+        self.writer.add_text("config", f"```json\n{config_json}\n```", global_step=start_step)
         self.jsonl = open(self.out / "metrics.jsonl", "a")
-        self.bar = tqdm(
-            total=config.steps, initial=start_step, disable=not config.progress, unit="step", dynamic_ncols=True
-        )
+        self.bar = progress(total=config.steps, initial=start_step, desc="train", unit="step", enabled=config.progress)
 
     def scalars(self, step: int, values: dict[str, float]) -> None:
         if not self.active:
             return
-        assert self.events is not None
-        self.events.add_scalars(values, step)
+        for tag, value in values.items():
+            # NaN and inf are written as they are: TensorBoard shows them, so a diverging run is visible.
+            self.writer.add_scalar(tag, value, global_step=step)
         self.jsonl.write(json.dumps({"step": step, **values}) + "\n")
         self.jsonl.flush()
-        self.events.flush()
+        self.writer.flush()
 
     def image(self, step: int, tag: str, picture: Tensor) -> None:
-        if self.active and self.events is not None:
-            self.events.add_image(tag, picture, step)
+        """picture: [3, H, W] in [0, 1]."""
+        if self.active:
+            self.writer.add_image(tag, picture.detach().float().clamp(0, 1).cpu(), global_step=step)
 
     def progress(self, **postfix: str) -> None:
         """One step done; new postfix values (loss, rate) when given."""
@@ -209,15 +215,14 @@ class _Reporter:
 
     def message(self, text: str) -> None:
         if self.active:
-            (self.bar.write if self.bar is not None else print)(text)
+            logger.info(text)
 
     def close(self) -> None:
         if not self.active:
             return
         if self.bar is not None:
             self.bar.close()
-        if self.events is not None:
-            self.events.close()
+        self.writer.close()
         self.jsonl.close()
 
 
@@ -366,6 +371,18 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         keep_adapter_in_float32(model, device.type)
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     cascade = num_intermediate_depths(model) > 0
+    if ctx.is_main:
+        logger.debug(
+            "model %s: %s parameters on %s (%d ranks), autocast %s, %s rendering (%s backend)%s",
+            config.model.preset,
+            f"{sum(p.numel() for p in model.parameters()):,}",
+            device,
+            ctx.world_size,
+            amp_dtype or "off",
+            mode,
+            config.model.render_backend,
+            ", cascade loss" if cascade else "",
+        )
 
     start_step, data_state, rng_state, extra = 0, None, None, {}
     rank_seed = mix_seed(config.seed, ctx.rank)
@@ -482,6 +499,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     "loss/mse": float(last[1]),
                     "train/grad_norm": float(last[3]),
                     "train/lr": lr,
+                    **{f"train/lr_{g['name']}": g["lr"] for g in optimizer.param_groups if g["name"] == "vit"},
                     "train/samples_per_second": config.batch_size / seconds_per_step,
                     "train/seconds_per_step": seconds_per_step,
                 }
@@ -499,10 +517,11 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 reporter.progress()
 
             if config.image_every and (done % config.image_every == 0 or is_last) and ctx.is_main:
-                picture = _image_grid([context.images[0], target.images[0], renders[-1][0]])
+                picture = image_grid([list(context.images[0]), list(target.images[0]), list(renders[-1][0])])
                 reporter.image(done, "train/context_target_render", picture)
 
             if validating and (done % config.val_every == 0 or is_last):
+                grids: dict[int, Tensor] = {}  # a held-out view per factor (rank 0 writes its own)
                 metrics = validate(
                     net.module if isinstance(net, DistributedDataParallel) else net,
                     val_samples,
@@ -511,9 +530,12 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     backend=config.model.render_backend,
                     lpips=val_lpips,
                     factors=config.val_factors,
+                    grids=grids,
                 )
                 result.validation[done] = metrics
                 reporter.scalars(done, {f"val/{k}": v for k, v in metrics.items()})
+                for s, picture in grids.items():
+                    reporter.image(done, f"val/x{s}", picture)
                 shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("x"))
                 reporter.message(f"step {done}: validation {shown}")
 
@@ -536,6 +558,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     result.checkpoint = save_training_checkpoint(
                         config.out_dir, model, state, keep=config.keep_checkpoints
                     )
+                    logger.debug("checkpoint %s", result.checkpoint)
                 barrier(ctx)
             result.step = done
     finally:

@@ -13,10 +13,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
+from ..export.figures import image_grid
 from ..metrics.depth import depth_metrics
-from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator
+from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator, upsample_ground_truth
 from ..metrics.lpips import Lpips, LpipsUnavailable
 from ..model.decoder import render_views
 from ..render.types import Backend, RenderMode
@@ -36,9 +37,14 @@ def validate(
     backend: Backend = "auto",
     lpips: Lpips | LpipsUnavailable,
     factors: tuple[int, ...] = (1, 2, 4),
+    grids: dict[int, Tensor] | None = None,
 ) -> dict[str, float]:
     """Means over every rank's held-out scenes: "x{s}/{metric}" for each factor, "depth/..." where
-    true depth exists, and "num_images". LPIPS is absent when its weights are (see `lpips`)."""
+    true depth exists, and "num_images". LPIPS is absent when its weights are (see `lpips`).
+
+    `grids`, when given, receives a picture per factor s of this rank's first scene and its first
+    target view, the truth the metric compares with (upsampled) left of the render at s times the
+    resolution (`surfsplat.export.figures.image_grid`: [3, s*H + 4, 2*s*W + 6], 2-pixel white borders)."""
     was_training = model.training
     model.eval()
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=factors))
@@ -61,6 +67,9 @@ def validate(
                 backend=backend,
             )
             renders[s] = views.color[0]
+            if grids is not None and i == 0:
+                truth = upsample_ground_truth(target.images[0], s, evaluator.config.upsample)
+                grids[s] = image_grid([[truth[0], views.color[0, 0]]])
         evaluator.add_scene(f"{ctx.rank}:{i}:{batch.scenes[0]}", target.images[0], renders)
         if context.depths is not None:
             errors = depth_metrics(prediction.depths[0].float(), context.depths[0, :, 0].float())
