@@ -74,6 +74,13 @@ def samples(request) -> Samples:
 
 
 @pytest.fixture(scope="session")
+def preferred_samples() -> Samples:
+    """The full samples where present, else the reduced copy: for slow end-to-end runs, which either
+    proves (running both would double their time)."""
+    return FULL_SAMPLES if FULL_SAMPLES.root.is_dir() else REDUCED_SAMPLES
+
+
+@pytest.fixture(scope="session")
 def golden_subset_dir() -> Path:
     """Reduced golden fixtures in the repository: exact inputs, a fixed random subset of the outputs."""
     return FIXTURES / "golden"

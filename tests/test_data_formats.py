@@ -170,7 +170,7 @@ def test_dtu_cameras_reproduce_world_mat_projection(samples, dtu, tmp_path: Path
         ref = Xw @ P.T
         ref = ref[:, :2] / ref[:, 2:]
         K = scene.cameras.K[i].clone()
-        K[:2] *= samples.dtu_factor  # images_4 (images_8 reduced) -> the 1600x1200 calibration
+        K[:2] *= samples.dtu_factor  # images_4 (images_16 in the reduced copy) -> 1600x1200
         w2c = scene.cameras.w2c[i]
         pts = (Xh if apply_scale_mat else Xw) @ w2c[:3].T
         ours = pts @ K.T

@@ -181,17 +181,23 @@ def make_lpips(src: Path, dst: Path) -> None:
         save_file({k: f.get_tensor(k) for k in keep}, str(dst / "cases64.safetensors"))
 
 
+def build(shared: Path, out: Path) -> None:
+    """Write every reduced fixture under `out` from the full data folder `shared`."""
+    make_fern(shared / "data" / "llff_fern", out / "llff_fern")
+    make_dtu(shared / "data" / "dtu_scan24", out / "dtu_scan24")
+    make_eval_index(shared / "data" / "eval_index", out / "eval_index")
+    make_golden(shared / "golden", out / "golden")
+    make_lpips(shared / "golden" / "lpips", out / "golden" / "lpips")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shared", type=Path, default=REPO.parent / "shared", help="full data folder")
-    shared = parser.parse_args().shared
-    make_fern(shared / "data" / "llff_fern", HERE / "llff_fern")
-    make_dtu(shared / "data" / "dtu_scan24", HERE / "dtu_scan24")
-    make_eval_index(shared / "data" / "eval_index", HERE / "eval_index")
-    make_golden(shared / "golden", HERE / "golden")
-    make_lpips(shared / "golden" / "lpips", HERE / "golden" / "lpips")
-    total = sum(p.stat().st_size for p in HERE.rglob("*") if p.is_file())
-    print(f"fixtures in {HERE}: {total / 1e6:.2f} MB")
+    parser.add_argument("--out", type=Path, default=HERE, help="where to write (default: beside this script)")
+    args = parser.parse_args()
+    build(args.shared, args.out)
+    total = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
+    print(f"fixtures in {args.out}: {total / 1e6:.2f} MB")
 
 
 if __name__ == "__main__":
