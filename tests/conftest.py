@@ -23,7 +23,9 @@ torch.set_num_threads(2)
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     if not SHARED.is_dir():
-        pytest.skip(f"sample data folder {SHARED} is absent (golden fixtures and captures live there)")
+        pytest.skip(
+            f"full sample data and golden fixtures {SHARED} are absent (needed here; tests/data has reduced copies)"
+        )
     return SHARED
 
 
