@@ -626,6 +626,7 @@ def test_official_mode_reproduces_the_golden_release_outputs_on_a_crop(golden_su
         return float((ours - ref).norm() / ref.norm())
 
     errors = {name: rel(t, GOLDEN_FIELDS[name]) for name, t in _golden_fields(out).items()}
+    # Measured: at most 1.2e-7 (covariances); 0.33 when the crop's edge pixels are included.
     assert max(errors.values()) <= 1e-5, errors
 
 
