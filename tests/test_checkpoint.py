@@ -37,8 +37,8 @@ def _tiny_release_weights(seed: int = 7) -> dict[str, torch.Tensor]:
 
 
 # ----------------------------------------------------------------------------- formula weights
-def test_formula_weights_reproduce_the_fixture_test_vectors(golden_dir):
-    spec = read_spec(golden_dir / "formula_weights.json")
+def test_formula_weights_reproduce_the_fixture_test_vectors(golden_subset_dir):
+    spec = read_spec(golden_subset_dir / "formula_weights.json")
     entries = {t["key"]: t for t in spec["tensors"]}
     for vector in spec["test_vectors"]:
         key = vector["key"]

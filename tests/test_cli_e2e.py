@@ -1,5 +1,6 @@
 """End to end (slow): the demo with a reduced budget, then its checkpoint on real DTU views through
-reconstruct, eval over chunks built from the shared data, render at x4, export and the viewer."""
+reconstruct, eval over chunks built from the sample data (the full samples where present, else the
+reduced copy in tests/data), render at x4, export and the viewer."""
 
 from __future__ import annotations
 
@@ -86,10 +87,10 @@ def test_demo_writes_report_metrics_ply_videos_mesh(demo):
     assert not list(demo.rglob(".*tmp*"))  # nothing half-written left behind
 
 
-def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_path):
-    scan = data_dir / "dtu_scan24"
+def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, preferred_samples, tmp_path):
+    scan, folder = preferred_samples.root / "dtu_scan24", preferred_samples.dtu_images
     out = tmp_path / "dtu"
-    images = [str(scan / "images_4" / "000000.png"), str(scan / "images_4" / "000001.png")]
+    images = [str(scan / folder / "000000.png"), str(scan / folder / "000001.png")]
     code = main(
         [
             "reconstruct",
@@ -100,7 +101,7 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
             "--cameras",
             str(scan),
             "--images-folder",
-            "images_4",
+            folder,
             "--size",
             "96",
             "128",
@@ -168,8 +169,9 @@ def test_reconstruct_two_dtu_views_with_the_demo_checkpoint(demo, data_dir, tmp_
     assert 'data-state="ready"' in dom.stdout and '<canvas id="view"' in dom.stdout
 
 
-def test_eval_over_chunks_built_from_dtu(demo, data_dir, tmp_path):
-    scene = load_scene(data_dir / "dtu_scan24", images="images_4").select([0, 1, 2, 3, 4])
+def test_eval_over_chunks_built_from_dtu(demo, preferred_samples, tmp_path):
+    scene = load_scene(preferred_samples.root / "dtu_scan24", images=preferred_samples.dtu_images)
+    scene = scene.select([0, 1, 2, 3, 4])
     write_chunks([scene_to_example(scene, key="scan24", image_format="png")], tmp_path / "chunks")
     # MVSplat's DTU index style: several entries per scene as key_NN (one of them excluded with null).
     index = {

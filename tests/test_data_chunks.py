@@ -87,8 +87,8 @@ def test_png_example_decodes_to_the_written_pixels() -> None:
     torch.testing.assert_close(back.cameras.K, cams.K)
 
 
-def test_fern_chunk_loads_through_the_re10k_path(data_dir: Path, tmp_path: Path) -> None:
-    fern = load_scene(data_dir / "llff_fern")
+def test_fern_chunk_loads_through_the_re10k_path(samples, tmp_path: Path) -> None:
+    fern = load_scene(samples.root / "llff_fern")
     write_chunks([scene_to_example(fern, key="fern", image_format="png")], tmp_path)
     index = EvaluationIndex.from_dict({"fern": {"context": [0, 5], "target": [2, 3, 4]}})
     ds = _dataset(tmp_path, EvaluationViewSampler(index))
@@ -109,12 +109,20 @@ def test_fern_chunk_loads_through_the_re10k_path(data_dir: Path, tmp_path: Path)
 
 
 # ----------------------------------------------------------------------------- evaluation index
-def test_release_evaluation_indices_load(data_dir: Path) -> None:
-    folder = data_dir / "eval_index"
+# (entries, excluded) of the release files, and of their reduced copies in tests/data.
+EVAL_INDEX_SIZES = {
+    True: {"re10k": (7194, 720), "acid": (1848, 253), "dl3dv": 140},
+    False: {"re10k": (7, 2), "acid": (7, 2), "dl3dv": 6},
+}
+
+
+def test_release_evaluation_indices_load(samples) -> None:
+    folder = samples.root / "eval_index"
+    sizes = EVAL_INDEX_SIZES[samples.full]
     re10k = EvaluationIndex.load(folder / "evaluation_index_re10k.json")
-    assert len(re10k) == 7194 and re10k.num_excluded == 720
+    assert (len(re10k), re10k.num_excluded) == sizes["re10k"]
     acid = EvaluationIndex.load(folder / "evaluation_index_acid.json")
-    assert len(acid) == 1848 and acid.num_excluded == 253
+    assert (len(acid), acid.num_excluded) == sizes["acid"]
     entry = re10k.entries["5aca87f95a9412c6"]
     assert entry.context == (58, 133) and entry.target == (84, 102, 129)
     dtu = EvaluationIndex.load(folder / "evaluation_index_dtu_nctx3.json")
@@ -122,7 +130,7 @@ def test_release_evaluation_indices_load(data_dir: Path) -> None:
     assert [k for k, _ in entries] == [f"scan1_train_{i:02d}" for i in range(4)]
     assert all(len(e.context) == 3 and len(e.target) == 1 for _, e in entries)
     dl3dv = EvaluationIndex.load(folder / "dl3dv_start_0_distance_10_ctx_2v_tgt_4v.json")
-    assert len(dl3dv) == 140 and all(len(e.target) == 4 for e in dl3dv.entries.values())
+    assert len(dl3dv) == sizes["dl3dv"] and all(len(e.target) == 4 for e in dl3dv.entries.values())
     scannet = EvaluationIndex.load(folder / "evaluation_index_scannet.json")
     assert "scene0707_00_slice00" in scannet and dtu.lookup("scan999") == []
 

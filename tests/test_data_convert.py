@@ -124,11 +124,11 @@ def test_scene_converters_match_load_scene(tmp_path: Path, fmt: str) -> None:
 
 
 @pytest.mark.slow
-def test_dtu_converter_on_scan24(data_dir: Path, tmp_path: Path) -> None:
+def test_dtu_converter_on_scan24(samples, tmp_path: Path) -> None:
     src = tmp_path / "scan24"
     src.mkdir()
-    for name in ("cameras_sphere.npz", "images_4"):
-        (src / name).symlink_to(data_dir / "dtu_scan24" / name)
+    for name in ("cameras_sphere.npz", samples.dtu_images):
+        (src / name).symlink_to(samples.root / "dtu_scan24" / name)
     args = argparse.Namespace(
         format="dtu",
         src=str(src),
@@ -145,7 +145,7 @@ def test_dtu_converter_on_scan24(data_dir: Path, tmp_path: Path) -> None:
     assert list(read_index(tmp_path / "out")) == ["scan24"]
     back = example_to_scene(load_example(tmp_path / "out", "scan24"))
     direct = load_scene(src)
-    assert back.images.shape == (49, 3, 300, 400)
+    assert back.images.shape == (samples.dtu_views, 3, *samples.dtu_size)
     torch.testing.assert_close(back.cameras.c2w, direct.cameras.c2w, atol=1e-5, rtol=0)
     # The chunk stores K as fx/W, cx/W, ...: the tiny skew of DTU's calibration is dropped.
     torch.testing.assert_close(

@@ -136,9 +136,9 @@ def test_ssim_is_differentiable_gradcheck():
     assert torch.autograd.gradcheck(lambda p: ssim(p, target), (prediction,), fast_mode=True)
 
 
-def test_ssim_matches_skimage_on_real_captures(data_dir):
-    fern = sorted((data_dir / "llff_fern" / "images_8").glob("*.png"))[:2]
-    dtu = sorted((data_dir / "dtu_scan24" / "images_4").glob("*.png"))[:2]
+def test_ssim_matches_skimage_on_real_captures(samples):
+    fern = sorted((samples.root / "llff_fern" / samples.fern_images).glob("*.png"))[:2]
+    dtu = sorted((samples.root / "dtu_scan24" / samples.dtu_images).glob("*.png"))[:2]
     assert len(fern) == 2 and len(dtu) == 2, "sample captures are incomplete"
 
     def load(path):
@@ -153,8 +153,9 @@ def test_ssim_matches_skimage_on_real_captures(data_dir):
         assert (ssim(prediction.double(), target.double()) - reference).abs().max().item() <= 1e-5
 
 
-def test_ssim_and_psnr_match_the_lpips_fixture(golden_dir):
-    cases = load_file(str(golden_dir / "lpips" / "cases.safetensors"))
+def test_ssim_and_psnr_match_the_lpips_fixture(golden_subset_dir):
+    # The 64x64 cases of the LPIPS golden fixture, copied unchanged (see tests/data/README.md).
+    cases = load_file(str(golden_subset_dir / "lpips" / "cases64.safetensors"))
     # The fixture computed structural_similarity(gt=a64, pred=b64); SSIM is symmetric anyway.
     ours_ssim = ssim(cases["b64"], cases["a64"])
     assert (ours_ssim - cases["ssim64"]).abs().max().item() <= 1e-5

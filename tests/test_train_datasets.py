@@ -76,9 +76,10 @@ def test_chunks_with_evaluation_index_validation(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fmt, folder, images", [("llff", "llff_fern", "images_8"), ("dtu", "dtu_scan24", None)])
-def test_real_captures_converted_to_chunks(tmp_path: Path, data_dir: Path, fmt: str, folder: str, images) -> None:
-    report = convert(fmt, data_dir / folder, tmp_path / "chunks", images=images, image_format="jpeg")
+@pytest.mark.parametrize("fmt, folder", [("llff", "llff_fern"), ("dtu", "dtu_scan24")])
+def test_real_captures_converted_to_chunks(tmp_path: Path, preferred_samples, fmt: str, folder: str) -> None:
+    images = preferred_samples.fern_images if fmt == "llff" else None
+    report = convert(fmt, preferred_samples.root / folder, tmp_path / "chunks", images=images, image_format="jpeg")
     assert len(report.index) == 1
     result = fit(_chunk_config(tmp_path / "run", [tmp_path / "chunks"], (48, 64)))
     _check_trained(result)
