@@ -183,7 +183,7 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
     final = root / checkpoint_name(state.step)
     temp = root / f"{_TEMP_PREFIX}{checkpoint_name(state.step)}-{os.getpid()}"
     temp.mkdir()
-    save_model(model, temp / "model")
+    save_model(model, temp / "model", metadata=weights_metadata(state))
     tensors, document = _flatten_state(state)
     save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
     (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
@@ -214,6 +214,31 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
             old.rename(doomed)
             shutil.rmtree(doomed)
     return final
+
+
+def weights_metadata(state: TrainingState) -> dict[str, Any]:
+    """What `surfsplat weights info` shows about a trained model: preset, resolution, steps, source."""
+    model = state.config.get("model", {})
+    data = state.config.get("data", {})
+    init = model.get("init") or {}
+    starts = [
+        f"{k} {v}"
+        for k, v in (
+            ("checkpoint", model.get("init_checkpoint")),
+            ("release", model.get("release_weights")),
+            *init.items(),
+        )
+        if v
+    ]
+    return {
+        "preset": model.get("preset"),
+        "resolution": data.get("image_shape"),
+        "adapter": (model.get("adapter") or {}).get("mode"),
+        "steps": state.step,
+        "source": f"surfsplat train on {data.get('dataset')} data"
+        + (f" ({', '.join(data.get('roots') or [])})" if data.get("roots") else "")
+        + (f", initialised from {'; '.join(starts)}" if starts else ", from random weights"),
+    }
 
 
 # ------------------------------------------------------------------------------------------ reading
