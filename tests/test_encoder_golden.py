@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from safetensors.torch import load_file
 
-from surfsplat import Cameras
+from _golden import OUTPUTS, lightning_release_state, output, rel, run_case
 from surfsplat.model import SurfSplat, load_release_weights
-from surfsplat.model.formula_weights import formula_state_dict
 
 pytestmark = pytest.mark.slow
 
@@ -31,65 +29,25 @@ INTERMEDIATES = [
 ]
 
 
-def _rel(ours: torch.Tensor, golden: torch.Tensor) -> float:
-    assert ours.shape == golden.shape
-    return float((ours.double() - golden.double()).norm() / golden.double().norm())
-
-
 @pytest.fixture(scope="module")
 def golden_run(golden_dir, tmp_path_factory):
-    weights = formula_state_dict(golden_dir / "formula_weights.json")
     ckpt = tmp_path_factory.mktemp("release") / "surfsplat-small.ckpt"
-    state = {f"encoder.{k}": torch.from_numpy(v) for k, v in weights.items()}
-    torch.save({"state_dict": state, "global_step": 0, "epoch": 0}, ckpt)
-    del weights, state
+    torch.save({"state_dict": lightning_release_state(golden_dir), "global_step": 0, "epoch": 0}, ckpt)
     model = SurfSplat.from_preset("small", adapter="official").eval()
     report = load_release_weights(model, ckpt)
     assert report.loaded == 567 and report.ignored == []
-    case = load_file(str(golden_dir / "case_identity.safetensors"))
-    _, v, _, h, w = case["context.image"].shape
-    cameras = Cameras.from_normalized(case["context.extrinsics"][0], case["context.intrinsics"][0], w, h)
-    with torch.no_grad():
-        pred = model(
-            case["context.image"], cameras, case["context.near"], case["context.far"], return_intermediates=True
-        )
-    return pred, case
+    return run_case(model, golden_dir)
 
 
 @pytest.mark.parametrize("name, bound", INTERMEDIATES)
 def test_intermediates_match_the_release(golden_run, name, bound):
     pred, case = golden_run
-    err = _rel(pred.intermediates[name], case[f"intermediates.{name}"])
+    err = rel(pred.intermediates[name], case[f"intermediates.{name}"])
     assert err <= bound, f"{name}: relative L2 error {err:.3e} > {bound:.0e}"
 
 
-@pytest.mark.parametrize(
-    "what, bound",
-    [
-        ("depths", 1e-4),
-        ("gaussians.means", 1e-4),
-        ("gaussians.covariances", 1e-3),
-        ("gaussians.harmonics", 1e-3),
-        ("gaussians.opacities", 1e-3),
-        ("gaussians.scales_mul", 1e-3),
-        ("gaussians.normals", 1e-3),
-        ("visualization_dump.scales", 1e-3),
-        ("visualization_dump.rotations", 1e-3),
-    ],
-)
+@pytest.mark.parametrize("what, bound", OUTPUTS)
 def test_outputs_match_the_release(golden_run, what, bound):
     pred, case = golden_run
-    g, out = pred.gaussians, pred.adapter_output
-    ours = {
-        "depths": pred.depths,
-        "gaussians.means": g.means,
-        "gaussians.covariances": g.covariances,
-        "gaussians.harmonics": g.sh,
-        "gaussians.opacities": g.opacities,
-        "gaussians.scales_mul": out.scales_mul,
-        "gaussians.normals": out.normals,
-        "visualization_dump.scales": out.scales,
-        "visualization_dump.rotations": out.rotations,
-    }[what]
-    err = _rel(ours, case[f"outputs.{what}"])
+    err = rel(output(pred, what), case[f"outputs.{what}"])
     assert err <= bound, f"{what}: relative L2 error {err:.3e} > {bound:.0e}"

@@ -53,7 +53,7 @@ def _list(args: argparse.Namespace) -> int:
                 "resolution": list(entry.resolution) if entry.resolution else None,
                 "adapter": entry.adapter,
                 "cached": str(path) if path else None,
-                "source": entry.source.describe(),
+                "location": entry.source.describe(),
                 "licence": entry.licence,
                 "description": entry.description,
             }
@@ -78,7 +78,7 @@ def _list(args: argparse.Namespace) -> int:
         print("  ".join(str(cell).ljust(w) for cell, w in zip(row, widths)).rstrip())
     print()
     for r in rows:
-        print(f"{r['name']}: {r['description']}; {r['source']}; licence {r['licence']}")
+        print(f"{r['name']}: {r['description']}; {r['location']}; licence {r['licence']}")
     print()
     offline = " (offline: HF_HUB_OFFLINE is set)" if constants.HF_HUB_OFFLINE else ""
     print(f"Hugging Face cache: {constants.HF_HUB_CACHE}{offline}")

@@ -375,7 +375,7 @@ def describe(name_or_path: str, *, trust_pickle: bool = False) -> dict[str, obje
         info: dict[str, object] = {
             "name": entry.name,
             "role": entry.role,
-            "source": entry.source.describe(),
+            "location": entry.source.describe(),
             "licence": entry.licence,
             "description": entry.description,
         }
