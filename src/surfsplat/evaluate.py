@@ -45,6 +45,7 @@ from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, Hr
 from .metrics.lpips import Lpips, LpipsUnavailable
 from .model.decoder import decoder_mode
 from .model.pretrained import check_resolution, load_pretrained, with_adapter
+from .model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
 from .model.surfsplat import SurfSplat
 from .render import RenderOutput, render
 

@@ -172,7 +172,7 @@ def resolve(name_or_path: str | Path, role: Role | None = None) -> tuple[Path, W
         return path, None
     if looks_like_name(text):
         lookup(text, role)  # an unknown name: the error lists the known ones
-    raise FileNotFoundError(f"{path}: no such checkpoint file or folder")
+    raise FileNotFoundError(f"{path}: checkpoint not found (no such file or folder)")
 
 
 # ----------------------------------------------------------------------------------------- models
@@ -391,5 +391,5 @@ def describe(name_or_path: str, *, trust_pickle: bool = False) -> dict[str, obje
     if not path.exists() and not path.with_suffix(".json").exists():
         if looks_like_name(name_or_path):
             lookup(name_or_path)
-        raise FileNotFoundError(f"{path}: no such checkpoint file or folder")
+        raise FileNotFoundError(f"{path}: checkpoint not found (no such file or folder)")
     return describe_file(path, trust_pickle=trust_pickle)
