@@ -565,3 +565,36 @@ def test_weights_list_and_path_see_the_caches(hf_cache, torch_home, capsys):
     assert capsys.readouterr().out.strip() == str(path)
     assert main(["weights", "path", "re10k-256x256-base"]) == 2
     assert "not cached on this machine" in capsys.readouterr().err
+
+
+def test_training_prints_the_initialisation_report_and_records_it(tmp_path, capsys):
+    from surfsplat.train import fit
+
+    # Depth Anything V2's layout at the tiny preset's ViT width (a stand-in: no real file is that small)
+    with torch.device("meta"):
+        names = SurfSplat.from_preset("tiny").encoder.vit.state_dict()
+    weights = {f"pretrained.{k}": torch.randn(v.shape) for k, v in names.items()}
+    weights["depth_head.projects.0.weight"] = torch.randn(16, 64, 1, 1)
+    path = tmp_path / "depth_anything_tiny.pth"
+    torch.save(weights, path)
+    quick = {
+        "out_dir": str(tmp_path / "run"),
+        "steps": 1,
+        "checkpoint_every": 1,
+        "val_every": 0,
+        "image_every": 0,
+        "progress": False,
+        "data.image_shape": [32, 32],
+        "data.num_target_views": 1,
+        "data.synthetic_length": 2,
+        "model.init.monodepth": str(path),
+    }
+    result = fit(override(train_preset("tiny"), quick))
+    out = capsys.readouterr().out
+    assert f"monodepth {path}: filled vit ({len(names)} tensors, " in out
+    assert f"monodepth {path}: ignored 1 tensors of the file (depth_head.projects.0.weight)" in out
+    assert "random initialisation: cnn (" in out and "vit (" not in out.split("random initialisation: ")[1]
+    assert main(["weights", "info", str(result.checkpoint), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["source"] == f"surfsplat train on synthetic data, initialised from monodepth {path}"
+    assert (info["steps"], info["resolution"]) == (1, [32, 32])

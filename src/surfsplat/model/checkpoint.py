@@ -378,6 +378,32 @@ def save_checkpoint(model: nn.Module, path: str | Path, metadata: Mapping | None
     return weights_path, config_path
 
 
+def training_metadata(step: int, config: Mapping) -> dict:
+    """Preset, resolution, adapter, steps and source of a model trained by `surfsplat train`, from the
+    step and the run's configuration (TrainConfig.to_dict())."""
+    model = config.get("model") or {}
+    data = config.get("data") or {}
+    init = model.get("init") or {}
+    starts = [
+        f"{kind} {value}"
+        for kind, value in (
+            ("checkpoint", model.get("init_checkpoint")),
+            ("release", model.get("release_weights")),
+            *init.items(),
+        )
+        if value
+    ]
+    roots = f" ({', '.join(data.get('roots') or [])})" if data.get("roots") else ""
+    origin = f", initialised from {'; '.join(starts)}" if starts else ", from random weights"
+    return {
+        "preset": model.get("preset"),
+        "resolution": list(data["image_shape"]) if data.get("image_shape") else None,
+        "adapter": (model.get("adapter") or {}).get("mode"),
+        "steps": step,
+        "source": f"surfsplat train on {data.get('dataset')} data{roots}{origin}",
+    }
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"):
     """Rebuild a SurfSplat model saved by `save_checkpoint`."""
     from .surfsplat import SurfSplat, SurfSplatConfig

@@ -330,7 +330,7 @@ def detect_layout(keys: list[str]) -> str:
 def describe_file(path: str | Path, *, trust_pickle: bool = False) -> dict[str, object]:
     """Metadata of a checkpoint file or folder: layout, preset, resolution, adapter, steps, source, size."""
     from ..checks import read_json
-    from .checkpoint import FORMAT_NAME, read_state_dict
+    from .checkpoint import FORMAT_NAME, read_state_dict, training_metadata
 
     path = Path(path)
     stem = resolve_checkpoint(path) if path.is_dir() or path.suffix in (".safetensors", ".json", "") else path
@@ -346,10 +346,12 @@ def describe_file(path: str | Path, *, trust_pickle: bool = False) -> dict[str, 
             "preset": next((n for n, c in PRESETS.items() if c == cfg.encoder), "custom"),
             "adapter": cfg.adapter.mode,
         }
-        info.update(meta.get("metadata") or {})
         state = stem.parent / "train_state.json"
-        if "steps" not in info and state.is_file():
-            info["steps"] = read_json(state).get("step")
+        if state.is_file():  # a training checkpoint folder: its run configuration says the rest
+            document = read_json(state)
+            if isinstance(document, dict) and isinstance(document.get("config"), dict):
+                info.update(training_metadata(document.get("step"), document["config"]))
+        info.update(meta.get("metadata") or {})
         tensors = read_state_dict(stem.with_suffix(".safetensors"))
     else:
         tensors = read_state_dict(stem, trust_pickle=trust_pickle)

@@ -36,6 +36,7 @@ from torch import Tensor, nn
 
 from ..checks import SurfSplatInputError
 from ..model.checkpoint import save_checkpoint as save_model
+from ..model.checkpoint import training_metadata
 from ..model.surfsplat import SurfSplat
 
 FORMAT_NAME = "surfsplat-train-state"
@@ -218,27 +219,7 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
 
 def weights_metadata(state: TrainingState) -> dict[str, Any]:
     """What `surfsplat weights info` shows about a trained model: preset, resolution, steps, source."""
-    model = state.config.get("model", {})
-    data = state.config.get("data", {})
-    init = model.get("init") or {}
-    starts = [
-        f"{k} {v}"
-        for k, v in (
-            ("checkpoint", model.get("init_checkpoint")),
-            ("release", model.get("release_weights")),
-            *init.items(),
-        )
-        if v
-    ]
-    return {
-        "preset": model.get("preset"),
-        "resolution": data.get("image_shape"),
-        "adapter": (model.get("adapter") or {}).get("mode"),
-        "steps": state.step,
-        "source": f"surfsplat train on {data.get('dataset')} data"
-        + (f" ({', '.join(data.get('roots') or [])})" if data.get("roots") else "")
-        + (f", initialised from {'; '.join(starts)}" if starts else ", from random weights"),
-    }
+    return training_metadata(state.step, state.config)
 
 
 # ------------------------------------------------------------------------------------------ reading
