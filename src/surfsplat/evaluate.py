@@ -363,12 +363,12 @@ def evaluate(
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     model.eval()
+    warned = False  # about a resolution other than the weights were trained at, once
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
     forward, renders = [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     started = time.perf_counter()
     bar = tqdm(samples, total=total, disable=not config.progress, desc=f"eval {name}", unit="scene", dynamic_ncols=True)
-    warned = False
     for sample in bar:
         if not warned:
             warned = check_resolution(model, *sample.context_images.shape[-2:]) is not None
