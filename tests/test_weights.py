@@ -567,7 +567,7 @@ def test_weights_list_and_path_see_the_caches(hf_cache, torch_home, capsys):
     assert "not cached on this machine" in capsys.readouterr().err
 
 
-def test_training_prints_the_initialisation_report_and_records_it(tmp_path, capsys):
+def test_training_prints_the_initialisation_report_and_records_it(tmp_path, capsys, caplog):
     from surfsplat.train import fit
 
     # Depth Anything V2's layout at the tiny preset's ViT width (a stand-in: no real file is that small)
@@ -589,8 +589,9 @@ def test_training_prints_the_initialisation_report_and_records_it(tmp_path, caps
         "data.synthetic_length": 2,
         "model.init.monodepth": str(path),
     }
-    result = fit(override(train_preset("tiny"), quick))
-    out = capsys.readouterr().out
+    with caplog.at_level(logging.INFO, logger="surfsplat"):
+        result = fit(override(train_preset("tiny"), quick))
+    out = capsys.readouterr().out + caplog.text  # the run's messages: printed, or logged at INFO
     assert f"monodepth {path}: filled vit ({len(names)} tensors, " in out
     assert f"monodepth {path}: ignored 1 tensors of the file (depth_head.projects.0.weight)" in out
     assert "random initialisation: cnn (" in out and "vit (" not in out.split("random initialisation: ")[1]
