@@ -16,6 +16,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from _golden import OUTPUTS, output, rel
 from surfsplat import Cameras
 from surfsplat.model import SurfSplat, load_release_weights
 from surfsplat.model.formula_weights import formula_state_dict
@@ -34,39 +35,6 @@ INTERMEDIATES = [
     ("mv_upsampler_residual_invdepth", 1e-4),
     ("gaussian_head_out", 1e-4),
 ]
-
-
-def _rel(ours: torch.Tensor, golden: torch.Tensor) -> float:
-    assert ours.shape == golden.shape
-    return float((ours.double() - golden.double()).norm() / golden.double().norm())
-
-
-OUTPUTS = [
-    ("depths", 1e-4),
-    ("gaussians.means", 1e-4),
-    ("gaussians.covariances", 1e-3),
-    ("gaussians.harmonics", 1e-3),
-    ("gaussians.opacities", 1e-3),
-    ("gaussians.scales_mul", 1e-3),
-    ("gaussians.normals", 1e-3),
-    ("visualization_dump.scales", 1e-3),
-    ("visualization_dump.rotations", 1e-3),
-]
-
-
-def _ours(pred, what: str) -> torch.Tensor:
-    g, out = pred.gaussians, pred.adapter_output
-    return {
-        "depths": pred.depths,
-        "gaussians.means": g.means,
-        "gaussians.covariances": g.covariances,
-        "gaussians.harmonics": g.sh,
-        "gaussians.opacities": g.opacities,
-        "gaussians.scales_mul": out.scales_mul,
-        "gaussians.normals": out.normals,
-        "visualization_dump.scales": out.scales,
-        "visualization_dump.rotations": out.rotations,
-    }[what]
 
 
 @pytest.fixture(scope="module")
@@ -103,29 +71,29 @@ def test_intermediates_match_the_release_at_sampled_elements(golden_run, golden_
     d = golden_subset.tensors
     ours = golden_run.intermediates[name]
     assert tuple(ours.shape) == golden_subset.shapes[f"intermediates.{name}"]
-    err = _rel(ours.flatten()[d[f"index.{name}"].long()], d[f"intermediates.{name}"])
+    err = rel(ours.flatten()[d[f"index.{name}"].long()], d[f"intermediates.{name}"])
     assert err <= bound, f"{name}: relative L2 error over the sampled elements {err:.3e} > {bound:.0e}"
 
 
 @pytest.mark.parametrize("what, bound", OUTPUTS)
 def test_outputs_match_the_release_at_sampled_rows(golden_run, golden_subset, what, bound):
     d = golden_subset.tensors
-    ours = _ours(golden_run, what)
+    ours = output(golden_run, what)
     shape = golden_subset.shapes[f"outputs.{what}"]
     assert tuple(ours.shape) == shape
     if what == "depths":  # [1, V, H, W] -> [1, V*H*W]: the Gaussians' (view, row, column) order
         ours = ours.reshape(shape[0], -1)
-    err = _rel(ours[:, d["rows"].long()], d[f"outputs.{what}"])
+    err = rel(ours[:, d["rows"].long()], d[f"outputs.{what}"])
     assert err <= bound, f"{what}: relative L2 error over the sampled rows {err:.3e} > {bound:.0e}"
 
 
 @pytest.mark.parametrize("name, bound", INTERMEDIATES)
 def test_intermediates_match_the_release(golden_run, full_case, name, bound):
-    err = _rel(golden_run.intermediates[name], full_case[f"intermediates.{name}"])
+    err = rel(golden_run.intermediates[name], full_case[f"intermediates.{name}"])
     assert err <= bound, f"{name}: relative L2 error {err:.3e} > {bound:.0e}"
 
 
 @pytest.mark.parametrize("what, bound", OUTPUTS)
 def test_outputs_match_the_release(golden_run, full_case, what, bound):
-    err = _rel(_ours(golden_run, what), full_case[f"outputs.{what}"])
+    err = rel(output(golden_run, what), full_case[f"outputs.{what}"])
     assert err <= bound, f"{what}: relative L2 error {err:.3e} > {bound:.0e}"

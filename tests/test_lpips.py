@@ -180,3 +180,30 @@ def test_lpips_rejects_bad_inputs(random_model):
         model(torch.rand(1, 4, 32, 32), torch.rand(1, 4, 32, 32))
     with pytest.raises(SurfSplatInputError, match="target"):
         model(torch.rand(1, 3, 32, 32), torch.rand(2, 3, 32, 32))
+
+
+def test_lpips_golden_through_the_weights_names(tmp_path, monkeypatch, formula_states, golden_dir, capsys):
+    from surfsplat.cli import main
+
+    # A fake TORCH_HOME holding both files where `surfsplat weights download lpips-vgg16 lpips-vgg-lin`
+    # puts them (nothing is downloaded here).
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    hub = tmp_path / "torch_home" / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    vgg, lin = formula_states
+    with pytest.raises(LpipsUnavailable, match="run `surfsplat weights download lpips-vgg16`"):
+        load_lpips("lpips-vgg16", "lpips-vgg-lin")
+    torch.save({**vgg, **CLASSIFIER}, hub / VGG16_FILENAME)
+    with pytest.raises(LpipsUnavailable, match="run `surfsplat weights download lpips-vgg-lin`"):
+        load_lpips("lpips-vgg16", "lpips-vgg-lin")
+    torch.save(lin, hub / "lpips-v0.1-vgg.pth")
+    assert main(["weights", "path", "lpips-vgg-lin"]) == 0
+    assert capsys.readouterr().out.strip() == str(hub / "lpips-v0.1-vgg.pth")
+
+    model = load_lpips("lpips-vgg16", "lpips-vgg-lin")
+    cases = load_file(str(golden_dir / "lpips" / "cases.safetensors"))
+    with torch.no_grad():
+        d64 = model(cases["a64"], cases["b64"])
+        d256 = model(cases["a256"], cases["b256"])
+    assert ((d64 - cases["lpips64"]) / cases["lpips64"]).abs().max().item() <= 1e-5
+    assert ((d256 - cases["lpips256"]) / cases["lpips256"]).abs().max().item() <= 1e-5

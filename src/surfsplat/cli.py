@@ -41,6 +41,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "surfsplat.commands.convert",
         "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks",
     ),
+    "weights": ("surfsplat.commands.weights", "pretrained weights by name: list, download, path, info"),
 }
 
 

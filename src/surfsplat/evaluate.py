@@ -27,7 +27,7 @@ import resource
 import sys
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -44,10 +44,11 @@ from .metrics.depth import depth_metrics
 from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
 from .metrics.lpips import Lpips, LpipsUnavailable
 from .model.decoder import decoder_mode
-from .model.surfsplat import SurfSplat, SurfSplatConfig
+from .model.pretrained import check_resolution, load_pretrained, with_adapter
+from .model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
+from .model.surfsplat import SurfSplat
 from .render import RenderOutput, render
 
-RELEASE_SUFFIXES = (".ckpt", ".pth", ".pt")
 DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
 
 
@@ -56,16 +57,17 @@ DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
 class ModelSpec:
     """Which network to evaluate: a checkpoint, and how to read it."""
 
-    checkpoint: str  # our .safetensors/.json pair, a training checkpoint folder, a run folder, or a release .ckpt/.pth
+    checkpoint: str  # a weights name (`surfsplat weights list`), hf://owner/repo/file, our .safetensors/.json
+    # pair, a training checkpoint folder, a run folder, or a release .ckpt/.pth
     name: str | None = None  # label in tables (default: derived from the path and overrides)
-    preset: str = "small"  # encoder preset of a release checkpoint (ours store their configuration)
+    preset: str | None = None  # encoder preset of a release file given by path (None: small); names know theirs
     adapter_overrides: tuple[
         tuple[str, object], ...
     ] = ()  # AdapterConfig fields to change, e.g. (("opacity_max", 1.0),)
     trust_pickle: bool = False  # release .ckpt files pickle their hyper-parameters; allow unpickling them
 
     @staticmethod
-    def parse(text: str, preset: str = "small", trust_pickle: bool = False) -> ModelSpec:
+    def parse(text: str, preset: str | None = None, trust_pickle: bool = False) -> ModelSpec:
         """`[NAME=]CHECKPOINT[:field=value,field=value]`, e.g. `w/o FAB=runs/tiny:opacity_max=1.0`.
 
         Values are JSON (numbers, true/false) or bare words (strings such as prior=none).
@@ -103,57 +105,14 @@ class ModelSpec:
         return base + (f" [{extra}]" if extra else "")
 
 
-def resolve_checkpoint(path: str | Path) -> Path:
-    """The model file stem of our checkpoint formats, or the release file itself.
-
-    Accepts `x.safetensors` / `x.json`, a training checkpoint folder (`model.safetensors` inside),
-    a run folder (its newest `checkpoints/step-*`), or a release `.ckpt` / `.pth`.
-    """
-    path = Path(path)
-    if not path.exists() and not path.with_suffix(".json").exists():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
-    if path.is_dir():
-        if (path / "model.json").is_file():
-            return path / "model.safetensors"
-        steps = sorted((path / "checkpoints").glob("step-*")) if (path / "checkpoints").is_dir() else []
-        steps = [s for s in steps if (s / "model.json").is_file()]
-        if steps:
-            return steps[-1] / "model.safetensors"
-        raise FileNotFoundError(f"{path}: a folder without model.json or checkpoints/step-*/model.json")
-    return path
-
-
 def load_model(spec: ModelSpec, device: torch.device | str = "cpu") -> tuple[SurfSplat, str]:
-    """(model in eval mode, table label) for a ModelSpec."""
-    from .model.checkpoint import load_checkpoint, load_release_weights
-
-    path = resolve_checkpoint(spec.checkpoint)
-    if path.suffix in RELEASE_SUFFIXES:
-        model = SurfSplat.from_preset(spec.preset, adapter="official")
-        load_release_weights(model, path, trust_pickle=spec.trust_pickle)
-    else:
-        model = load_checkpoint(path)
+    """(model in eval mode, table label) for a ModelSpec: a weights name, an hf:// address or a path."""
+    model = load_pretrained(spec.checkpoint, preset=spec.preset, trust_pickle=spec.trust_pickle)
     if spec.adapter_overrides:
+        info = model.pretrained_info
         model = with_adapter(model, dict(spec.adapter_overrides))
+        model.pretrained_info = info
     return model.to(device).eval(), spec.label()
-
-
-def with_adapter(model: SurfSplat, overrides: dict[str, object]) -> SurfSplat:
-    """The same weights under a changed adapter configuration (an inference-time ablation)."""
-    fields = set(type(model.cfg.adapter).__dataclass_fields__)
-    unknown = sorted(set(overrides) - fields)
-    if unknown:
-        raise SurfSplatInputError(f"adapter overrides: unknown fields {unknown} (known: {sorted(fields)})")
-    adapter = replace(model.cfg.adapter, **overrides)
-    changed = SurfSplat(SurfSplatConfig(encoder=model.cfg.encoder, adapter=adapter))
-    mine, theirs = changed.state_dict(), model.state_dict()
-    if set(mine) != set(theirs) or any(mine[k].shape != theirs[k].shape for k in mine):
-        raise SurfSplatInputError(
-            f"adapter overrides {overrides}: the network's head differs under this adapter; a checkpoint trained "
-            "with it is needed (train the ablation instead)"
-        )
-    changed.load_state_dict(theirs)
-    return changed
 
 
 # ----------------------------------------------------------------------------------------- samples
@@ -404,12 +363,15 @@ def evaluate(
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     model.eval()
+    warned = False  # about a resolution other than the weights were trained at, once
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
     forward, renders = [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     started = time.perf_counter()
     bar = progress(samples, total=total, enabled=config.progress, desc=f"eval {name}", unit="scene")
     for sample in bar:
+        if not warned:
+            warned = check_resolution(model, *sample.context_images.shape[-2:]) is not None
         pred = predict_sample(model, sample, config.factors, config.mode)
         evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})
         forward.append(pred.seconds_forward)

@@ -22,7 +22,9 @@ from ..checks import SurfSplatInputError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     which = parser.add_argument_group("models")
     which.add_argument(
-        "--checkpoint", help="our checkpoint (run folder, checkpoint folder, model.safetensors) or a release .ckpt/.pth"
+        "--checkpoint",
+        help="a weights name (`surfsplat weights list`, e.g. re10k-256x256-small), hf://owner/repo/file, "
+        "our checkpoint (run folder, checkpoint folder, model.safetensors) or a release .ckpt/.pth",
     )
     which.add_argument(
         "--compare",
@@ -31,7 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="several checkpoints or adapter ablations side by side (e.g. 'w/o FAB=runs/x:opacity_max=1.0')",
     )
-    which.add_argument("--preset", default="small", help="encoder preset of release checkpoints")
+    which.add_argument(
+        "--preset", default=None, help="encoder preset of release .ckpt/.pth files given by path (default small)"
+    )
     which.add_argument(
         "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
     )

@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--checkpoint",
         required=True,
-        help="our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
+        help="a weights name (`surfsplat weights list`, e.g. re10k-256x256-small), hf://owner/repo/file, "
+        "our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
     )
     parser.add_argument("--images", nargs="+", required=True, type=Path, help="two or more context images")
     parser.add_argument("--cameras", required=True, type=Path, help="JSON camera file, COLMAP model or scene folder")
@@ -53,7 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--far", type=float, default=None, help="farthest scene depth (default: from the cameras, else 100)"
     )
-    parser.add_argument("--preset", default="small", help="encoder preset of a release checkpoint")
+    parser.add_argument(
+        "--preset", default=None, help="encoder preset of a release .ckpt/.pth given by path (default small)"
+    )
     parser.add_argument(
         "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
     )
@@ -68,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluate import ModelSpec, load_model
     from ..export.paths import load_cameras
     from ..geometry.cameras import Cameras
+    from ..model.pretrained import check_resolution
 
     # ---- validate every input before any heavy work
     if len(args.images) < 2:
@@ -97,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if shape[0] < m or shape[1] < m or shape[0] % m or shape[1] % m:
         raise SurfSplatInputError(f"--size: expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}")
     stack, K, _ = rescale_and_crop(torch.stack(images), K.to(torch.float32), shape)
+    check_resolution(model, *shape)  # named weights know the resolution they were trained at
     cameras = Cameras(cams.cameras.c2w.to(torch.float32), K)
 
     # ---- reconstruct

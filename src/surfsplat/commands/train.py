@@ -2,7 +2,7 @@
 
     surfsplat train --preset tiny --out runs/tiny                        # CPU smoke run, synthetic rooms
     surfsplat train --preset small --roots data/re10k/train --val-roots data/re10k/test \\
-        --depth-anything pretrained/depth_anything_v2_vits.pth --out runs/small
+        --paper-init --out runs/small        # Depth Anything V2 + UniMatch weights, as the paper trains
     surfsplat train --resume --out runs/small                            # continue exactly where it stopped
     torchrun --nproc_per_node 4 -m surfsplat train --preset small ...     # data-parallel, same options
 
@@ -20,7 +20,7 @@ from typing import Any
 from ..checks import SurfSplatInputError, read_json
 from ..render.types import BACKENDS
 from ..train.checkpoint import latest_checkpoint
-from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, train_preset
+from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, paper_init, train_preset
 from ..train.loop import fit, read_checkpoint_config
 
 # option dest -> dotted config field it sets
@@ -48,7 +48,8 @@ _FIELDS: dict[str, str] = {
     "log_every": "log_every",
     "init_checkpoint": "model.init_checkpoint",
     "release_weights": "model.release_weights",
-    "depth_anything": "model.depth_anything",
+    "init_monodepth": "model.init.monodepth",
+    "init_mvdepth": "model.init.mvdepth",
     "render_backend": "model.render_backend",
 }
 
@@ -103,9 +104,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common.add_argument("--checkpoint-every", type=int)
     common.add_argument("--val-every", type=int, help="steps between validations (0: never)")
     common.add_argument("--log-every", type=int)
-    common.add_argument("--init-checkpoint", help="our model checkpoint (.safetensors + .json) to start from")
-    common.add_argument("--release-weights", help="a released SurfSplat checkpoint to fine-tune")
-    common.add_argument("--depth-anything", help="Depth Anything V2 weights for the ViT")
+    common.add_argument("--init-checkpoint", help="our model checkpoint (path or weights name) to start from")
+    common.add_argument("--release-weights", help="a released SurfSplat checkpoint (path or name) to fine-tune")
+    common.add_argument(
+        "--init-monodepth",
+        "--depth-anything",
+        dest="init_monodepth",
+        metavar="NAME|PATH",
+        help="Depth Anything V2 weights for the monocular ViT (e.g. depth-anything-v2-vits)",
+    )
+    common.add_argument(
+        "--init-mvdepth",
+        metavar="NAME|PATH",
+        help="UniMatch weights for the multi-view CNN and transformer (e.g. unimatch-gmflow-scale1)",
+    )
+    common.add_argument(
+        "--paper-init",
+        action="store_true",
+        help="start as the paper does: the preset's Depth Anything V2 ViT and UniMatch's GMFlow weights",
+    )
     common.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to TensorBoard)")
 
 
@@ -149,7 +166,11 @@ def build_config(args: argparse.Namespace) -> tuple[TrainConfig, str | Path | bo
         config = read_checkpoint_config(folder)
     else:
         raise SurfSplatInputError("give --preset, --config or --resume")
-    changes = {field: getattr(args, dest) for dest, field in _FIELDS.items() if getattr(args, dest) is not None}
+    changes: dict[str, Any] = {}
+    if args.paper_init:
+        preset = _parse_set(args.set).get("model.preset", config.model.preset)
+        changes.update(paper_init(preset))
+    changes.update({field: getattr(args, dest) for dest, field in _FIELDS.items() if getattr(args, dest) is not None})
     if args.no_progress:
         changes["progress"] = False
     changes.update(_parse_set(args.set))

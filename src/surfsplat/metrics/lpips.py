@@ -8,11 +8,14 @@ The distance between two images x0, x1 in [0, 1]:
   4. squared difference, a learned non-negative 1x1 projection to one channel (the "linear
      heads"), spatial mean; the sum over the five layers is the distance.
 
-Weights are never bundled and never downloaded: the trunk is torchvision's ImageNet file
-`vgg16-397923af.pth` (keys `features.N.weight/bias`, classifier keys ignored) and the heads are
-the lpips package's `weights/v0.1/vgg.pth` (keys `lin{k}.model.1.weight`). When either is
-missing, loading raises `LpipsUnavailable` ("LPIPS unavailable: <reason>"); there is no way to
-build this module without weights, so no report can print a number from random weights.
+Weights are never bundled and never downloaded while computing a metric: the trunk is
+torchvision's ImageNet file `vgg16-397923af.pth` (keys `features.N.weight/bias`, classifier keys
+ignored) and the heads are the lpips package's `weights/v0.1/vgg.pth` (keys `lin{k}.model.1.weight`).
+`surfsplat weights download lpips-vgg16 lpips-vgg-lin` fetches both into torch hub's cache, where
+they are found by default (the registry names `lpips-vgg16` / `lpips-vgg-lin` may also be given in
+place of paths). When either is missing, loading raises `LpipsUnavailable` ("LPIPS unavailable:
+<reason>"); there is no way to build this module without weights, so no report can print a number
+from random weights.
 """
 
 from __future__ import annotations
@@ -185,16 +188,29 @@ def _select(
 
 
 # ---------------------------------------------------------------------------- finding weights
+VGG16_NAME = "lpips-vgg16"  # registry names of the two files (surfsplat.model.registry)
+LIN_NAME = "lpips-vgg-lin"
+
+
+def _registry_file(name: str) -> Path:
+    from ..model.pretrained import torch_hub_file
+    from ..model.registry import lookup
+
+    return torch_hub_file(lookup(name).source.filename)
+
+
 def default_vgg_paths() -> list[Path]:
-    """Where torchvision caches the trunk: <torch hub dir>/checkpoints/vgg16-397923af.pth.
+    """Where torchvision (and `surfsplat weights download lpips-vgg16`) caches the trunk:
+    <torch hub dir>/checkpoints/vgg16-397923af.pth.
 
     `torch.hub.get_dir()` honours TORCH_HOME, then XDG_CACHE_HOME (default ~/.cache/torch/hub).
     """
-    return [Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILENAME]
+    return [_registry_file(VGG16_NAME)]
 
 
 def default_lin_paths() -> list[Path]:
-    """Where the v0.1 heads ship: the lpips package, then torchmetrics' bundled copy.
+    """Where the v0.1 heads are: the lpips package, torchmetrics' bundled copy, then torch hub's
+    cache (`surfsplat weights download lpips-vgg-lin`).
 
     Packages are located without importing them (the lpips package imports torchvision).
     """
@@ -206,7 +222,7 @@ def default_lin_paths() -> list[Path]:
         spec = importlib.util.find_spec(package)
         for location in (spec.submodule_search_locations or []) if spec is not None else []:
             candidates.append(Path(location) / relative)
-    return candidates
+    return candidates + [_registry_file(LIN_NAME)]
 
 
 @dataclass(frozen=True)
@@ -218,6 +234,9 @@ class LpipsWeightPaths:
 
 
 def _resolve(what: str, given: str | Path | None, defaults: list[Path], hint: str) -> Path:
+    if given is not None and str(given) in (VGG16_NAME, LIN_NAME):
+        # a registry name: its cached file, never a download in the middle of an evaluation
+        defaults, given = [_registry_file(str(given))], None
     if given is not None:
         path = Path(given).expanduser()
         if not path.is_file():
@@ -236,13 +255,14 @@ def find_lpips_weights(vgg_path: str | Path | None = None, lin_path: str | Path 
         f"VGG16 weights {VGG16_FILENAME}",
         vgg_path,
         default_vgg_paths(),
-        f"copy torchvision's {VGG16_FILENAME} there or pass its path",
+        f"run `surfsplat weights download {VGG16_NAME}`, copy torchvision's {VGG16_FILENAME} there or pass its path",
     )
     lin = _resolve(
         f"LPIPS v0.1 linear weights {LIN_FILENAME}",
         lin_path,
         default_lin_paths(),
-        "install the lpips package (its weights/v0.1/vgg.pth) or pass the file's path",
+        f"run `surfsplat weights download {LIN_NAME}`, install the lpips package (its weights/v0.1/vgg.pth) "
+        "or pass the file's path",
     )
     return LpipsWeightPaths(vgg=vgg, lin=lin)
 

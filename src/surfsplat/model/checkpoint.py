@@ -6,6 +6,14 @@ Released checkpoints name parameters after the release's module tree (`depth_pre
 ours; the same table, read backwards, exports our weights in the release layout. Anything missing,
 unexpected or of the wrong shape is reported in one error that lists it; nothing loads partially.
 
+The paper's training initialisation loads the same way, each into its branch: Depth Anything V2
+files (`depth_anything_v2_vit{s,b,l}.pth`) into the monocular ViT, UniMatch's GMFlow file
+(`gmflow-scale1-things-e9887eda.pth`, its `model` entry) into the multi-view CNN and transformer
+through `UNIMATCH_KEY_RULES`. The release loads both into its whole depth predictor with
+strict=False, so whatever matches by name and shape is filled and the rest silently stays random;
+here the branch must match completely, the file's other modules are listed as ignored, and the
+report names every parameter that was filled (`LoadReport.filled`, `describe_init`).
+
 Our own checkpoints are a `.safetensors` file (the model's state dict) next to a `.json` file with
 the model configuration, so a model is rebuilt without pickle.
 """
@@ -17,7 +25,7 @@ import pickle
 import re
 import struct
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -55,6 +63,22 @@ DEPTH_ANYTHING_SKIPPED = ("depth_head.", "pretrained.mask_token")
 # Lightning checkpoints of the release: the encoder's parameters, and modules that are not ours.
 LIGHTNING_ENCODER_PREFIX = "encoder."
 
+# UniMatch (GMFlow) names -> ours. The release's depth predictor holds UniMatch's CNN and
+# transformer under the same names (`depth_predictor.backbone.`, `.transformer.`), which is why its
+# strict=False load fills them; these rules equal RELEASE_KEY_RULES with that prefix removed.
+UNIMATCH_KEY_RULES: tuple[tuple[str, str], ...] = (
+    ("backbone.", "cnn."),
+    ("transformer.layers.{i}.self_attn.", "transformer.layers.{i}.self_attn."),
+    ("transformer.layers.{i}.cross_attn_ffn.", "transformer.layers.{i}.cross_attn."),
+)
+# GMFlow's flow propagation and convex upsampler (and UniMatch's optional refinement) have no
+# counterpart in SurfSplat.
+UNIMATCH_SKIPPED = ("feature_flow_attn.", "upsampler.", "refine_proj.", "refine.")
+UNIMATCH_BRANCH = ("cnn.", "transformer.")  # our encoder modules a UniMatch file fills
+
+# Containers of a state dict inside a checkpoint file: Lightning's, and UniMatch's / DepthSplat's.
+STATE_DICT_ENTRIES = ("state_dict", "model")
+
 FORMAT_NAME = "surfsplat-model"
 FORMAT_VERSION = 1
 
@@ -65,6 +89,7 @@ def _compile(template: str) -> re.Pattern:
 
 _FORWARD = [(_compile(src), dst) for src, dst in RELEASE_KEY_RULES]
 _BACKWARD = [(_compile(dst), src) for src, dst in RELEASE_KEY_RULES]
+_UNIMATCH = [(_compile(src), dst) for src, dst in UNIMATCH_KEY_RULES]
 
 
 def _translate(key: str, rules: list[tuple[re.Pattern, str]]) -> str | None:
@@ -85,11 +110,16 @@ def ours_to_release(key: str) -> str | None:
     return _translate(key, _BACKWARD)
 
 
+def unimatch_to_ours(key: str) -> str | None:
+    """Our encoder parameter name for a UniMatch name, or None when no rule covers it."""
+    return _translate(key, _UNIMATCH)
+
+
 # ----------------------------------------------------------------------------- reading files
 def read_state_dict(path: str | Path, *, trust_pickle: bool = False) -> dict[str, Tensor]:
     """Tensors of a checkpoint file: safetensors, or PyTorch (`torch.save`, Lightning `.ckpt`).
 
-    A Lightning checkpoint's `state_dict` entry is returned. PyTorch files are unpickled with
+    A Lightning checkpoint's `state_dict` entry (or a UniMatch file's `model` entry) is returned. PyTorch files are unpickled with
     `weights_only=True`; pass `trust_pickle=True` only for files from a trusted source that also
     store arbitrary Python objects (e.g. OmegaConf hyper-parameters).
     """
@@ -118,8 +148,9 @@ def read_state_dict(path: str | Path, *, trust_pickle: bool = False) -> dict[str
         raise SurfSplatInputError(
             f"{path}: unreadable PyTorch checkpoint (truncated or corrupt): {str(err).splitlines()[0]}"
         ) from None
-    if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
-        obj = obj["state_dict"]
+    if isinstance(obj, Mapping):
+        container = next((k for k in STATE_DICT_ENTRIES if isinstance(obj.get(k), Mapping)), None)
+        obj = obj[container] if container is not None else obj
     if not isinstance(obj, Mapping):
         raise SurfSplatInputError(
             f"{path}: expected a state dict (a mapping of names to tensors), got {type(obj).__name__}"
@@ -144,7 +175,8 @@ def _listing(keys: list[str], limit: int = 20) -> str:
 @dataclass
 class LoadReport:
     loaded: int  # tensors copied into the model
-    ignored: list[str]  # keys deliberately skipped (modules that are not the encoder's)
+    ignored: list[str]  # keys of the file deliberately skipped (modules that are not ours)
+    filled: list[str] = field(default_factory=list)  # encoder state-dict keys the file set
 
 
 def _encoder_of(model: nn.Module) -> SurfSplatEncoder:
@@ -154,9 +186,16 @@ def _encoder_of(model: nn.Module) -> SurfSplatEncoder:
     return encoder
 
 
-def _load_exact(module: nn.Module, tensors: Mapping[str, Tensor], source: str, what: str) -> int:
-    """Copy `tensors` into `module`; any missing, unexpected or mis-shaped key is one error."""
-    expected = module.state_dict()
+def _load_exact(
+    module: nn.Module,
+    tensors: Mapping[str, Tensor],
+    source: str,
+    what: str,
+    prefixes: tuple[str, ...] = ("",),
+) -> list[str]:
+    """Copy `tensors` into the keys of `module` under `prefixes`; any missing, unexpected or
+    mis-shaped key is one error and nothing is copied. Returns the keys set."""
+    expected = {k: v for k, v in module.state_dict().items() if k.startswith(prefixes)}
     missing = [k for k in expected if k not in tensors]
     unexpected = [k for k in tensors if k not in expected]
     misshaped = [
@@ -176,7 +215,7 @@ def _load_exact(module: nn.Module, tensors: Mapping[str, Tensor], source: str, w
     with torch.no_grad():
         for key, value in expected.items():
             value.copy_(tensors[key].to(value.dtype))
-    return len(expected)
+    return list(expected)
 
 
 def load_release_weights(
@@ -206,8 +245,8 @@ def load_release_weights(
     if unmapped:
         raise SurfSplatInputError(f"{name}: {len(unmapped)} keys are not release encoder names: {_listing(unmapped)}")
     size = sum(p.numel() for p in encoder.parameters())
-    loaded = _load_exact(encoder, mapped, name, f"{size:,}-parameter encoder (release layout)")
-    return LoadReport(loaded=loaded, ignored=ignored)
+    filled = _load_exact(encoder, mapped, name, f"{size:,}-parameter encoder (release layout)")
+    return LoadReport(loaded=len(filled), ignored=ignored, filled=filled)
 
 
 def export_release_state_dict(model: nn.Module) -> dict[str, Tensor]:
@@ -243,10 +282,67 @@ def load_depth_anything_v2(model: nn.Module, source: str | Path | Mapping[str, T
             stray.append(key)
     if stray:
         raise SurfSplatInputError(f"{name}: not a Depth Anything V2 file; unexpected keys: {_listing(stray)}")
-    loaded = _load_exact(
+    filled = _load_exact(
         encoder.vit, vit, name, f"ViT ({encoder.cfg.vit.embed_dim}-wide, {encoder.cfg.vit.depth} blocks)"
     )
-    return LoadReport(loaded=loaded, ignored=ignored)
+    return LoadReport(loaded=len(filled), ignored=ignored, filled=["vit." + k for k in filled])
+
+
+def load_unimatch(model: nn.Module, source: str | Path | Mapping[str, Tensor]) -> LoadReport:
+    """Initialise the multi-view branch (CNN + transformer) from a UniMatch / GMFlow file.
+
+    The file (`gmflow-scale1-things-e9887eda.pth`: `{"model": state dict}`) must fill every CNN and
+    transformer tensor of the model (presets small, base and large have UniMatch's widths); its flow
+    propagation and upsampler are reported as ignored. Everything else keeps its current values.
+    """
+    encoder = _encoder_of(model)
+    name = str(source) if not isinstance(source, Mapping) else "state dict"
+    tensors = read_state_dict(source) if not isinstance(source, Mapping) else dict(source)
+    ignored = [k for k in tensors if k.startswith(UNIMATCH_SKIPPED)]
+    mapped: dict[str, Tensor] = {}
+    stray = []
+    for key, value in tensors.items():
+        if key in ignored:
+            continue
+        ours = unimatch_to_ours(key)
+        if ours is None:
+            stray.append(key)
+        else:
+            mapped[ours] = value
+    if stray:
+        raise SurfSplatInputError(f"{name}: not a UniMatch file; unexpected keys: {_listing(stray)}")
+    cfg = encoder.cfg
+    what = (
+        f"multi-view branch (CNN {cfg.cnn_dims} -> {cfg.feature_channels}, {cfg.transformer_layers} transformer layers)"
+    )
+    filled = _load_exact(encoder, mapped, name, what, prefixes=UNIMATCH_BRANCH)
+    return LoadReport(loaded=len(filled), ignored=ignored, filled=filled)
+
+
+def describe_init(model: nn.Module, reports: Mapping[str, LoadReport]) -> list[str]:
+    """Lines saying which encoder modules each initialisation filled and which stay random.
+
+    reports: label (e.g. "monodepth depth-anything-v2-vits") -> what its load returned. Modules are
+    the encoder's top-level children (`vit`, `cnn`, `transformer`, `scales`, `gaussian_head`, ...).
+    """
+    state = _encoder_of(model).state_dict()
+
+    def summary(keys: list[str]) -> str:
+        groups: dict[str, list[int]] = {}
+        for key in keys:
+            tally = groups.setdefault(key.split(".")[0], [0, 0])
+            tally[0] += 1
+            tally[1] += state[key].numel()
+        return ", ".join(f"{g} ({n} tensors, {p:,} values)" for g, (n, p) in groups.items()) or "nothing"
+
+    lines, filled = [], set()
+    for label, report in reports.items():
+        lines.append(f"{label}: filled {summary(report.filled)}")
+        if report.ignored:
+            lines.append(f"{label}: ignored {len(report.ignored)} tensors of the file ({_listing(report.ignored, 4)})")
+        filled.update(report.filled)
+    lines.append(f"random initialisation: {summary([k for k in state if k not in filled])}")
+    return lines
 
 
 # ----------------------------------------------------------------------------- our own format
@@ -256,8 +352,12 @@ def _paths(path: str | Path) -> tuple[Path, Path]:
     return stem.with_suffix(".safetensors"), stem.with_suffix(".json")
 
 
-def save_checkpoint(model: nn.Module, path: str | Path) -> tuple[Path, Path]:
-    """Write `<stem>.safetensors` (weights) and `<stem>.json` (configuration) for a SurfSplat model."""
+def save_checkpoint(model: nn.Module, path: str | Path, metadata: Mapping | None = None) -> tuple[Path, Path]:
+    """Write `<stem>.safetensors` (weights) and `<stem>.json` (configuration) for a SurfSplat model.
+
+    metadata: JSON-ready facts about the weights stored beside the configuration (`surfsplat weights
+    info` shows them), e.g. {"preset": "tiny", "resolution": [64, 64], "steps": 200, "source": "..."}.
+    """
     from .surfsplat import SurfSplat
 
     if not isinstance(model, SurfSplat):
@@ -268,13 +368,40 @@ def save_checkpoint(model: nn.Module, path: str | Path) -> tuple[Path, Path]:
     tmp_weights = weights_path.with_suffix(".safetensors.tmp")
     tmp_config = config_path.with_suffix(".json.tmp")
     save_file(tensors, str(tmp_weights), metadata={"format": FORMAT_NAME, "version": str(FORMAT_VERSION)})
-    tmp_config.write_text(
-        json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": model.cfg.to_dict()}, indent=2)
-    )
+    document = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": model.cfg.to_dict()}
+    if metadata:
+        document["metadata"] = dict(metadata)
+    tmp_config.write_text(json.dumps(document, indent=2))
     # rename last, so an interrupted save never leaves a half-written pair under the final names
     tmp_weights.replace(weights_path)
     tmp_config.replace(config_path)
     return weights_path, config_path
+
+
+def training_metadata(step: int, config: Mapping) -> dict:
+    """Preset, resolution, adapter, steps and source of a model trained by `surfsplat train`, from the
+    step and the run's configuration (TrainConfig.to_dict())."""
+    model = config.get("model") or {}
+    data = config.get("data") or {}
+    init = model.get("init") or {}
+    starts = [
+        f"{kind} {value}"
+        for kind, value in (
+            ("checkpoint", model.get("init_checkpoint")),
+            ("release", model.get("release_weights")),
+            *init.items(),
+        )
+        if value
+    ]
+    roots = f" ({', '.join(data.get('roots') or [])})" if data.get("roots") else ""
+    origin = f", initialised from {'; '.join(starts)}" if starts else ", from random weights"
+    return {
+        "preset": model.get("preset"),
+        "resolution": list(data["image_shape"]) if data.get("image_shape") else None,
+        "adapter": (model.get("adapter") or {}).get("mode"),
+        "steps": step,
+        "source": f"surfsplat train on {data.get('dataset')} data{roots}{origin}",
+    }
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"):

@@ -36,6 +36,7 @@ from torch import Tensor, nn
 
 from ..checks import SurfSplatInputError
 from ..model.checkpoint import save_checkpoint as save_model
+from ..model.checkpoint import training_metadata
 from ..model.surfsplat import SurfSplat
 
 FORMAT_NAME = "surfsplat-train-state"
@@ -183,7 +184,7 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
     final = root / checkpoint_name(state.step)
     temp = root / f"{_TEMP_PREFIX}{checkpoint_name(state.step)}-{os.getpid()}"
     temp.mkdir()
-    save_model(model, temp / "model")
+    save_model(model, temp / "model", metadata=weights_metadata(state))
     tensors, document = _flatten_state(state)
     save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
     (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
@@ -214,6 +215,11 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
             old.rename(doomed)
             shutil.rmtree(doomed)
     return final
+
+
+def weights_metadata(state: TrainingState) -> dict[str, Any]:
+    """What `surfsplat weights info` shows about a trained model: preset, resolution, steps, source."""
+    return training_metadata(state.step, state.config)
 
 
 # ------------------------------------------------------------------------------------------ reading

@@ -33,14 +33,23 @@ RenderModeChoice = Literal["auto", "surfel", "ewa"]
 
 
 @dataclass(frozen=True)
+class InitConfig:
+    """Pretrained weights the branches start from: the paper trains from Depth Anything V2 (monocular)
+    and UniMatch (multi-view). Each is a registry name (`surfsplat weights list`) or a file path."""
+
+    monodepth: str | None = None  # monocular ViT: depth-anything-v2-vit{s,b,l} or a depth_anything_v2_*.pth
+    mvdepth: str | None = None  # multi-view CNN + transformer: unimatch-gmflow-scale1 or a gmflow-*.pth
+
+
+@dataclass(frozen=True)
 class ModelConfig:
     """Which network to train and what it starts from."""
 
     preset: str = "small"  # encoder preset of surfsplat.model.surfsplat.PRESETS (tiny, small, base, large)
     adapter: AdapterConfig = field(default_factory=AdapterConfig)  # surfel adapter (paper mode, ablations)
-    init_checkpoint: str | None = None  # our own model checkpoint (.safetensors + .json) to start from
-    release_weights: str | None = None  # a released SurfSplat .ckpt/.pth to fine-tune from
-    depth_anything: str | None = None  # Depth Anything V2 ViT weights for the monocular backbone
+    init_checkpoint: str | None = None  # our own model checkpoint (.safetensors + .json, or its name) to start from
+    release_weights: str | None = None  # a released SurfSplat .ckpt/.pth (or its name) to fine-tune from
+    init: InitConfig = field(default_factory=InitConfig)  # pretrained branches (the paper's initialisation)
     render_mode: RenderModeChoice = "auto"  # auto: surfel for the paper adapter, ewa for official / 3D Gaussians
     render_backend: Backend = "auto"  # surfsplat.render backend: auto = gsplat on CUDA, compiled on CPU
 
@@ -245,4 +254,31 @@ def override(config: TrainConfig, dotted: dict[str, Any]) -> TrainConfig:
 
 def config_from_dict(data: object) -> TrainConfig:
     """A TrainConfig from JSON-style data (lists for tuples); unknown keys and wrong types are errors."""
-    return _validate(dataclass_from_dict(TrainConfig, data, "config"))
+    return _validate(dataclass_from_dict(TrainConfig, _upgrade(data), "config"))
+
+
+def _upgrade(data: object) -> object:
+    """Configurations of earlier runs named the Depth Anything V2 file `model.depth_anything`; it is
+    `model.init.monodepth` now. Rewritten here so those runs still resume."""
+    if not isinstance(data, dict) or not isinstance(data.get("model"), dict) or "depth_anything" not in data["model"]:
+        return data
+    model = dict(data["model"])
+    legacy = model.pop("depth_anything")
+    init = dict(model.get("init") or {})
+    if legacy is not None and init.get("monodepth") is None:
+        init["monodepth"] = legacy
+    model["init"] = init
+    return {**data, "model": model}
+
+
+def paper_init(preset: str) -> dict[str, str]:
+    """Dotted config fields of the paper's initialisation for `preset`: the Depth Anything V2 ViT of
+    the preset's size and UniMatch's GMFlow weights (the release's pretrained_monodepth / _mvdepth)."""
+    from ..model.registry import known_names, lookup
+
+    mono = [name for name in known_names("monodepth") if lookup(name).preset == preset]
+    if not mono:
+        raise SurfSplatInputError(
+            f"--paper-init: preset {preset!r} has no pretrained initialisation (small, base and large have)"
+        )
+    return {"model.init.monodepth": mono[0], "model.init.mvdepth": "unimatch-gmflow-scale1"}

@@ -44,8 +44,15 @@ from ..data.dataset import mix_seed
 from ..export.figures import image_grid
 from ..log import progress
 from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
-from ..model.checkpoint import load_checkpoint, load_depth_anything_v2, load_release_weights
+from ..model.checkpoint import (
+    describe_init,
+    load_checkpoint,
+    load_depth_anything_v2,
+    load_release_weights,
+    load_unimatch,
+)
 from ..model.decoder import decoder_mode, render_views
+from ..model.pretrained import resolve
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
 from ..render.types import Backend, RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
@@ -93,10 +100,11 @@ class TrainResult:
 
 # ------------------------------------------------------------------------------------------ setup
 def build_model(config: TrainConfig) -> SurfSplat:
-    """The network of `config.model`, with its initial weights (random, ours, released or ViT)."""
+    """The network of `config.model`, with its initial weights (random, ours, released, pretrained
+    branches). Names are resolved through the weights registry (fetched once when missing)."""
     m = config.model
     if m.init_checkpoint is not None:
-        model = load_checkpoint(m.init_checkpoint)
+        model = load_checkpoint(resolve(m.init_checkpoint, role="model")[0])
         if model.cfg.encoder != PRESETS[m.preset] or model.cfg.adapter != m.adapter:
             raise SurfSplatInputError(
                 f"model.init_checkpoint: {m.init_checkpoint} holds a different configuration than "
@@ -104,10 +112,17 @@ def build_model(config: TrainConfig) -> SurfSplat:
             )
         return model
     model = SurfSplat(SurfSplatConfig(encoder=PRESETS[m.preset], adapter=m.adapter))
+    reports = {}
     if m.release_weights is not None:
-        load_release_weights(model, m.release_weights)
-    if m.depth_anything is not None:
-        load_depth_anything_v2(model, m.depth_anything)
+        reports[f"release {m.release_weights}"] = load_release_weights(model, resolve(m.release_weights, "model")[0])
+    if m.init.monodepth is not None:
+        path = resolve(m.init.monodepth, role="monodepth")[0]
+        reports[f"monodepth {m.init.monodepth}"] = load_depth_anything_v2(model, path)
+    if m.init.mvdepth is not None:
+        path = resolve(m.init.mvdepth, role="mvdepth")[0]
+        reports[f"mvdepth {m.init.mvdepth}"] = load_unimatch(model, path)
+    # The release loads these with strict=False and never says what was filled; `fit` prints this.
+    model.init_report = describe_init(model, reports) if reports else []
     return model
 
 
@@ -434,6 +449,9 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         else:
             val_lpips = try_load_lpips(config.loss.lpips_vgg_path, config.loss.lpips_lin_path)
     reporter = _Reporter(config, ctx, start_step)
+    if resume_from is None:
+        for line in getattr(model, "init_report", []):
+            reporter.message(line)
     validating = config.val_every > 0 and float(all_reduce_sum(torch.tensor([len(val_samples)]), ctx)[0]) > 0
     if config.val_every and not validating:
         reporter.message("validation off: no held-out scenes (chunk datasets need data.val_roots)")
