@@ -16,10 +16,9 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from _golden import OUTPUTS, output, rel
+from _golden import OUTPUTS, lightning_release_state, output, rel
 from surfsplat import Cameras
 from surfsplat.model import SurfSplat, load_release_weights
-from surfsplat.model.formula_weights import formula_state_dict
 
 pytestmark = pytest.mark.slow
 
@@ -39,11 +38,8 @@ INTERMEDIATES = [
 
 @pytest.fixture(scope="module")
 def golden_run(golden_subset, golden_subset_dir, tmp_path_factory):
-    weights = formula_state_dict(golden_subset_dir / "formula_weights.json")
     ckpt = tmp_path_factory.mktemp("release") / "surfsplat-small.ckpt"
-    state = {f"encoder.{k}": torch.from_numpy(v) for k, v in weights.items()}
-    torch.save({"state_dict": state, "global_step": 0, "epoch": 0}, ckpt)
-    del weights, state
+    torch.save({"state_dict": lightning_release_state(golden_subset_dir), "global_step": 0, "epoch": 0}, ckpt)
     model = SurfSplat.from_preset("small", adapter="official").eval()
     report = load_release_weights(model, ckpt)
     assert report.loaded == 567 and report.ignored == []
