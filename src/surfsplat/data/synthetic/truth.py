@@ -30,8 +30,9 @@ from .render import cast_rays, pixel_rays, ray_geometry
 from .scene import SyntheticConfig, SyntheticScene
 
 # A point on a surface is unoccluded when the first hit on its ray is not in front of it by more than
-# this relative margin: float64 ray casting reproduces the point's own depth to ~1e-12.
-VISIBILITY_TOLERANCE = 1e-7
+# this relative margin: float64 ray casting reproduces the point's own depth to ~1e-12, and the margin
+# (1 micrometre per metre) also accepts points given in float32, a few nanometres off their surface.
+VISIBILITY_TOLERANCE = 1e-6
 SCENE_KEY = re.compile(r"^synthetic-(\d+)-(\d+)$")  # chunk keys written by write_synthetic_chunks
 
 
