@@ -250,8 +250,9 @@ def markdown(document: dict) -> str:
             f"{f['surfels_chamfer']:.3f} against {p['surfels_chamfer']:.3f} m) and "
             f"{verdict(f['mesh_chamfer'] < p['mesh_chamfer'])} for the mesh ({f['mesh_chamfer']:.3f} against "
             f"{p['mesh_chamfer']:.3f} m); depth AbsRel {f['abs_rel']:.3f} against {p['abs_rel']:.3f}. Surfel positions "
-            "come from the predicted depth, which after this little training is rough in every variant (AbsRel about "
-            "0.2), so position differences of this size are not conclusive; normals are where the prior acts."
+            "come from the predicted depth, which after this little training is rough in every variant (AbsRel "
+            f"{min(g['abs_rel'] for g in geo.values()):.2f} to {max(g['abs_rel'] for g in geo.values()):.2f}), "
+            "so position differences of this size are not conclusive; normals are where the prior acts."
         )
     for name, r in variants.items():
         n = r["native_gt"]
