@@ -3,6 +3,7 @@ without truth are named and get no numbers; a chunk that is not the room its key
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -163,3 +164,27 @@ def test_geometry_config_rejects_bad_values():
     with pytest.raises(SurfSplatInputError, match="min_alpha"):
         GeometryConfig(min_alpha=1.5)
     assert math.isclose(GeometryConfig().threshold, 0.05)
+
+
+def test_cli_eval_geometry_writes_the_columns_and_rejects_bad_options(data, tmp_path, capsys):
+    from surfsplat.cli import main
+    from surfsplat.model import save_checkpoint
+
+    root, index, keys = data
+    (tmp_path / "index.json").write_text(
+        json.dumps({key: {"context": [0, 3], "target": [1, 2]} for key in [*keys, "capture-0"]})
+    )
+    weights, _ = save_checkpoint(_model(), tmp_path / "model")
+    argv = ["eval", "--checkpoint", str(weights), "--data", str(root / "synthetic"), str(root / "other")]
+    argv += ["--index", str(tmp_path / "index.json"), "--no-progress", "--out", str(tmp_path / "out")]
+    assert main([*argv, "--geometry", "--factors", "2"]) == 2
+    assert "--geometry scores the x1 renders" in capsys.readouterr().err
+    assert main([*argv, "--geometry", "--geometry-threshold", "0"]) == 2
+    assert "geometry threshold: expected a positive distance" in capsys.readouterr().err
+    assert main([*argv, "--geometry", "--factors", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "Surfels (opacity-weighted)" in out and "1 scene(s) without ground-truth geometry left out" in out
+    document = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    geometry = next(iter(document["models"].values()))["geometry"]
+    assert sorted(geometry["per_scene"]) == keys and geometry["without_truth"] == ["capture-0: not a procedural scene"]
+    assert (tmp_path / "out" / "geometry_per_scene.csv").is_file()
