@@ -188,3 +188,16 @@ def test_cli_eval_geometry_writes_the_columns_and_rejects_bad_options(data, tmp_
     geometry = next(iter(document["models"].values()))["geometry"]
     assert sorted(geometry["per_scene"]) == keys and geometry["without_truth"] == ["capture-0: not a procedural scene"]
     assert (tmp_path / "out" / "geometry_per_scene.csv").is_file()
+
+
+def test_a_reconstruction_without_a_surface_has_an_empty_mesh_not_an_error(room):
+    from surfsplat.render import RenderOutput
+
+    scene, context, target = room
+    gaussians = _oracle(scene, context)
+    targets = render(gaussians, target, SIZE, SIZE, alpha_threshold=0.001)
+    blank = torch.zeros(len(target), 1, SIZE, SIZE)  # opaque, but no depth anywhere: nothing to fuse
+    views = (RenderOutput(color=targets.color, alpha=blank + 1, depth=blank, normal=targets.normal), target)
+    row = score_scene(scene, gaussians, targets, target, context, SIZE, SIZE, GeometryConfig(), True, views)
+    assert row["mesh_faces"] == 0 and row["mesh_fscore"] == 0.0 and math.isnan(row["mesh_chamfer"])
+    assert row["surfels_precision"] > 0.95  # the rest of the row is scored as usual

@@ -37,7 +37,7 @@ import torch
 from .checks import SurfSplatInputError
 from .data.synthetic.scene import SyntheticScene
 from .data.synthetic.truth import Viewpoints, geometry_truth, scene_from_key, surface_samples
-from .export.mesh import TsdfConfig, mesh_from_renders
+from .export.mesh import TsdfConfig, extract_mesh, tsdf_fusion
 from .geometry.cameras import Cameras
 from .metrics.geometry import normalize_by_alpha, sample_mesh, surface_metrics, view_geometry
 from .render import RenderOutput, render
@@ -58,7 +58,9 @@ COLUMNS = (
     *VIEW_COLUMNS,
     *(f"surfels_{c}" for c in SURFACE_COLUMNS),
     *(f"mesh_{c}" for c in SURFACE_COLUMNS),
+    "mesh_faces",
 )
+EMPTY_MESH_ERRORS = ("volume: no observed zero crossing", "depths: no valid depth sample")  # export.mesh's words
 STORED_DEPTH_TOLERANCE = 0.005  # m: chunks keep depth in whole millimetres; a different room is off by far more
 NO_TRUTH = (
     "no ground-truth geometry for these scenes: dense truth exists only for procedural scenes "
@@ -157,19 +159,28 @@ def score_scene(
 
 
 def _mesh_columns(renders: RenderOutput, cameras: Cameras, true_points, config, normalized) -> dict:
-    depth, alpha, color = (x.float().cpu() for x in (renders.depth, renders.alpha, renders.color))
+    depth, alpha = renders.depth.float().cpu(), renders.alpha.float().cpu()
     if not normalized:
         depth = normalize_by_alpha(depth, alpha, config.min_alpha)
     cams = cameras.to(device="cpu", dtype=torch.float32)
-    empty = {f"mesh_{c}": math.nan for c in SURFACE_COLUMNS} | {"mesh_precision": 0.0, "mesh_recall": 0.0}
+    # No mesh (nothing opaque, or no zero crossing): it completes nothing; mesh_faces = 0 says why.
+    empty = {f"mesh_{c}": math.nan for c in SURFACE_COLUMNS}
+    empty |= {"mesh_precision": 0.0, "mesh_recall": 0.0, "mesh_fscore": 0.0, "mesh_faces": 0.0}
     if not bool((alpha >= config.min_alpha).any()):
-        return empty | {"mesh_fscore": 0.0}
-    mesh = mesh_from_renders(depth, alpha, color, cams, TsdfConfig(resolution=config.mesh_resolution), config.min_alpha)
-    if mesh.faces.shape[0] == 0:
-        return empty | {"mesh_fscore": 0.0}
+        return empty
+    try:
+        valid = alpha >= config.min_alpha
+        volume = tsdf_fusion(depth, cams, valid=valid, config=TsdfConfig(resolution=config.mesh_resolution))
+        mesh = extract_mesh(volume)
+    except SurfSplatInputError as err:
+        # The fused depth has no observed zero crossing (e.g. an untrained network's scattered depth):
+        # there is no surface to score, which the row records as an empty mesh. Anything else is an error.
+        if not str(err).startswith(EMPTY_MESH_ERRORS):
+            raise
+        return empty
     points = sample_mesh(mesh.vertices, mesh.faces, config.mesh_samples, seed=config.seed)
     metrics = surface_metrics(points, true_points, config.threshold)
-    return {f"mesh_{c}": getattr(metrics, c) for c in SURFACE_COLUMNS}
+    return {f"mesh_{c}": getattr(metrics, c) for c in SURFACE_COLUMNS} | {"mesh_faces": float(mesh.faces.shape[0])}
 
 
 @dataclass
