@@ -38,6 +38,8 @@ from .checks import SurfSplatInputError
 from .data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
 from .data.eval_index import EvaluationIndex
 from .data.transforms import rescale_and_crop
+from .evaluate_geometry import COLUMNS as GEOMETRY_COLUMNS
+from .evaluate_geometry import GeometryConfig, GeometryEvaluator, GeometryReport, format_geometry_table
 from .geometry.cameras import Cameras
 from .log import progress
 from .metrics.depth import depth_metrics
@@ -262,6 +264,7 @@ class ScenePrediction:
     seconds_forward: float
     seconds_render: dict[int, float]
     alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
+    render_mode: str = "surfel"  # rasterization the renders used ("surfel" or "ewa")
 
 
 @torch.no_grad()
@@ -292,7 +295,7 @@ def predict_sample(
         renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
         _sync(device)
         seconds[s] = time.perf_counter() - start
-    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau)
+    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau, rmode)
 
 
 def _sync(device: torch.device) -> None:
@@ -310,6 +313,7 @@ class EvalConfig:
     mode: Literal["auto", "surfel", "ewa"] = "auto"  # rasterization; auto follows the adapter
     max_entries: int | None = None  # stop after this many index entries (smoke runs)
     progress: bool = True  # progress over the entries (a bar on a terminal, log lines elsewhere)
+    geometry: GeometryConfig | None = None  # also score geometry against exact truth (procedural scenes)
 
     def __post_init__(self) -> None:
         if self.upsample not in UPSAMPLE_MODES:
@@ -332,6 +336,7 @@ class EvaluationResult:
     peak_memory_kind: str  # what the peak counts: CUDA allocations of the run, or the process's peak RSS
     num_entries: int
     per_scene_depth: dict[str, dict[str, float]] = field(default_factory=dict)
+    geometry: GeometryReport | None = None  # with EvalConfig.geometry: geometry against exact truth
 
     def to_json(self) -> dict:
         return {
@@ -339,6 +344,7 @@ class EvaluationResult:
             **self.report.to_json(),
             "depth": self.depth,
             "per_scene_depth": self.per_scene_depth,
+            **({"geometry": self.geometry.to_json()} if self.geometry is not None else {}),
             "timing": {
                 "seconds_forward_mean": self.seconds_forward,
                 "seconds_render_mean": {f"x{s}": v for s, v in self.seconds_render.items()},
@@ -367,6 +373,7 @@ def evaluate(
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
     forward, renders = [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
+    geometry = GeometryEvaluator(config.geometry) if config.geometry is not None else None
     started = time.perf_counter()
     bar = progress(samples, total=total, enabled=config.progress, desc=f"eval {name}", unit="scene")
     for sample in bar:
@@ -377,6 +384,8 @@ def evaluate(
         forward.append(pred.seconds_forward)
         for s, t in pred.seconds_render.items():
             renders[s].append(t)
+        if geometry is not None:
+            geometry.add(sample, pred)
         if sample.context_depths is not None:
             errors = depth_metrics(pred.depths.float().cpu(), sample.context_depths[:, 0].float())
             keep = errors.num_valid > 0
@@ -402,6 +411,7 @@ def evaluate(
         peak_memory_kind=kind,
         num_entries=n,
         per_scene_depth=depth_rows,
+        geometry=geometry.report() if geometry is not None else None,
     )
 
 
@@ -452,6 +462,9 @@ def format_results(results: dict[str, EvaluationResult]) -> str:
         lines.append("Context depth (true depth in the chunks): " + ", ".join(DEPTH_METRICS))
         for name, d in depth.items():
             lines.append(f"{name.ljust(name_w)} | " + " | ".join(f"{d[m]:.4f}" for m in DEPTH_METRICS))
+    geometry = {n: r.geometry for n, r in results.items() if r.geometry is not None}
+    if geometry:
+        lines += ["", format_geometry_table(geometry)]
     return "\n".join(lines)
 
 
@@ -468,6 +481,19 @@ def per_scene_csv(results: dict[str, EvaluationResult]) -> str:
                 writer.writerow(
                     [name, entry, s, *values, *(f"{depth[m]:.6f}" if m in depth else "" for m in DEPTH_METRICS)]
                 )
+    return buffer.getvalue()
+
+
+def geometry_csv(results: dict[str, EvaluationResult]) -> str:
+    """One row per (model, entry) with every geometry column (empty where undefined)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["model", "entry", *GEOMETRY_COLUMNS])
+    for name, r in results.items():
+        for entry, row in (r.geometry.per_scene if r.geometry is not None else {}).items():
+            writer.writerow(
+                [name, entry, *("" if not math.isfinite(row[c]) else f"{row[c]:.6f}" for c in GEOMETRY_COLUMNS)]
+            )
     return buffer.getvalue()
 
 
@@ -493,6 +519,8 @@ def write_results(
         "per_scene": ("per_scene.csv", per_scene_csv(results)),
         "table": ("table.txt", format_results(results) + "\n"),
     }
+    if any(r.geometry is not None and r.geometry.per_scene for r in results.values()):
+        texts["geometry"] = ("geometry_per_scene.csv", geometry_csv(results))
     return {key: write_text(out / name, text) for key, (name, text) in texts.items()}
 
 

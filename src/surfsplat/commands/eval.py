@@ -7,6 +7,10 @@
 
 Writes metrics.json (means, averages, every scene, timing, peak memory), per_scene.csv and
 table.txt to --out, and prints the table: standard / x2 / x4 / average, PSNR, SSIM, LPIPS.
+--geometry adds depth, normal and surface errors against exact truth for procedural scenes (the
+chunks `surfsplat demo` writes under its eval data, or `write_synthetic_chunks`): per scene in
+metrics.json and geometry_per_scene.csv, means in the table. Scenes without truth are named and
+left out; when none has truth the table says so instead of printing numbers.
 LPIPS needs torchvision's VGG16 file and the LPIPS v0.1 heads (see --lpips-vgg); without them the
 table says "LPIPS unavailable: <reason>" and prints no number.
 """
@@ -68,6 +72,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     metric.add_argument("--lpips-vgg", default=None, help="torchvision's vgg16-397923af.pth")
     metric.add_argument("--lpips-lin", default=None, help="the lpips package's v0.1 vgg.pth")
+    geometry = parser.add_argument_group("geometry (procedural scenes: exact truth)")
+    geometry.add_argument(
+        "--geometry",
+        action="store_true",
+        help="also score depth/normals at the target views and the surfels' and TSDF mesh's surfaces against "
+        "exact truth (procedural scenes only; other scenes are named and left out)",
+    )
+    geometry.add_argument(
+        "--geometry-threshold", type=float, default=0.05, help="F-score distance in scene units (default 0.05 m)"
+    )
+    geometry.add_argument(
+        "--geometry-min-alpha", type=float, default=0.1, help="render pixels count where alpha >= this (default 0.1)"
+    )
     parser.add_argument(
         "--out", type=Path, default=Path("outputs/eval"), help="folder for metrics.json, per_scene.csv, table.txt"
     )
@@ -105,7 +122,15 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--size: expected positive H W, got {args.size}")
     if args.max_entries is not None and args.max_entries < 1:
         raise SurfSplatInputError(f"--max-entries: expected at least 1, got {args.max_entries}")
+    geometry = None
+    if args.geometry:
+        from ..evaluate_geometry import GeometryConfig
+
+        if 1 not in args.factors:
+            raise SurfSplatInputError("--geometry scores the x1 renders: --factors must include 1")
+        geometry = GeometryConfig(min_alpha=args.geometry_min_alpha, threshold=args.geometry_threshold)
     config = EvalConfig(
+        geometry=geometry,
         factors=tuple(args.factors),
         upsample=args.hrrc_upsample,
         mode=args.mode,

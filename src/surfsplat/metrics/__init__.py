@@ -1,6 +1,18 @@
-"""Evaluation metrics: PSNR, SSIM (scikit-image's published call), LPIPS-VGG, depth errors, HRRC."""
+"""Evaluation metrics: PSNR, SSIM (scikit-image's published call), LPIPS-VGG, depth errors, HRRC,
+geometry (normals, point-set accuracy / completeness / Chamfer / F-score) and DTU's surface protocol."""
 
 from .depth import SCANNET_DEPTH_RANGE, DepthMetrics, depth_metrics
+from .dtu import DtuMetrics, DtuReference, dtu_chamfer, dtu_chamfer_mesh, load_dtu_reference
+from .geometry import (
+    NormalMetrics,
+    SurfaceMetrics,
+    ViewGeometry,
+    angular_error_deg,
+    normal_metrics,
+    sample_mesh,
+    surface_metrics,
+    view_geometry,
+)
 from .hrrc import (
     HrrcConfig,
     HrrcEvaluator,
@@ -23,20 +35,33 @@ from .lpips import (
 __all__ = [
     "SCANNET_DEPTH_RANGE",
     "DepthMetrics",
+    "DtuMetrics",
+    "DtuReference",
     "HrrcConfig",
     "HrrcEvaluator",
     "HrrcReport",
     "Lpips",
     "LpipsUnavailable",
     "LpipsWeightPaths",
+    "NormalMetrics",
+    "SurfaceMetrics",
+    "ViewGeometry",
+    "angular_error_deg",
     "depth_metrics",
+    "dtu_chamfer",
+    "dtu_chamfer_mesh",
     "evaluate_hrrc",
     "find_lpips_weights",
     "format_hrrc_table",
+    "load_dtu_reference",
     "load_lpips",
+    "normal_metrics",
     "psnr",
     "render_at_scales",
+    "sample_mesh",
     "ssim",
+    "surface_metrics",
     "try_load_lpips",
     "upsample_ground_truth",
+    "view_geometry",
 ]

@@ -97,17 +97,23 @@ def shade(scene: SyntheticScene, points: Tensor, normals: Tensor, primitive: Ten
     return torch.where(hit, (rgb * irradiance[:, None]).clamp(0, 1), torch.zeros_like(rgb))
 
 
-def render_rays(scene: SyntheticScene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Colour [R, 3], depth t [R] (0 on miss), camera-facing normal [R, 3] and primitive [R] of rays [R, 3]."""
+def ray_geometry(scene: SyntheticScene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Depth t [R] (0 on miss), unit normal [R, 3] facing the ray (0 on miss) and primitive [R] of rays [R, 3]."""
     t, n, prim = cast_rays(scene, origins, dirs)
     hit = prim >= 0
     t_hit = torch.where(hit, t, torch.zeros_like(t))
-    points = origins + t_hit[:, None] * dirs
     # Unit length exactly (a sphere's p / r is off by the hit point's rounding), then face the
     # viewer: the side of the surface the ray arrives from.
     n = torch.nn.functional.normalize(n, dim=-1)
     n = torch.where(((n * dirs).sum(-1) > 0)[:, None], -n, n)
     n = torch.where(hit[:, None], n, torch.zeros_like(n))
+    return t_hit, n, prim
+
+
+def render_rays(scene: SyntheticScene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Colour [R, 3], depth t [R] (0 on miss), camera-facing normal [R, 3] and primitive [R] of rays [R, 3]."""
+    t_hit, n, prim = ray_geometry(scene, origins, dirs)
+    points = origins + t_hit[:, None] * dirs
     return shade(scene, points, n, prim), t_hit, n, prim
 
 
