@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -36,21 +37,38 @@ def chromium() -> str:
     return exe
 
 
-def screenshot(exe: str, url: str, path: Path, width: int = 800, height: int = 600) -> np.ndarray:
-    """Load `url`, let it run 15 s of virtual time (page, websocket, splat sorting and fade-in), and
-    return the screenshot [height, width, 3] uint8. WebGL runs on SwiftShader (no GPU needed)."""
-    command = [
-        exe,
-        "--headless=new",
-        "--no-sandbox",
-        "--use-angle=swiftshader",
-        "--enable-unsafe-swiftshader",
-        "--hide-scrollbars",
-        "--virtual-time-budget=15000",
-        f"--window-size={width},{height}",
-        f"--screenshot={path}",
-        url,
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0 and path.is_file(), done.stderr[-1000:]
-    return iio.imread(path)[..., :3]
+def screenshot(
+    exe: str,
+    url: str,
+    path: Path,
+    width: int = 800,
+    height: int = 600,
+    ready: Callable[[np.ndarray], bool] | None = None,
+    attempts: int = 3,
+) -> np.ndarray:
+    """Load `url`, let it run on virtual time (page, websocket, splat sorting and fade-in), and
+    return the screenshot [height, width, 3] uint8. WebGL runs on SwiftShader (no GPU needed).
+
+    Virtual time runs ahead of the websocket on a loaded machine, so a page can be captured before
+    the scene has arrived: while `ready(image)` is false the page is loaded again with twice the
+    time, `attempts` times at most (the last image is returned either way, for the test to judge).
+    """
+    for attempt in range(attempts):
+        command = [
+            exe,
+            "--headless=new",
+            "--no-sandbox",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--hide-scrollbars",
+            f"--virtual-time-budget={15000 * 2**attempt}",
+            f"--window-size={width},{height}",
+            f"--screenshot={path}",
+            url,
+        ]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=180)
+        assert done.returncode == 0 and path.is_file(), done.stderr[-1000:]
+        image = iio.imread(path)[..., :3]
+        if ready is None or ready(image):
+            break
+    return image

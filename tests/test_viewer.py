@@ -117,6 +117,15 @@ def test_scene_nodes_hold_the_ply_surfels_cameras_path_and_mesh(viewer, output_d
     assert viewer.scene.alpha_threshold == 0.001 and viewer.scene.mode == "surfel"
 
 
+def test_loading_reports_its_progress(output_dir):
+    steps: list[tuple[str, float]] = []
+    load_viewer_scene(output_dir, lambda what, fraction: steps.append((what, fraction)))
+    whats = [what for what, _ in steps]
+    assert whats[0] == "reading surfels.ply" and "reading cameras.json" in whats and "reading mesh.ply" in whats
+    fractions = [fraction for _, fraction in steps]
+    assert fractions == sorted(fractions) and fractions[0] == 0 and fractions[-1] == 1
+
+
 def test_a_ply_alone_shows_only_its_surfels(output_dir):
     scene = load_viewer_scene(output_dir / "surfels.ply")
     assert scene.cameras is None and scene.path is None and scene.mesh is None and len(scene.images) == 0
@@ -219,6 +228,7 @@ def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
 
     exe = chromium()
     reported: list[tuple[BrowserView, int, int]] = []
+    clicked: list[BrowserView] = []
 
     @viewer.server.on_client_connect
     def _(client) -> None:
@@ -226,15 +236,26 @@ def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
         def _(camera) -> None:
             view = BrowserView(tuple(camera.wxyz), tuple(camera.position), float(camera.fov), float(camera.aspect))
             reported.append((view, camera.image_width, camera.image_height))
+            if not clicked:  # the "Render this view" button, pressed by the first browser once
+                clicked.append(view)
+                viewer.render_for_client(client)
 
     width, height = 800, 600
-    first = screenshot(exe, viewer.url, tmp_path / "initial.png", width, height)
     # The 3D view left of the panel and below the browser's software-rendering notice.
     region = (slice(170, height), slice(0, 640))
-    background = first[height - 5, 5].astype(int)  # a corner the splats do not reach
-    drawn = np.abs(first[region].astype(int) - background).sum(-1) > 30
-    assert drawn.mean() > 0.25, f"splats cover {drawn.mean():.0%} of the view"
-    assert len({tuple(p) for p in first[region].reshape(-1, 3)[drawn.reshape(-1)][::7]}) > 300  # textured colours
+
+    def drawn(image: np.ndarray) -> np.ndarray:
+        background = image[height - 5, 5].astype(int)  # a corner the splats do not reach
+        return np.abs(image[region].astype(int) - background).sum(-1) > 30
+
+    first = screenshot(exe, viewer.url, tmp_path / "initial.png", width, height, lambda im: drawn(im).mean() > 0.25)
+    covered = drawn(first)
+    assert covered.mean() > 0.25, f"splats cover {covered.mean():.0%} of the view"
+    assert len({tuple(p) for p in first[region][covered][::7]}) > 300  # textured colours, not a flat fill
+
+    # The button rendered the view that browser had, into the panel.
+    assert clicked and np.array_equal(viewer.last_render, viewer.render_view(clicked[0], 1, "image"))
+    assert viewer.render_image.visible and viewer.render_info.content.startswith("image at x1")
 
     # A side view of the sphere with the splats alone, rendered by both.
     for name in ("Context cameras", "Camera path"):
@@ -243,7 +264,7 @@ def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
     initial = viewer.server.initial_camera
     initial.position, initial.look_at = (2.2, -0.8, 1.2), SPHERE_CENTER
     reported.clear()
-    second = screenshot(exe, viewer.url, tmp_path / "side.png", width, height)
+    second = screenshot(exe, viewer.url, tmp_path / "side.png", width, height, lambda im: drawn(im).mean() > 0.25)
     for name in ("Context cameras", "Camera path"):
         viewer.toggles[name].value = True
     changed = np.abs(second[region].astype(int) - first[region].astype(int)).sum(-1) > 30
@@ -253,10 +274,14 @@ def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
     view, w, h = reported[-1]
     assert (w, h) == (width, height) and view.position == pytest.approx((2.2, -0.8, 1.2), abs=1e-4)
     cams, rw, rh = view_cameras(view, height)
+    # The browser looks at the point it was told to, with the scene's up at the top of the image.
+    to_target = np.asarray(SPHERE_CENTER) - np.asarray(view.position)
+    assert cams.c2w[0, :3, 2].numpy() @ (to_target / np.linalg.norm(to_target)) > 1 - 1e-6
+    assert -cams.c2w[0, :3, 1].numpy() @ np.asarray(initial.up) > 0.5
     exact = render(scene.gaussians, cams.to(torch.float32), rw, rh, background=(1.0, 1.0, 1.0))
     ours = to_uint8(exact.color[0])
     iio.imwrite(tmp_path / "side_exact.png", ours)
-    webgl_mask = np.abs(second.astype(int) - background).sum(-1) > 30
-    exact_mask = exact.alpha[0, 0].numpy() > 0.5
-    iou = (webgl_mask & exact_mask)[region].sum() / (webgl_mask | exact_mask)[region].sum()
+    webgl_mask = drawn(second)
+    exact_mask = exact.alpha[0, 0].numpy()[region] > 0.5
+    iou = (webgl_mask & exact_mask).sum() / (webgl_mask | exact_mask).sum()
     assert iou > 0.8, f"WebGL and exact render silhouettes overlap by IoU {iou:.2f}"

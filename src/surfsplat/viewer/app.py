@@ -256,7 +256,7 @@ class SurfelViewer:
             self.scale_choice = gui.add_dropdown("Scale", tuple(SCALES), initial_value="x1")
             self.output_choice = gui.add_dropdown("Output", OUTPUTS, initial_value="image")
             button = gui.add_button("Render this view")
-            button.on_click(lambda event: self._render_for(event.client))
+            button.on_click(lambda event: self.render_for_client(event.client))
             self.render_info = gui.add_markdown("")
             self.render_image = gui.add_image(np.zeros((1, 1, 3), np.uint8), format="png", visible=False)
             self.save_button = gui.add_button("Download the render (PNG)", visible=False)
@@ -295,7 +295,8 @@ class SurfelViewer:
         tau = self.scene.alpha_threshold if self.scene.alpha_threshold is not None else 0.5
         return to_uint8(colorize_depth(out.depth[0], (out.alpha[0] >= tau).float()))
 
-    def _render_for(self, client) -> None:
+    def render_for_client(self, client) -> None:
+        """What the panel's button does: render that browser's current view, show it in the panel."""
         cam = client.camera
         view = BrowserView(tuple(cam.wxyz), tuple(cam.position), float(cam.fov), float(cam.aspect))
         scale, output = SCALES[self.scale_choice.value], self.output_choice.value
