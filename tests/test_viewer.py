@@ -131,6 +131,19 @@ def test_a_ply_alone_shows_only_its_surfels(output_dir):
     assert scene.cameras is None and scene.path is None and scene.mesh is None and len(scene.images) == 0
 
 
+def test_a_3dgs_layout_ply_keeps_its_own_covariances(scene, tmp_path):
+    g = scene.gaussians
+    R = g.rotations.double()
+    fat = (R * torch.tensor([1.0, 0.25, 0.04], dtype=torch.float64).mul(g.scales[:, :1].double() ** 2)[:, None]) @ R.mT
+    path = save_ply(g.with_explicit_covariances(fat.float()), tmp_path / "gaussians_3dgs.ply")
+    loaded = load_viewer_scene(path)
+    arrays = splat_arrays(loaded.gaussians)
+    assert loaded.mode == "ewa"
+    np.testing.assert_allclose(
+        arrays.covariances * arrays.unit**2, fat.numpy(), rtol=0, atol=1e-6 * float(fat.abs().max())
+    )
+
+
 def test_float16_covariances_of_a_millimetre_scene_keep_their_shape(scene):
     """viser packs covariances as float16 (normal range from 6e-5): the node's unit keeps tiny surfels."""
     g = scene.gaussians
@@ -208,8 +221,12 @@ def test_not_our_ply_or_a_broken_one_is_one_clear_error(output_dir, tmp_path):
     assert len(lines) == 1 and lines[0].startswith(f"surfsplat view: error: {broken}: not a readable PLY file"), lines
 
 
-def test_listens_on_localhost_by_default_and_checks_the_address():
+def test_listens_on_localhost_by_default_and_checks_the_address(viewer):
     from surfsplat.cli import build_parser
+
+    assert viewer.url.startswith("http://127.0.0.1:")
+    # A share URL (a public tunnel) asked for by a websocket client is refused without any connection.
+    assert viewer.server.request_share_url() is None and viewer.server._share_tunnel is None
 
     args = build_parser().parse_args(["view", "x.ply"])
     assert args.host == "127.0.0.1"

@@ -93,6 +93,11 @@ def check_listen_address(host: str, port: int) -> None:
         raise SurfSplatInputError(f"--host {host}: cannot listen there ({err.strerror or err})") from None
 
 
+def _no_share_url(verbose: bool = True) -> None:
+    """In place of viser's share-URL request: no tunnel."""
+    return None
+
+
 def set_client_view(client, view: BrowserView) -> None:
     """Move one browser's camera to `view` (its fov too; the canvas keeps its own aspect)."""
     with client.atomic():
@@ -111,8 +116,11 @@ class SurfelViewer:
         check_listen_address(host, port)
         self.host = host
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
-        # The share button would open a public tunnel; this viewer serves the local machine only.
+        # viser can open a public tunnel ("share URL") when any websocket client asks, and a web page
+        # from any site can open a websocket to localhost: hide the button and refuse the request, so
+        # the scene never leaves this machine.
         self.server.gui.configure_theme(show_share_button=False, show_logo=False, control_width="medium")
+        self.server.request_share_url = _no_share_url
         self.scene: ViewerScene | None = None
         self.splats = None  # viser GaussianSplatHandle
         self.frustums: list = []  # context cameras, one handle each
