@@ -1,11 +1,23 @@
 """Headless Chromium for the viewer tests: find it (installing Debian's package where the tests run
-as root, as on CI) and take screenshots of a page with software WebGL."""
+as root, as on CI) and look at a page with software WebGL through the DevTools protocol.
+
+The page is driven over the DevTools websocket rather than with `--screenshot`: that flag captures
+after a budget of *virtual* time, which runs ahead of the viewer's websocket on a loaded machine,
+so the capture could come before the scene arrived. Here the test waits in real time until the
+page shows what it expects (or a time limit passes) and then captures it.
+"""
 
 from __future__ import annotations
 
+import base64
+import io
+import json
 import os
 import shutil
 import subprocess
+import tempfile
+import time
+import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,38 +49,99 @@ def chromium() -> str:
     return exe
 
 
-def screenshot(
-    exe: str,
-    url: str,
-    path: Path,
-    width: int = 800,
-    height: int = 600,
-    ready: Callable[[np.ndarray], bool] | None = None,
-    attempts: int = 3,
-) -> np.ndarray:
-    """Load `url`, let it run on virtual time (page, websocket, splat sorting and fade-in), and
-    return the screenshot [height, width, 3] uint8. WebGL runs on SwiftShader (no GPU needed).
+class Browser:
+    """One headless Chromium showing `url` in one page of width x height CSS pixels (device scale 1).
 
-    Virtual time runs ahead of the websocket on a loaded machine, so a page can be captured before
-    the scene has arrived: while `ready(image)` is false the page is loaded again with twice the
-    time, `attempts` times at most (the last image is returned either way, for the test to judge).
-    """
-    for attempt in range(attempts):
-        command = [
-            exe,
-            "--headless=new",
-            "--no-sandbox",
-            "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader",
-            "--hide-scrollbars",
-            f"--virtual-time-budget={15000 * 2**attempt}",
-            f"--window-size={width},{height}",
-            f"--screenshot={path}",
-            url,
-        ]
-        done = subprocess.run(command, capture_output=True, text=True, timeout=180)
-        assert done.returncode == 0 and path.is_file(), done.stderr[-1000:]
-        image = iio.imread(path)[..., :3]
-        if ready is None or ready(image):
-            break
-    return image
+    The page opens at launch: navigating a blank page elsewhere can move it to another renderer
+    process and detach the DevTools session from it."""
+
+    def __init__(self, exe: str, url: str, width: int = 800, height: int = 600) -> None:
+        from websockets.sync.client import connect
+
+        self.profile = tempfile.mkdtemp(prefix="surfsplat-chromium-")
+        self.process = subprocess.Popen(
+            [
+                exe,
+                "--headless=new",
+                "--no-sandbox",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--hide-scrollbars",
+                "--no-first-run",
+                f"--window-size={width},{height}",
+                "--remote-debugging-port=0",
+                f"--user-data-dir={self.profile}",
+                url,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            port_file = Path(self.profile) / "DevToolsActivePort"
+            deadline = time.monotonic() + 60
+            while not (port_file.is_file() and port_file.read_text().strip()):
+                if time.monotonic() > deadline or self.process.poll() is not None:
+                    raise RuntimeError("headless Chromium did not start its DevTools endpoint")
+                time.sleep(0.1)
+            port = int(port_file.read_text().split()[0])
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as answer:
+                page = next(t for t in json.loads(answer.read()) if t["type"] == "page")
+            self.socket = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30)
+            self._id = 0
+            self.call(
+                "Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False
+            )
+        except BaseException:
+            self.close()
+            raise
+
+    def call(self, method: str, **params) -> dict:
+        """One DevTools command; events arriving meanwhile are dropped."""
+        self._id += 1
+        self.socket.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        while True:
+            message = json.loads(self.socket.recv(timeout=60))
+            if message.get("id") == self._id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message.get("result", {})
+
+    def capture(self) -> np.ndarray:
+        """The page as it is now: [height, width, 3] uint8."""
+        data = self.call("Page.captureScreenshot", format="png")["data"]
+        return iio.imread(io.BytesIO(base64.b64decode(data)))[..., :3]
+
+    def wait_for(self, ready: Callable[[np.ndarray], bool], settle: float = 2.0, timeout: float = 60.0) -> np.ndarray:
+        """Capture after `settle` seconds, then every second until `ready(image)` holds for two
+        captures in a row that are alike (viser fades splats in over several frames, and a frame
+        drawn in software takes seconds on a loaded machine); after `timeout` seconds the last
+        capture is returned for the test to judge."""
+        deadline = time.monotonic() + timeout
+        time.sleep(settle)
+        previous = None
+        while True:
+            image = self.capture()
+            steady = previous is not None and np.abs(image.astype(int) - previous).mean() < 1.0
+            if (ready(image) and steady) or time.monotonic() > deadline:
+                return image
+            previous = image.astype(int)
+            time.sleep(1.0)
+
+    def close(self) -> None:
+        socket = getattr(self, "socket", None)
+        if socket is not None:
+            socket.close()
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        shutil.rmtree(self.profile, ignore_errors=True)
+
+    def __enter__(self) -> Browser:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

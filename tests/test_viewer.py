@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import imageio.v3 as iio
 import numpy as np
@@ -24,6 +25,7 @@ from surfsplat.export.ply import save_ply
 from surfsplat.render import render
 from surfsplat.scenes import SPHERE_CENTER, make_scene
 from surfsplat.viewer import BrowserView, SurfelViewer, camera_view, load_viewer_scene, splat_arrays, view_cameras
+from surfsplat.viewer.app import set_client_view
 
 RES = 24  # source views of the procedural scene: 2 x 24^2 = 1,152 surfels
 
@@ -236,68 +238,92 @@ def test_listens_on_localhost_by_default_and_checks_the_address(viewer):
         SurfelViewer(host="203.0.113.7", port=0)
 
 
+def _wait(condition, timeout: float = 40.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
 @pytest.mark.slow
 def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
-    """What a person sees: the page in Chromium (software WebGL) shows the splats over most of the
-    view, a second pose shows something else, and the WebGL preview agrees with the exact render of
-    the camera the browser reports (which pins viser's camera convention to ours)."""
-    from _browser import chromium, screenshot
+    """What a person sees, in Chromium with software WebGL: the splats over most of the view; the
+    render button and "look through" working for a real browser; another pose showing something
+    else; and the WebGL preview agreeing with the exact render of the camera the browser reports
+    (which pins viser's camera convention to ours)."""
+    from _browser import Browser, chromium
 
     exe = chromium()
-    reported: list[tuple[BrowserView, int, int]] = []
-    clicked: list[BrowserView] = []
+    clients: list = []
+    reported: list[BrowserView] = []
 
     @viewer.server.on_client_connect
     def _(client) -> None:
+        clients.append(client)
+
         @client.camera.on_update
         def _(camera) -> None:
-            view = BrowserView(tuple(camera.wxyz), tuple(camera.position), float(camera.fov), float(camera.aspect))
-            reported.append((view, camera.image_width, camera.image_height))
-            if not clicked:  # the "Render this view" button, pressed by the first browser once
-                clicked.append(view)
-                viewer.render_for_client(client)
+            reported.append(BrowserView(tuple(camera.wxyz), tuple(camera.position), float(camera.fov), camera.aspect))
+
+    def at(position) -> bool:
+        return bool(reported) and np.allclose(reported[-1].position, position, atol=1e-5)
 
     width, height = 800, 600
-    # The 3D view left of the panel and below the browser's software-rendering notice.
-    region = (slice(170, height), slice(0, 640))
+    region = (slice(170, height), slice(0, 450))  # the 3D view left of the panel, below the WebGL notice
 
     def drawn(image: np.ndarray) -> np.ndarray:
         background = image[height - 5, 5].astype(int)  # a corner the splats do not reach
         return np.abs(image[region].astype(int) - background).sum(-1) > 30
 
-    first = screenshot(exe, viewer.url, tmp_path / "initial.png", width, height, lambda im: drawn(im).mean() > 0.25)
-    covered = drawn(first)
-    assert covered.mean() > 0.25, f"splats cover {covered.mean():.0%} of the view"
-    assert len({tuple(p) for p in first[region][covered][::7]}) > 300  # textured colours, not a flat fill
+    with Browser(exe, viewer.url, width, height) as browser:
+        initial = viewer.server.initial_camera
+        assert _wait(lambda: at(initial.position), 90), "the page never took its initial camera"
+        first = browser.wait_for(lambda image: drawn(image).mean() > 0.25)
+        iio.imwrite(tmp_path / "initial.png", first)
+        covered = drawn(first)
+        assert covered.mean() > 0.25, f"splats cover {covered.mean():.0%} of the view"
+        assert len({tuple(p) for p in first[region][covered][::7]}) > 300  # textured colours, not a flat fill
 
-    # The button rendered the view that browser had, into the panel.
-    assert clicked and np.array_equal(viewer.last_render, viewer.render_view(clicked[0], 1, "image"))
-    assert viewer.render_image.visible and viewer.render_info.content.startswith("image at x1")
+        # "Render this view": the exact render of the browser's view, shown in the panel.
+        (client,) = clients
+        viewer.render_for_client(client)
+        assert np.array_equal(viewer.last_render, viewer.render_view(reported[-1], 1, "image"))
+        assert viewer.render_image.visible and viewer.render_info.content.startswith("image at x1")
 
-    # A side view of the sphere with the splats alone, rendered by both.
-    for name in ("Context cameras", "Camera path"):
-        viewer.toggles[name].value = False  # as a click on the panel's checkbox
-        assert viewer.groups[name].visible is False
-    initial = viewer.server.initial_camera
-    initial.position, initial.look_at = (2.2, -0.8, 1.2), SPHERE_CENTER
-    reported.clear()
-    second = screenshot(exe, viewer.url, tmp_path / "side.png", width, height, lambda im: drawn(im).mean() > 0.25)
+        # "Look through" camera 1 (what a click on its frustum does): the browser is at that camera.
+        looked = camera_view(scene.sources, 1, RES, RES)
+        set_client_view(client, looked)
+        assert _wait(lambda: at(looked.position))
+        view = reported[-1]
+        assert view.fov == pytest.approx(looked.fov) and abs(np.dot(view.wxyz, looked.wxyz)) == pytest.approx(1)
+
+        # A side view of the sphere with the splats alone, in WebGL and in the exact renderer.
+        for name in ("Context cameras", "Camera path"):
+            viewer.toggles[name].value = False  # as a click on the panel's checkbox
+            assert viewer.groups[name].visible is False
+        side = (2.2, -0.8, 1.2)
+        with client.atomic():
+            client.camera.position = side
+            client.camera.look_at = SPHERE_CENTER
+        assert _wait(lambda: at(side))
+        second = browser.wait_for(lambda image: drawn(image).mean() > 0.25)
+        iio.imwrite(tmp_path / "side.png", second)
+        view = reported[-1]
+    changed = np.abs(second[region].astype(int) - first[region].astype(int)).sum(-1) > 30
+    assert changed.mean() > 0.2, f"two poses differ on {changed.mean():.0%} of the view"
     for name in ("Context cameras", "Camera path"):
         viewer.toggles[name].value = True
-    changed = np.abs(second[region].astype(int) - first[region].astype(int)).sum(-1) > 30
-    assert changed.mean() > 0.2
 
-    assert reported, "the browser never reported its camera"
-    view, w, h = reported[-1]
-    assert (w, h) == (width, height) and view.position == pytest.approx((2.2, -0.8, 1.2), abs=1e-4)
     cams, rw, rh = view_cameras(view, height)
+    assert (rw, rh) == (width, height)
     # The browser looks at the point it was told to, with the scene's up at the top of the image.
     to_target = np.asarray(SPHERE_CENTER) - np.asarray(view.position)
     assert cams.c2w[0, :3, 2].numpy() @ (to_target / np.linalg.norm(to_target)) > 1 - 1e-6
     assert -cams.c2w[0, :3, 1].numpy() @ np.asarray(initial.up) > 0.5
     exact = render(scene.gaussians, cams.to(torch.float32), rw, rh, background=(1.0, 1.0, 1.0))
-    ours = to_uint8(exact.color[0])
-    iio.imwrite(tmp_path / "side_exact.png", ours)
+    iio.imwrite(tmp_path / "side_exact.png", to_uint8(exact.color[0]))
     webgl_mask = drawn(second)
     exact_mask = exact.alpha[0, 0].numpy()[region] > 0.5
     iou = (webgl_mask & exact_mask).sum() / (webgl_mask | exact_mask).sum()
