@@ -209,6 +209,11 @@ def test_not_our_ply_or_a_broken_one_is_one_clear_error(output_dir, tmp_path):
     broken.write_bytes((output_dir / "surfels.ply").read_bytes()[:3000])
     with pytest.raises(SurfSplatInputError, match="broken.ply: not a readable PLY"):
         load_viewer_scene(broken)
+    values = PlyData.read(str(output_dir / "surfels.ply"))
+    values["vertex"].data["x"][5] = np.nan
+    values.write(str(tmp_path / "nan.ply"))
+    with pytest.raises(SurfSplatInputError, match="nan.ply: gaussians.means: contains NaN"):
+        load_viewer_scene(tmp_path / "nan.ply")
     with pytest.raises(SurfSplatInputError, match="no surfels.ply"):
         load_viewer_scene(tmp_path)
     # The command: exit code 2, one line naming the file, no traceback, no server left running.

@@ -89,7 +89,12 @@ def load_viewer_scene(path: str | os.PathLike, progress: Progress | None = None)
     else:
         ply = path
     step(f"reading {ply.name}", 0.0)
-    gaussians = load_ply(ply)
+    try:
+        gaussians = load_ply(ply)
+    except SurfSplatInputError as err:  # values the Gaussians refuse (NaN, negative scale): name the file
+        if str(err).startswith(str(ply)):
+            raise
+        raise SurfSplatInputError(f"{ply}: {err}") from None
     if len(gaussians) == 0:
         raise SurfSplatInputError(f"{ply}: the file holds no surfels")
     scene = ViewerScene(
