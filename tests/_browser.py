@@ -111,18 +111,20 @@ class Browser:
         data = self.call("Page.captureScreenshot", format="png")["data"]
         return iio.imread(io.BytesIO(base64.b64decode(data)))[..., :3]
 
-    def wait_for(self, ready: Callable[[np.ndarray], bool], settle: float = 2.0, timeout: float = 60.0) -> np.ndarray:
-        """Capture after `settle` seconds, then every second until `ready(image)` holds for two
-        captures in a row that are alike (viser fades splats in over several frames, and a frame
-        drawn in software takes seconds on a loaded machine); after `timeout` seconds the last
-        capture is returned for the test to judge."""
+    def wait_for(
+        self, ready: Callable[[np.ndarray], bool], settle: float = 2.0, steady: bool = True, timeout: float = 60.0
+    ) -> np.ndarray:
+        """Capture after `settle` seconds, then every second until `ready(image)` holds, with `steady`
+        for two captures in a row that are alike (viser fades splats in over several frames after
+        they arrive, and a frame drawn in software takes seconds on a loaded machine); after
+        `timeout` seconds the last capture is returned for the test to judge."""
         deadline = time.monotonic() + timeout
         time.sleep(settle)
         previous = None
         while True:
             image = self.capture()
-            steady = previous is not None and np.abs(image.astype(int) - previous).mean() < 1.0
-            if (ready(image) and steady) or time.monotonic() > deadline:
+            alike = not steady or (previous is not None and np.abs(image.astype(int) - previous).mean() < 1.0)
+            if (ready(image) and alike) or time.monotonic() > deadline:
                 return image
             previous = image.astype(int)
             time.sleep(1.0)

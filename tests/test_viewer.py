@@ -313,7 +313,8 @@ def test_headless_chromium_draws_the_splats(viewer, scene, tmp_path):
             client.camera.position = side
             client.camera.look_at = SPHERE_CENTER
         assert _wait(lambda: at(side))
-        second = browser.wait_for(lambda image: drawn(image).mean() > 0.25)
+        # The splats are in; the camera has moved (it reported so): no fade to wait for.
+        second = browser.wait_for(lambda image: drawn(image).mean() > 0.25, settle=0.5, steady=False)
         iio.imwrite(tmp_path / "side.png", second)
         view = reported[-1]
     changed = np.abs(second[region].astype(int) - first[region].astype(int)).sum(-1) > 30
