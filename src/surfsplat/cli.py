@@ -35,7 +35,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "render": ("surfsplat.commands.render", "render a saved PLY from cameras at any scale"),
     "export": ("surfsplat.commands.export", "PLY, mesh (TSDF) and videos from a saved reconstruction"),
-    "view": ("surfsplat.commands.view", "interactive browser viewer of a PLY on localhost"),
+    "view": (
+        "surfsplat.commands.view",
+        "a PLY or reconstruction folder in the browser (viser, localhost): splats, cameras, exact render",
+    ),
     "train": ("surfsplat.commands.train", "train a SurfSplat model (single process or torchrun data-parallel)"),
     "convert": (
         "surfsplat.commands.convert",

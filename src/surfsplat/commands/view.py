@@ -1,9 +1,10 @@
-"""`surfsplat view PLY`: an interactive browser viewer on localhost (Ctrl-C stops it).
+"""`surfsplat view PLY|OUTPUT_DIR`: the surfels in the browser, on viser (Ctrl-C stops it).
 
-    surfsplat view out/surfels.ply                 # then open the printed http://127.0.0.1:8080/
+    surfsplat view out/                   # a reconstruction: surfels, cameras with images, path, mesh
+    surfsplat view out/surfels.ply        # a PLY alone (2DGS or 3DGS layout)
 
-The page is self-contained (no network access, no WebGL needed); the reconstruction's
-cameras.json beside the PLY, when present, sets the first view.
+then open the printed http://127.0.0.1:8080/. It listens on this machine only unless --host says
+otherwise, and serves the viewer's page and this one scene, nothing else.
 """
 
 from __future__ import annotations
@@ -14,33 +15,28 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("ply", type=Path, help="surfels (2DGS or 3DGS layout PLY)")
-    parser.add_argument("--port", type=int, default=8080, help="port on localhost (0 = any free port)")
+    parser.add_argument("path", type=Path, metavar="PLY|OUTPUT_DIR", help="surfels PLY or a reconstruct/export folder")
+    parser.add_argument("--port", type=int, default=8080, help="port (the next free one when taken; 0 = any)")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
-    parser.add_argument("--cameras", type=Path, default=None, help="camera file whose first camera is the initial view")
-    parser.add_argument(
-        "--max-splats", type=int, default=300_000, help="subsample larger files to keep the page interactive"
-    )
-    parser.add_argument(
-        "--alpha-threshold",
-        type=float,
-        default=None,
-        help="forced alpha blending tau (default: the reconstruction's, else 0.001); negative turns it off",
-    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..viewer import ViewerServer
+    from ..viewer import SurfelViewer, load_viewer_scene
+    from ..viewer.scene import summary_line
 
-    if not args.ply.is_file():
-        raise FileNotFoundError(f"{args.ply}: no such PLY file")
-    tau = "auto" if args.alpha_threshold is None else (None if args.alpha_threshold < 0 else args.alpha_threshold)
-    server = ViewerServer.from_ply(args.ply, args.host, args.port, args.cameras, args.max_splats, tau).start()
-    print(
-        f"surfsplat viewer: {server.meta['count']:,} splats of {args.ply} at {server.url} (Ctrl-C to stop)", flush=True
-    )
+    if not args.path.exists():
+        raise FileNotFoundError(f"{args.path}: no such PLY file or output folder")
+    viewer = SurfelViewer(args.host, args.port, title=f"surfsplat: {args.path.name}")
+    print(f"surfsplat viewer: loading {args.path} (progress at {viewer.url})", flush=True)
+    try:
+        scene = load_viewer_scene(args.path, viewer.progress)
+        viewer.show(scene)
+    except BaseException:
+        viewer.stop()  # no page left serving half a scene
+        raise
+    print(f"surfsplat viewer: {summary_line(scene)} at {viewer.url} (Ctrl-C to stop)", flush=True)
     try:
         threading.Event().wait()  # serve until interrupted
     finally:
-        server.shutdown()
+        viewer.stop()
     return 0
