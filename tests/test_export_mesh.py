@@ -11,7 +11,7 @@ from plyfile import PlyData
 
 from surfsplat import Cameras
 from surfsplat.checks import SurfSplatInputError
-from surfsplat.export.mesh import Mesh, TsdfConfig, extract_mesh, save_mesh, tsdf_fusion
+from surfsplat.export.mesh import Mesh, TsdfConfig, extract_mesh, load_mesh, save_mesh, tsdf_fusion
 
 H = W = 48
 FOCAL = 45.0
@@ -153,3 +153,19 @@ def test_fusion_input_errors():
         tsdf_fusion(torch.zeros(2, 1, H, W), cams)
     with pytest.raises(SurfSplatInputError, match="valid: expected a bool tensor"):
         tsdf_fusion(torch.ones(2, 1, H, W), cams, valid=torch.ones(2, 1, H, W))
+
+
+def test_load_mesh_reads_back_what_save_mesh_wrote(tmp_path, sphere_mesh):
+    _, sphere_mesh = sphere_mesh
+    path = save_mesh(sphere_mesh, tmp_path / "sphere.ply")
+    back = load_mesh(path)
+    assert torch.equal(back.vertices, sphere_mesh.vertices.float())
+    assert torch.equal(back.faces, sphere_mesh.faces)
+    assert torch.equal(back.normals, sphere_mesh.normals.float())
+    # colours are stored as bytes: within half a step of 1/255
+    assert (back.colors - sphere_mesh.colors).abs().max() <= 0.5 / 255 + 1e-6
+    (tmp_path / "quads.ply").write_bytes(
+        path.read_bytes().replace(b"property list uchar int vertex_indices", b"property list uchar int vertex_index")
+    )
+    with pytest.raises(SurfSplatInputError, match="quads.ply"):
+        load_mesh(tmp_path / "quads.ply")

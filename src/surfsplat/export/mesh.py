@@ -16,12 +16,13 @@ behind surfaces does not close the mesh with a false wall.
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 from torch import Tensor
 
 from ..checks import SurfSplatInputError, check_tensor
@@ -253,6 +254,41 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def load_mesh(path: str | os.PathLike) -> Mesh:
+    """Read a triangle mesh PLY (vertex x y z [nx ny nz] [red green blue], face vertex_indices), the
+    layout `save_mesh` writes; missing normals are zero, missing colours mid grey."""
+    path = Path(path)
+    try:
+        ply = PlyData.read(str(path))
+        vertex, face = ply["vertex"], ply["face"]
+    except (PlyParseError, ValueError, KeyError, EOFError, OSError, struct.error) as err:
+        raise SurfSplatInputError(f"{path}: not a readable mesh PLY ({err})") from None
+    names = set(vertex.data.dtype.names)
+    if not {"x", "y", "z"} <= names:
+        raise SurfSplatInputError(f"{path}: mesh vertices need x, y, z properties")
+
+    def columns(keys: tuple[str, str, str], default: float, scale: float = 1.0) -> np.ndarray:
+        if not set(keys) <= names:
+            return np.full((len(vertex.data), 3), default, dtype=np.float32)
+        return np.stack([np.asarray(vertex[k], dtype=np.float32) / scale for k in keys], axis=-1)
+
+    vertices = columns(("x", "y", "z"), 0.0)
+    try:
+        faces = np.stack([np.asarray(f, dtype=np.int64) for f in face["vertex_indices"]]) if len(face.data) else None
+    except ValueError:
+        raise SurfSplatInputError(f"{path}: faces must all be triangles") from None
+    if faces is None or faces.ndim != 2 or faces.shape[1] != 3:
+        raise SurfSplatInputError(f"{path}: expected a non-empty list of triangles")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise SurfSplatInputError(f"{path}: face indices outside the {len(vertices)} vertices")
+    return Mesh(
+        vertices=torch.from_numpy(vertices),
+        faces=torch.from_numpy(faces),
+        normals=torch.from_numpy(columns(("nx", "ny", "nz"), 0.0)),
+        colors=torch.from_numpy(columns(("red", "green", "blue"), 0.5 * 255, scale=255.0)),
+    )
 
 
 def mesh_from_renders(

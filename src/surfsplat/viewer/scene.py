@@ -13,16 +13,15 @@ the viewer serves nothing but the scene it was pointed at.
 from __future__ import annotations
 
 import os
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyParseError
 
 from ..checks import SurfSplatInputError
+from ..export.mesh import load_mesh as read_mesh
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
 from ..geometry.sh import SH_C0
@@ -174,24 +173,8 @@ def _thumbnail(rgb: torch.Tensor) -> np.ndarray:
 
 def load_mesh(path: Path) -> SceneMesh:
     """A triangle mesh PLY (vertex x y z, face vertex_indices) as `save_mesh` writes it."""
-    try:
-        ply = PlyData.read(str(path))
-        vertex, face = ply["vertex"], ply["face"]
-    except (PlyParseError, ValueError, KeyError, EOFError, OSError, struct.error) as err:
-        raise SurfSplatInputError(f"{path}: not a readable mesh PLY ({err})") from None
-    names = set(vertex.data.dtype.names)
-    if not {"x", "y", "z"} <= names:
-        raise SurfSplatInputError(f"{path}: mesh vertices need x, y, z properties")
-    vertices = np.stack([np.asarray(vertex[k], dtype=np.float32) for k in ("x", "y", "z")], axis=-1)
-    try:
-        faces = np.stack([np.asarray(f, dtype=np.int64) for f in face["vertex_indices"]]) if len(face.data) else None
-    except ValueError:
-        raise SurfSplatInputError(f"{path}: faces must all be triangles") from None
-    if faces is None or faces.ndim != 2 or faces.shape[1] != 3:
-        raise SurfSplatInputError(f"{path}: expected a non-empty list of triangles")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise SurfSplatInputError(f"{path}: face indices outside the {len(vertices)} vertices")
-    return SceneMesh(vertices, faces.astype(np.int32))
+    mesh = read_mesh(path)
+    return SceneMesh(mesh.vertices.numpy(), mesh.faces.numpy().astype(np.int32))
 
 
 @dataclass
