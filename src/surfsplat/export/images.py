@@ -43,6 +43,20 @@ def colorize_depth(
     return rgb.permute(2, 0, 1)
 
 
+def colorize_error(error: Tensor, valid: Tensor | None = None, vmax: float = 1.0) -> Tensor:
+    """Error [1, H, W] >= 0 -> [3, H, W]: black at 0, through red and orange to yellow at vmax and
+    above; pixels outside `valid` ([1, H, W] bool) are dark grey, so "no data" never reads as "no error"."""
+    e = (error.detach().float()[0] / vmax).clamp(0, 1)
+    stops = torch.tensor([[0.0, 0.0, 0.0], [0.75, 0.05, 0.05], [1.0, 0.55, 0.0], [1.0, 0.95, 0.3]])
+    x = e * (len(stops) - 1)
+    i = x.floor().long().clamp(max=len(stops) - 2)
+    f = (x - i)[..., None]
+    rgb = stops[i] * (1 - f) + stops[i + 1] * f
+    if valid is not None:
+        rgb = torch.where(valid.detach()[0][..., None], rgb, torch.full_like(rgb, 0.22))
+    return rgb.permute(2, 0, 1)
+
+
 def normal_to_rgb(normal: Tensor) -> Tensor:
     """Unit normals [3, H, W] in [-1, 1] -> [0, 1] colours (zero normals stay black)."""
     n = normal.detach().float()
