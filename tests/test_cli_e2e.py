@@ -51,11 +51,17 @@ def _nontrivial_image(path: Path) -> None:
 
 def test_demo_writes_report_metrics_ply_videos_mesh(demo):
     metrics = json.loads((demo / "metrics.json").read_text())
-    trained = metrics["evaluation"]["SurfSplat tiny (trained)"]
+    shipped, trained, untrained = (
+        metrics["evaluation"][name] for name in ("tiny-synthetic (shipped)", "tiny, 6 steps here", "tiny, untrained")
+    )
     for s in ("x1", "x2", "x4"):
         assert 5 < trained["vs_bicubic_upsampled_truth"]["mean"][s]["psnr"] < 60
         assert 5 < trained["vs_native_truth"][s]["psnr"] < 60
         assert trained["vs_bicubic_upsampled_truth"]["mean"][s]["lpips"] is None
+    # Geometry against the exact truth: the shipped model's surface is far closer than the untrained one's.
+    ship, raw = shipped["geometry"]["mean"], untrained["geometry"]["mean"]
+    assert ship["abs_rel"] < 0.5 * raw["abs_rel"] and ship["median_deg"] < raw["median_deg"] - 10
+    assert ship["surfels_chamfer"] < 0.5 * raw["surfels_chamfer"]
     assert metrics["lpips"].startswith("LPIPS unavailable: ")
     assert metrics["train"]["steps"] >= 1 and metrics["wall_seconds"]["total"] > 0
 
@@ -63,6 +69,11 @@ def test_demo_writes_report_metrics_ply_videos_mesh(demo):
     sources = re.findall(r'<(?:img|video) src="([^"]+)"', html)
     assert any(s.endswith("_grid.png") for s in sources) and any(s.endswith(".mp4") for s in sources)
     assert any(s.endswith("training_curve.svg") for s in sources)
+    assert any(s.endswith("novel_view_grid.png") for s in sources)
+    assert any(s.endswith("_depth_error.png") for s in sources) and any(
+        s.endswith("_normal_error.png") for s in sources
+    )
+    assert "What the numbers say" in html and f"median normal error {ship['median_deg']:.1f} deg" in html
     for src in sources:
         path = demo / src
         assert path.is_file(), src

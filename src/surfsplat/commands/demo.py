@@ -698,8 +698,8 @@ def write_demo_report(
     size = config.image_size
     report.paragraph(
         f"Three networks are scored on {config.eval_scenes} held-out procedural rooms at {size}x{size}: "
-        f"<b>{SHIPPED_LABEL}</b>, the tiny preset trained for hours on procedural rooms and shipped with the "
-        f"package (<code>--checkpoint {SHIPPED_MODEL}</code>); the same preset trained here for {train['steps']} "
+        f"{SHIPPED_LABEL}, the tiny preset trained for hours on procedural rooms and shipped with the "
+        f"package (--checkpoint {SHIPPED_MODEL}); the same preset trained here for {train['steps']} "
         f"steps ({train['seconds']:.0f} s) on {train['scenes']} rooms with the MSE loss, to show training; and the "
         "untrained network. Renders at x2 and x4 use K scaled by the factor (HRRC, paper Sec. 3.6). Two ground "
         "truths: the x1 image upsampled bicubically (the paper's HRRC) and the scene ray-cast natively at the "
@@ -777,7 +777,7 @@ def write_demo_report(
                     (row["depth error"], f"depth error x{s} (0-{DEPTH_ERROR_MAX:.0%})"),
                     (row["normal error"], f"normal error x{s} (0-{NORMAL_ERROR_MAX:.0f} deg)"),
                 ],
-                width=160,
+                width=120,
                 pixelated=True,
             )
         report.figure(
