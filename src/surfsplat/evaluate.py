@@ -303,6 +303,7 @@ class ScenePrediction:
     seconds_forward: float
     seconds_render: dict[int, float]
     alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
+    surfels: int = 0  # surfels rendered (after compaction when asked for)
 
 
 @torch.no_grad()
@@ -312,8 +313,10 @@ def predict_sample(
     factors: Sequence[int] = (1, 2, 4),
     mode: Literal["auto", "surfel", "ewa"] = "auto",
     alpha_threshold: float | None | Literal["model"] = "model",
+    compact: int | None = None,
 ) -> ScenePrediction:
-    """Reconstruct a sample's scene from its context views and render its targets at every factor."""
+    """Reconstruct a sample's scene from its context views and render its targets at every factor
+    (compacted first at level `compact`, see `surfsplat.compact`, when given)."""
     device = next(model.parameters()).device
     h, w = sample.target_images.shape[-2:]
     images = sample.context_images[None].to(device)
@@ -326,6 +329,11 @@ def predict_sample(
     gaussians = prediction.gaussians.select(0).to(torch.float32)
     rmode = decoder_mode(model.cfg.adapter, mode)
     tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
+    if compact is not None:
+        from .compaction import compact as compact_gaussians
+
+        ch, cw = sample.context_images.shape[-2:]
+        gaussians = compact_gaussians(gaussians, cams, ch, cw, compact, mode=rmode, alpha_threshold=tau)
     targets = sample.target_cameras.to(device=device, dtype=torch.float32)
     renders, seconds = {}, {}
     for s in factors:
@@ -333,7 +341,7 @@ def predict_sample(
         renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
         _sync(device)
         seconds[s] = time.perf_counter() - start
-    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau)
+    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau, len(gaussians))
 
 
 def _sync(device: torch.device) -> None:
@@ -351,6 +359,7 @@ class EvalConfig:
     mode: Literal["auto", "surfel", "ewa"] = "auto"  # rasterization; auto follows the adapter
     max_entries: int | None = None  # stop after this many index entries (smoke runs)
     progress: bool = True  # tqdm bar over the entries
+    compact: int | None = None  # score the reconstruction compacted at this level (surfsplat.compact)
 
     def __post_init__(self) -> None:
         if self.upsample not in UPSAMPLE_MODES:
@@ -373,6 +382,8 @@ class EvaluationResult:
     peak_memory_kind: str  # what the peak counts: CUDA allocations of the run, or the process's peak RSS
     num_entries: int
     per_scene_depth: dict[str, dict[str, float]] = field(default_factory=dict)
+    surfels_mean: float = 0.0  # surfels rendered per entry (after compaction when asked for)
+    compact: int | None = None  # the compaction level, None: as predicted
 
     def to_json(self) -> dict:
         return {
@@ -387,6 +398,8 @@ class EvaluationResult:
             },
             "peak_memory": {"bytes": self.peak_memory_bytes, "kind": self.peak_memory_kind},
             "num_entries": self.num_entries,
+            "surfels_mean": self.surfels_mean,
+            "compact_level": self.compact,
         }
 
 
@@ -405,12 +418,13 @@ def evaluate(
         torch.cuda.reset_peak_memory_stats(device)
     model.eval()
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
-    forward, renders = [], {s: [] for s in config.factors}
+    forward, surfels, renders = [], [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     started = time.perf_counter()
     bar = tqdm(samples, total=total, disable=not config.progress, desc=f"eval {name}", unit="scene", dynamic_ncols=True)
     for sample in bar:
-        pred = predict_sample(model, sample, config.factors, config.mode)
+        pred = predict_sample(model, sample, config.factors, config.mode, compact=config.compact)
+        surfels.append(pred.surfels)
         evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})
         forward.append(pred.seconds_forward)
         for s, t in pred.seconds_render.items():
@@ -440,6 +454,8 @@ def evaluate(
         peak_memory_kind=kind,
         num_entries=n,
         per_scene_depth=depth_rows,
+        surfels_mean=sum(surfels) / n,
+        compact=config.compact,
     )
 
 
@@ -482,6 +498,9 @@ def format_results(results: dict[str, EvaluationResult]) -> str:
         lines.append(
             f"{name.ljust(name_w)} | {r.seconds_forward:>9.3f} | {cells} | {r.peak_memory_bytes / 2**20:,.0f} MiB"
         )
+    for name, r in results.items():
+        if r.compact is not None:
+            lines.append(f"{name}: compacted at level {r.compact}, {r.surfels_mean:,.0f} surfels per entry on average")
     kinds = sorted({r.peak_memory_kind for r in results.values()})
     lines.append("peak memory: " + "; ".join(kinds))
     depth = {n: r.depth for n, r in results.items() if r.depth is not None}
