@@ -90,14 +90,24 @@ LEVELS: dict[int, CompactConfig] = {
     3: CompactConfig(merge_levels=3, colour_tolerance=0.05, opacity_tolerance=0.15, scale_ratio=2.0),
     4: CompactConfig(
         merge_levels=4,
-        colour_tolerance=0.08,
-        opacity_tolerance=0.2,
-        scale_ratio=2.0,
-        plane_tolerance=0.1,
-        normal_degrees=20.0,
+        colour_tolerance=0.15,
+        opacity_tolerance=0.3,
+        scale_ratio=3.0,
+        plane_tolerance=0.15,
+        normal_degrees=25.0,
+        ring_tolerance=1.0,
+    ),
+    5: CompactConfig(
+        merge_levels=5,
+        colour_tolerance=0.3,
+        opacity_tolerance=0.6,
+        scale_ratio=4.0,
+        plane_tolerance=0.3,
+        normal_degrees=35.0,
+        ring_tolerance=2.0,
     ),
 }
-DEFAULT_LEVEL = 2
+DEFAULT_LEVEL = 2  # the gentlest level that merges 4 x 4 blocks
 
 
 def level_config(level: int) -> CompactConfig:
@@ -140,7 +150,7 @@ def compact(
     gaussians:       [N] unbatched; without `cells`, the model's output: N = V*H*W in (view, row,
                      column) order, one surfel per pixel of each context view
     context_cameras: the V context cameras, K in pixels of the H x W maps
-    level:           a preset of `LEVELS` (1 gentle .. 4 strong); `config` overrides it
+    level:           a preset of `LEVELS` (1 gentle .. 5 strong); `config` overrides it
     cells:           [N, 4] (view, row, column, size) when the input is already compacted
     mode, backend, alpha_threshold: how the reconstruction is rendered (the pruning pass uses them)
     Returns Gaussians [M], M <= N.
@@ -195,7 +205,7 @@ def compact_surfels(
             keep = cover < 0
             stats["duplicates"] += int((~keep).sum())
             changed |= not bool(keep.all())
-            g = _absorb(g, torch.nonzero(~keep).squeeze(-1), cover[~keep])
+            g = _absorb(g, torch.nonzero(~keep).squeeze(-1), cover[~keep], _footprints(g, cells, cameras))
             g, cells = g.subset(keep), cells[keep]
         for depth in range(cfg.merge_levels):
             count = len(g)
@@ -376,13 +386,24 @@ def _duplicate_cover(
     return cover
 
 
-def _absorb(g: Gaussians, removed: Tensor, cover: Tensor) -> Gaussians:
+def _footprints(g: Gaussians, cells: Tensor, cameras: Cameras) -> Tensor:
+    """[N] world size of each surfel's pixel block in its own view (camera z / focal * block size)."""
+    own = cells[:, 0]
+    w2c, K = cameras.w2c.to(g.means)[own], cameras.K.to(g.means)[own]
+    z = (w2c[:, 2, :3] * g.means).sum(-1) + w2c[:, 2, 3]
+    return z.abs() / K[:, 0, 0] * cells[:, 3]
+
+
+def _absorb(g: Gaussians, removed: Tensor, cover: Tensor, footprint: Tensor) -> Gaussians:
     """Covering surfels take over the alpha and colour of the duplicates they replace.
 
     Two layers of opacity o_t and o_s composite to 1 - (1 - o_t)(1 - o_s) with colour weights o_t and
     (1 - o_t) o_s; the covering surfel gets that opacity and that mix of SH, with o_s and the SH of
     its duplicates averaged, so removing a layer neither thins the surface nor shifts its colour.
-    removed: [R] indices of duplicates, cover: [R] their covering surfels.
+    Two interleaved layers also fill each other's gaps where the adapter clamped the scales below
+    the pixel spacing (gaps the screen-space filter hides at x1 but not at x4): a covering surfel's
+    scales are raised to at least that filter's 1/sqrt(2) of its footprint, as merged surfels' are.
+    removed: [R] indices of duplicates, cover: [R] their covering surfels, footprint: [N].
     """
     if len(removed) == 0:
         return g
@@ -401,7 +422,9 @@ def _absorb(g: Gaussians, removed: Tensor, cover: Tensor) -> Gaussians:
     opacities[hit] = 1 - (1 - o_t) * (1 - o_s)
     sh = g.sh.clone()
     sh[hit] = (w_t[:, None, None] * g.sh[hit] + w_s[:, None, None] * sh_s) / (w_t + w_s).clamp_min(1e-30)[:, None, None]
-    return replace(g, opacities=opacities, sh=sh, validate=False)
+    scales = g.scales.clone()
+    scales[hit] = torch.maximum(scales[hit], footprint[hit, None] / math.sqrt(LOWPASS_RHO_SCALE))
+    return replace(g, opacities=opacities, sh=sh, scales=scales, validate=False)
 
 
 def _interior(g: Gaussians, normals: Tensor, owner: Tensor, w2c: Tensor, K: Tensor, tolerance: float) -> Tensor:
@@ -517,7 +540,9 @@ def _merge_blocks(
     aligned = (normals * n[:, None]).sum(-1).amin(1) >= math.cos(math.radians(cfg.normal_degrees))
     uniform = (rgb - rgb.mean(1, keepdim=True)).abs().amax((1, 2)) <= cfg.colour_tolerance
     uniform &= (opac - opac.mean(1, keepdim=True)).abs().amax(1) <= cfg.opacity_tolerance
-    similar = (scales.amax(1) <= cfg.scale_ratio * scales.amin(1)).all(-1)
+    # Scales compared as drawn: never below the renderer's low-pass filter (see `extent` below).
+    effective = torch.maximum(scales, spacing[:, None, None] / math.sqrt(LOWPASS_RHO_SCALE))
+    similar = (effective.amax(1) <= cfg.scale_ratio * effective.amin(1)).all(-1)
     ring_distance = ((g.means[ring.clamp_min(0)] - centroid[:, None]) * n[:, None]).sum(-1).abs()
     near_plane = (ring >= 0) & (ring_distance <= cfg.ring_tolerance * spacing[:, None])
     surrounded = (near_plane | (ring == -2)).all(1)

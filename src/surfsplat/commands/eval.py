@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         choices=sorted(LEVELS),
         metavar="LEVEL",
-        help="score the compacted reconstruction (surfsplat.compact, level 1-4) to measure what compaction costs",
+        help="score the compacted reconstruction (surfsplat.compact, level 1-5) to measure what compaction costs",
     )
     metric.add_argument("--lpips-vgg", default=None, help="torchvision's vgg16-397923af.pth")
     metric.add_argument("--lpips-lin", default=None, help="the lpips package's v0.1 vgg.pth")

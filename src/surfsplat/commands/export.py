@@ -95,7 +95,7 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         choices=sorted(LEVELS),
         metavar="LEVEL",
-        help=f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 4 (strong); "
+        help=f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 5 (strong); "
         f"{DEFAULT_LEVEL} when no level is given",
     )
     group.add_argument("--no-progress", action="store_true")
