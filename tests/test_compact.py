@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
+from plyfile import PlyData
 
 from surfsplat import Cameras, compact
 from surfsplat.checks import SurfSplatInputError
@@ -21,6 +23,7 @@ from surfsplat.export.paths import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model.adapter import GaussianAdapter
 from surfsplat.render import render
+from surfsplat.viewer.server import splat_buffer
 
 H = W = 16
 FOCAL, DEPTH, BASELINE = 16.0, 4.0, 1.0  # the second camera sees the plane shifted by f b / D = 4 pixels
@@ -185,6 +188,11 @@ def test_compacted_ply_round_trips(tmp_path):
         torch.testing.assert_close(getattr(loaded, name), getattr(small, name), rtol=1e-14, atol=0), name
     a, b = _render(small, _views(), 1), _render(loaded, _views(), 1)
     assert (a.color - b.color).abs().max() < 1e-12
+    # The viewer shows every surfel of it, each with its own (merged) radius.
+    payload, meta = splat_buffer(loaded)
+    assert meta["count"] == meta["total"] == len(small)
+    radii = np.frombuffer(payload, dtype="<f4").reshape(-1, 8)[:, 7]
+    np.testing.assert_allclose(radii, small.scales.amax(-1).numpy(), rtol=1e-6)
 
 
 def test_compact_errors():
@@ -206,7 +214,13 @@ def test_export_compact_option(tmp_path, capsys):
     argv = ["export", str(ply), "--cameras", str(tmp_path / "cameras.json"), "--formats", "ply", "--out", str(out)]
     assert main([*argv, "--compact", "2"]) == 0
     assert "compact level 2: 512 ->" in capsys.readouterr().out
-    assert len(load_ply(out / "surfels.ply")) < 2 * H * W // 3
+    compacted = len(load_ply(out / "surfels.ply"))
+    assert compacted < 2 * H * W // 3
+    # The 3DGS-layout copy for 3DGS-only viewers: the standard properties, one vertex per surfel.
+    vertex = PlyData.read(str(out / "surfels_3dgs.ply"))["vertex"]
+    names = {p.name for p in vertex.properties}
+    assert {"x", "y", "z", "f_dc_0", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_3"} <= names
+    assert vertex.count == compacted
     # A compacted PLY is no longer one surfel per pixel: compacting it again is refused plainly.
     code = main(["export", str(out / "surfels.ply"), "--cameras", str(tmp_path / "cameras.json"), "--compact"])
     err = capsys.readouterr().err.strip()

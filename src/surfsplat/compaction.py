@@ -90,8 +90,8 @@ LEVELS: dict[int, CompactConfig] = {
     3: CompactConfig(merge_levels=3, colour_tolerance=0.05, opacity_tolerance=0.15, scale_ratio=2.0),
     4: CompactConfig(
         merge_levels=4,
-        colour_tolerance=0.15,
-        opacity_tolerance=0.3,
+        colour_tolerance=0.1,
+        opacity_tolerance=0.2,
         scale_ratio=3.0,
         plane_tolerance=0.15,
         normal_degrees=25.0,
