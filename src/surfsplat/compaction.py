@@ -99,12 +99,12 @@ LEVELS: dict[int, CompactConfig] = {
     ),
     5: CompactConfig(
         merge_levels=5,
-        colour_tolerance=0.3,
-        opacity_tolerance=0.6,
-        scale_ratio=4.0,
-        plane_tolerance=0.3,
-        normal_degrees=35.0,
-        ring_tolerance=2.0,
+        colour_tolerance=0.5,
+        opacity_tolerance=1.0,
+        scale_ratio=8.0,
+        plane_tolerance=0.5,
+        normal_degrees=45.0,
+        ring_tolerance=3.0,
     ),
 }
 DEFAULT_LEVEL = 2  # the gentlest level that merges 4 x 4 blocks
@@ -512,10 +512,11 @@ def _merge_blocks(
     """One merged surfel per block of four children [B, 4] (a b / c d), and which blocks qualify [B].
 
     ring: [B, R] owners of the pixels around each block (see `_ring_owners`). A block merges only
-    inside a surface: the ring's pixels in the image are covered by surfels near its plane, because a
-    merged surfel's alpha falls off towards the block's border, where only neighbours keep the
-    coverage (at a silhouette the background would show through), so surface borders keep full
-    resolution.
+    inside a surface of its colour: the ring's pixels in the image are covered by surfels near its
+    plane and of its colour, because a merged surfel's alpha falls off towards the block's border,
+    where only neighbours keep the coverage (at a silhouette the background would show through), and
+    its falloff reaches into the neighbours' pixels (across a colour edge it would blur it), so
+    surface borders and colour edges keep full resolution.
     """
     P = g.means[kids]  # [B, 4, 3]
     normals = _oriented_normals(g, cells, cameras)[kids]  # [B, 4, 3]
@@ -544,7 +545,11 @@ def _merge_blocks(
     effective = torch.maximum(scales, spacing[:, None, None] / math.sqrt(LOWPASS_RHO_SCALE))
     similar = (effective.amax(1) <= cfg.scale_ratio * effective.amin(1)).all(-1)
     ring_distance = ((g.means[ring.clamp_min(0)] - centroid[:, None]) * n[:, None]).sum(-1).abs()
-    near_plane = (ring >= 0) & (ring_distance <= cfg.ring_tolerance * spacing[:, None])
+    # ... and of the block's colour: a merged surfel's falloff reaches into its neighbours' pixels,
+    # where it would blur a colour edge.
+    ring_rgb = g.sh[ring.clamp_min(0), :, 0] * SH_C0 + 0.5  # [B, R, 3]
+    ring_match = (ring_rgb - rgb.mean(1, keepdim=True)).abs().amax(-1) <= cfg.colour_tolerance
+    near_plane = (ring >= 0) & (ring_distance <= cfg.ring_tolerance * spacing[:, None]) & ring_match
     surrounded = (near_plane | (ring == -2)).all(1)
     ok = planar & aligned & uniform & similar & surrounded & (spacing > 0)
 
