@@ -16,19 +16,21 @@ redundancy in three steps, repeated until a round changes nothing:
    view i < j onto a pixel whose surfel lies on the same plane (distance along the normal within a
    tolerance in view i's pixel footprints, normals within an angle), whose 3 x 3 neighbourhood is
    covered by locally coplanar surfels (so no silhouette or hole is relied on), and whose sampling is
-   not coarser than view j's.
+   not coarser than view j's. The covering surfel absorbs the duplicate's alpha and colour.
 3. merge: a quadtree over each view's pixel grid. A 2 x 2 block of same-size cells becomes one
    surfel when the four are coplanar (least-squares plane through their centres, every normal within
-   an angle of it), of one colour and opacity within tolerances and of similar scales; then 2 x 2
-   blocks of those, up to the level's largest block. The merged surfel sits at the centroid on the
-   fitted plane, its tangent u follows the block's image rows, its scales are twice the children's
-   effective ones (the surfel field of a coarser pixel grid: same overlap; the renderer's low-pass
-   filter counts), its opacity the mean and its SH the alpha-mass-weighted mean. Texture and depth edges keep full resolution.
+   an angle of it), of one colour and opacity within tolerances, of similar scales, and surrounded
+   by surfels on their plane and of their colour; then 2 x 2 blocks of those, up to the level's
+   largest block. The merged surfel sits at the centroid on the fitted plane, its tangent u follows
+   the block's image rows, its scales are twice the children's effective ones (the surfel field of
+   a coarser pixel grid: same overlap; the renderer's low-pass filter counts), its opacity the mean
+   and its SH the alpha-mass-weighted mean. Depth and colour edges keep full resolution.
 
 Every surfel carries the pixel block it stands for (`CompactResult.cells`: view, row, column,
-size), so the result can be compacted again; because rounds repeat until nothing changes, compact
-at a fixed level is idempotent, and it is deterministic (no randomness; the compiled CPU renderer's
-gradients do not depend on threads).
+size), so the result can be compacted again; because rounds repeat until nothing changes (every
+round that changes something removes surfels; `max_rounds` bounds them), compact at a fixed level is
+idempotent, and it is deterministic (no randomness; the compiled CPU renderer's gradients do not
+depend on threads).
 
 Written here because no library merges splats on a per-view quadtree with these surfel rules.
 """
@@ -348,10 +350,9 @@ def _duplicate_cover(
     w2c = cameras.w2c.to(g.means)
     K = cameras.K.to(g.means)
     cos_tol = math.cos(math.radians(cfg.dedup_normal_degrees))
-    # World size of one pixel of each surfel's own view at its depth (camera z over the focal length).
+    # World size of one pixel of each surfel's own view at its depth.
     own = cells[:, 0]
-    z_own = (w2c[own, 2, :3] * g.means).sum(-1) + w2c[own, 2, 3]
-    footprint_own = z_own / K[own, 0, 0]
+    footprint_own = _footprints(g, cells, cameras) / cells[:, 3]
     cover = torch.full((len(g),), -1, dtype=torch.long, device=g.means.device)
     interior = {0: _interior(g, normals, owner[0], w2c[0], K[0], cfg.dedup_distance)}
     for j in range(1, views):
