@@ -225,3 +225,18 @@ def test_export_compact_option(tmp_path, capsys):
     code = main(["export", str(out / "surfels.ply"), "--cameras", str(tmp_path / "cameras.json"), "--compact"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "--compact: expected the uncompacted" in err
+
+
+def test_explicit_covariances_compact_like_surfels():
+    # Reconstructions of the release's adapter carry explicit covariances and render with EWA: merged
+    # and absorbing surfels grow their covariances as their scales, so nothing thins either.
+    g, cams = _plane()
+    g = g.with_explicit_covariances(g.covariances)
+    result = compact_surfels(g, cams, H, W, 3, mode="ewa", backend="torch")
+    assert result.gaussians.explicit_covariances.shape == (len(result.gaussians), 3, 3)
+    assert len(result.gaussians) <= 2 * H * W // 8
+    before = render(g, _views(), W, H, mode="ewa", backend="torch")
+    after = render(result.gaussians, _views(), W, H, mode="ewa", backend="torch")
+    assert torch.equal(before.alpha >= 1e-3, after.alpha >= 1e-3)
+    assert (after.color - before.color).abs().max() < 1e-12
+    assert (after.alpha - before.alpha).abs().mean() < 0.1

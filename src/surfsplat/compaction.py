@@ -424,8 +424,16 @@ def _absorb(g: Gaussians, removed: Tensor, cover: Tensor, footprint: Tensor) -> 
     sh = g.sh.clone()
     sh[hit] = (w_t[:, None, None] * g.sh[hit] + w_s[:, None, None] * sh_s) / (w_t + w_s).clamp_min(1e-30)[:, None, None]
     scales = g.scales.clone()
-    scales[hit] = torch.maximum(scales[hit], footprint[hit, None] / math.sqrt(LOWPASS_RHO_SCALE))
-    return replace(g, opacities=opacities, sh=sh, scales=scales, validate=False)
+    floor = footprint[hit, None] / math.sqrt(LOWPASS_RHO_SCALE)
+    scales[hit] = torch.maximum(scales[hit], floor)
+    covariances = g.explicit_covariances
+    if covariances is not None:
+        # Explicit covariances grow by the same amount along the surfel's tangents.
+        R = g.rotations[hit][..., :2]  # [H, 3, 2] tangent axes
+        extra = (floor.square() - g.scales[hit].square()).clamp_min(0)  # [H, 2]
+        covariances = covariances.clone()
+        covariances[hit] = covariances[hit] + (R * extra[:, None, :]) @ R.transpose(-1, -2)
+    return replace(g, opacities=opacities, sh=sh, scales=scales, explicit_covariances=covariances, validate=False)
 
 
 def _interior(g: Gaussians, normals: Tensor, owner: Tensor, w2c: Tensor, K: Tensor, tolerance: float) -> Tensor:
@@ -579,14 +587,19 @@ def _merge_blocks(
     mass = opac * scales[..., 0] * scales[..., 1]  # integrated alpha of each child
     weights = mass / mass.sum(1, keepdim=True).clamp_min(1e-30)
     sh = (g.sh[kids] * weights[..., None, None]).sum(1)
+    merged_scales = torch.stack((extent(u, step_u), extent(v, step_v)), dim=-1)
     covariances = None
     if g.explicit_covariances is not None:
-        # The same coarser-grid rule for explicit covariances: twice the standard deviations.
-        covariances = 4 * (g.explicit_covariances[kids] * weights[..., None, None]).sum(1)
+        # The same rule for explicit covariances: the merged tangent extents, and twice the children's
+        # mean thickness along the normal.
+        children = g.explicit_covariances[kids]  # [B, 4, 3, 3]
+        thickness = 4 * (weights * torch.einsum("bi,bkij,bj->bk", n, children, n)).sum(1)
+        variances = torch.cat((merged_scales.square(), thickness[:, None]), dim=-1)
+        covariances = (R * variances[:, None, :]) @ R.transpose(-1, -2)
     merged = Gaussians(
         means=centroid,
         quats=matrix_to_quat(R),
-        scales=torch.stack((extent(u, step_u), extent(v, step_v)), dim=-1),
+        scales=merged_scales,
         opacities=opac.mean(1),
         sh=sh,
         explicit_covariances=covariances,
