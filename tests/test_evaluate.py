@@ -198,3 +198,26 @@ def test_release_lightning_checkpoint_loads_into_the_official_adapter(tmp_path):
         assert torch.equal(model.state_dict()[key], value), key
     with pytest.raises(SurfSplatInputError, match="does not match"):
         load_model(ModelSpec(str(tmp_path / "release.ckpt"), preset="small"))
+
+
+def test_compact_option_scores_the_compacted_reconstruction(evaluated):
+    # The renders of `compact=LEVEL` are those of surfsplat.compact applied to the model's own output.
+    from surfsplat import compact
+    from surfsplat.render import render
+
+    model, samples, _ = evaluated
+    sample = samples[0]
+    plain = predict_sample(model, sample, (1,))
+    small = predict_sample(model, sample, (1,), compact=5)
+    h, w = sample.context_images.shape[-2:]
+    want = compact(
+        plain.gaussians, sample.context_cameras.to(torch.float32), h, w, 5, alpha_threshold=plain.alpha_threshold
+    )
+    assert small.surfels == len(small.gaussians) == len(want) < len(plain.gaussians) == plain.surfels
+    target = render(want, sample.target_cameras.to(torch.float32), w, h, alpha_threshold=plain.alpha_threshold)
+    torch.testing.assert_close(small.renders[1].color, target.color)
+    result = evaluate(
+        model, samples, EvalConfig(factors=(1,), progress=False, compact=5), lpips=LpipsUnavailable("none"), name="c"
+    )
+    assert result.compact == 5 and result.surfels_mean == len(want)
+    assert result.to_json()["compact_level"] == 5

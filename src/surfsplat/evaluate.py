@@ -265,6 +265,7 @@ class ScenePrediction:
     seconds_render: dict[int, float]
     alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
     render_mode: str = "surfel"  # rasterization the renders used ("surfel" or "ewa")
+    surfels: int = 0  # surfels rendered (after compaction when asked for)
 
 
 @torch.no_grad()
@@ -274,8 +275,10 @@ def predict_sample(
     factors: Sequence[int] = (1, 2, 4),
     mode: Literal["auto", "surfel", "ewa"] = "auto",
     alpha_threshold: float | None | Literal["model"] = "model",
+    compact: int | None = None,
 ) -> ScenePrediction:
-    """Reconstruct a sample's scene from its context views and render its targets at every factor."""
+    """Reconstruct a sample's scene from its context views and render its targets at every factor
+    (compacted first at level `compact`, see `surfsplat.compact`, when given)."""
     device = next(model.parameters()).device
     h, w = sample.target_images.shape[-2:]
     images = sample.context_images[None].to(device)
@@ -288,6 +291,11 @@ def predict_sample(
     gaussians = prediction.gaussians.select(0).to(torch.float32)
     rmode = decoder_mode(model.cfg.adapter, mode)
     tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
+    if compact is not None:
+        from .compaction import compact as compact_gaussians
+
+        ch, cw = sample.context_images.shape[-2:]
+        gaussians = compact_gaussians(gaussians, cams, ch, cw, compact, mode=rmode, alpha_threshold=tau)
     targets = sample.target_cameras.to(device=device, dtype=torch.float32)
     renders, seconds = {}, {}
     for s in factors:
@@ -295,7 +303,9 @@ def predict_sample(
         renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
         _sync(device)
         seconds[s] = time.perf_counter() - start
-    return ScenePrediction(sample, gaussians, prediction.depths[0], renders, forward, seconds, tau, rmode)
+    return ScenePrediction(
+        sample, gaussians, prediction.depths[0], renders, forward, seconds, tau, rmode, len(gaussians)
+    )
 
 
 def _sync(device: torch.device) -> None:
@@ -314,6 +324,7 @@ class EvalConfig:
     max_entries: int | None = None  # stop after this many index entries (smoke runs)
     progress: bool = True  # progress over the entries (a bar on a terminal, log lines elsewhere)
     geometry: GeometryConfig | None = None  # also score geometry against exact truth (procedural scenes)
+    compact: int | None = None  # score the reconstruction compacted at this level (surfsplat.compact)
 
     def __post_init__(self) -> None:
         if self.upsample not in UPSAMPLE_MODES:
@@ -337,6 +348,8 @@ class EvaluationResult:
     num_entries: int
     per_scene_depth: dict[str, dict[str, float]] = field(default_factory=dict)
     geometry: GeometryReport | None = None  # with EvalConfig.geometry: geometry against exact truth
+    surfels_mean: float = 0.0  # surfels rendered per entry (after compaction when asked for)
+    compact: int | None = None  # the compaction level, None: as predicted
 
     def to_json(self) -> dict:
         return {
@@ -352,6 +365,8 @@ class EvaluationResult:
             },
             "peak_memory": {"bytes": self.peak_memory_bytes, "kind": self.peak_memory_kind},
             "num_entries": self.num_entries,
+            "surfels_mean": self.surfels_mean,
+            "compact_level": self.compact,
         }
 
 
@@ -371,7 +386,7 @@ def evaluate(
     model.eval()
     warned = False  # about a resolution other than the weights were trained at, once
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=config.factors, upsample=config.upsample))
-    forward, renders = [], {s: [] for s in config.factors}
+    forward, surfels, renders = [], [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     geometry = GeometryEvaluator(config.geometry) if config.geometry is not None else None
     started = time.perf_counter()
@@ -379,7 +394,8 @@ def evaluate(
     for sample in bar:
         if not warned:
             warned = check_resolution(model, *sample.context_images.shape[-2:]) is not None
-        pred = predict_sample(model, sample, config.factors, config.mode)
+        pred = predict_sample(model, sample, config.factors, config.mode, compact=config.compact)
+        surfels.append(pred.surfels)
         evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})
         forward.append(pred.seconds_forward)
         for s, t in pred.seconds_render.items():
@@ -412,6 +428,8 @@ def evaluate(
         num_entries=n,
         per_scene_depth=depth_rows,
         geometry=geometry.report() if geometry is not None else None,
+        surfels_mean=sum(surfels) / n,
+        compact=config.compact,
     )
 
 
@@ -454,6 +472,9 @@ def format_results(results: dict[str, EvaluationResult]) -> str:
         lines.append(
             f"{name.ljust(name_w)} | {r.seconds_forward:>9.3f} | {cells} | {r.peak_memory_bytes / 2**20:,.0f} MiB"
         )
+    for name, r in results.items():
+        if r.compact is not None:
+            lines.append(f"{name}: compacted at level {r.compact}, {r.surfels_mean:,.0f} surfels per entry on average")
     kinds = sorted({r.peak_memory_kind for r in results.values()})
     lines.append("peak memory: " + "; ".join(kinds))
     depth = {n: r.depth for n, r in results.items() if r.depth is not None}

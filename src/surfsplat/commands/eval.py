@@ -21,6 +21,7 @@ import argparse
 from pathlib import Path
 
 from ..checks import SurfSplatInputError
+from ..compaction import DEFAULT_LEVEL, LEVELS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,6 +70,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     metric.add_argument("--factors", nargs="+", type=int, default=[1, 2, 4], help="render scales (1 = standard)")
     metric.add_argument(
         "--mode", choices=("auto", "surfel", "ewa"), default="auto", help="rasterization (auto follows the adapter)"
+    )
+    metric.add_argument(
+        "--compact",
+        nargs="?",
+        type=int,
+        const=DEFAULT_LEVEL,
+        default=None,
+        choices=sorted(LEVELS),
+        metavar="LEVEL",
+        help="score the compacted reconstruction (surfsplat.compact, level 1-5) to measure what compaction costs",
     )
     metric.add_argument("--lpips-vgg", default=None, help="torchvision's vgg16-397923af.pth")
     metric.add_argument("--lpips-lin", default=None, help="the lpips package's v0.1 vgg.pth")
@@ -136,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         mode=args.mode,
         max_entries=args.max_entries,
         progress=not args.no_progress,
+        compact=args.compact,
     )
     device = _device(args.device)
     models = [load_model(spec, device) for spec in specs]  # every checkpoint is read before the first scene runs

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ..checks import SurfSplatInputError
+from ..compaction import DEFAULT_LEVEL, LEVELS
 from ..log import progress
 
 FORMATS = ("ply", "renders", "video", "mesh")
@@ -86,6 +87,17 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.001,
         help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off",
     )
+    group.add_argument(
+        "--compact",
+        nargs="?",
+        type=int,
+        const=DEFAULT_LEVEL,
+        default=None,
+        choices=sorted(LEVELS),
+        metavar="LEVEL",
+        help=f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 5 (strong); "
+        f"{DEFAULT_LEVEL} when no level is given",
+    )
     group.add_argument("--no-progress", action="store_true")
 
 
@@ -114,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     gaussians = load_ply(args.ply)
     mode = "ewa" if gaussians.explicit_covariances is not None else "surfel"
     options = options_from_args(args, tuple(args.formats), mode)
+    gaussians = compact_from_args(args, gaussians, cams.cameras.to(torch.float32), cams.height, cams.width, options)
     out = args.out or args.ply.parent
     written = export_reconstruction(
         gaussians,
@@ -129,6 +142,29 @@ def run(args: argparse.Namespace) -> int:
     )
     print_written(written)
     return 0
+
+
+def compact_from_args(args: argparse.Namespace, gaussians, cameras, height: int, width: int, options: ExportOptions):
+    """`--compact LEVEL`: the compacted surfels (unchanged without the option), with a one-line summary."""
+    if args.compact is None:
+        return gaussians
+    from ..compaction import compact_surfels
+
+    expected = len(cameras) * height * width
+    if len(gaussians) != expected:
+        raise SurfSplatInputError(
+            f"--compact: expected the uncompacted reconstruction, one surfel per pixel of {len(cameras)} context "
+            f"views of {width}x{height} ({expected:,}), got {len(gaussians):,} surfels"
+        )
+    result = compact_surfels(
+        gaussians, cameras, height, width, args.compact, mode=options.mode, alpha_threshold=options.alpha_threshold
+    )
+    s = result.stats
+    print(
+        f"compact level {args.compact}: {s['input']:,} -> {s['output']:,} surfels ({s['input'] / s['output']:.2f}x fewer; "
+        f"{s['pruned']:,} pruned, {s['duplicates']:,} duplicates, {s['merged_away']:,} merged away)"
+    )
+    return result.gaussians
 
 
 def print_written(written: dict[str, Path]) -> None:

@@ -22,7 +22,14 @@ from pathlib import Path
 import torch
 
 from ..checks import SurfSplatInputError
-from .export import FORMATS, add_export_arguments, export_reconstruction, options_from_args, print_written
+from .export import (
+    FORMATS,
+    add_export_arguments,
+    compact_from_args,
+    export_reconstruction,
+    options_from_args,
+    print_written,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -119,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     mode = decoder_mode(model.cfg.adapter)
     options = options_from_args(args, tuple(args.formats), mode)
     options = dataclasses.replace(options, alpha_threshold=prediction.alpha_threshold)
+    gaussians = compact_from_args(args, gaussians, cameras, shape[0], shape[1], options)
     written = export_reconstruction(
         gaussians,
         cameras,
@@ -140,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         "near": near,
         "far": far,
         "surfels": len(gaussians),
+        "compact_level": args.compact,
         "seconds_forward": seconds,
         "render_mode": mode,
         "alpha_threshold": prediction.alpha_threshold,

@@ -1,0 +1,608 @@
+"""Compact surfels: fewer primitives for the same picture.
+
+The model predicts one surfel per pixel per context view (the paper's second stated limitation:
+"predicting one Gaussian per pixel can lead to redundant representations"). `compact` removes the
+redundancy in three steps, repeated until a round changes nothing:
+
+1. prune: surfels whose blending weight is negligible in every context view and in a few views
+   interpolated between them. The weight of surfel i is sum over pixels of w_ip / A_p, where w_ip
+   is its compositing weight (alpha times transmittance) and A_p the pixel's alpha when forced alpha
+   blending divides by it (1 elsewhere): how many pixels' worth of final colour the surfel makes. It
+   is computed exactly by one backward pass per view: render every surfel with colour 1, so the
+   colour image is sum_i w_ip; the gradient of sum_p colour_p / A_p (A_p held fixed) with respect
+   to surfel i's colour is that weight. The compiled CPU renderer (or the torch / gsplat one on a
+   GPU) does this in about the time of one training step.
+2. deduplicate: views are visited in order; a surfel of view j is dropped when it projects into
+   view i < j onto a pixel whose surfel lies on the same plane (distance along the normal within a
+   tolerance in view i's pixel footprints, normals within an angle), whose 3 x 3 neighbourhood is
+   covered by locally coplanar surfels (so no silhouette or hole is relied on), and whose sampling is
+   not coarser than view j's. The covering surfel absorbs the duplicate's alpha and colour.
+3. merge: a quadtree over each view's pixel grid. A 2 x 2 block of same-size cells becomes one
+   surfel when the four are coplanar (least-squares plane through their centres, every normal within
+   an angle of it), of one colour and opacity within tolerances, of similar scales, and surrounded
+   by surfels on their plane and of their colour; then 2 x 2 blocks of those, up to the level's
+   largest block. The merged surfel sits at the centroid on the fitted plane, its tangent u follows
+   the block's image rows, its scales are twice the children's effective ones (the surfel field of
+   a coarser pixel grid: same overlap; the renderer's low-pass filter counts), its opacity the mean
+   and its SH the alpha-mass-weighted mean. Depth and colour edges keep full resolution.
+
+Every surfel carries the pixel block it stands for (`CompactResult.cells`: view, row, column,
+size), so the result can be compacted again; because rounds repeat until nothing changes (every
+round that changes something removes surfels; `max_rounds` bounds them), compact at a fixed level is
+idempotent, and it is deterministic (no randomness; the compiled CPU renderer's gradients do not
+depend on threads).
+
+Written here because no library merges splats on a per-view quadtree with these surfel rules.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import torch
+from torch import Tensor
+
+from .checks import SurfSplatInputError
+from .gaussians import Gaussians
+from .geometry.cameras import Cameras
+from .geometry.rotations import matrix_to_quat
+from .geometry.sh import SH_C0
+from .render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
+
+
+@dataclass(frozen=True)
+class CompactConfig:
+    """How hard `compact` works; `LEVELS` holds the presets of `--compact LEVEL`."""
+
+    prune_weight: float = 0.02  # pixels' worth of colour below which a surfel is pruned (0: no pruning)
+    nearby_views: int = 2  # views interpolated between consecutive context views for the pruning pass
+    dedup: bool = True  # remove surfels of later views lying on surfaces earlier views cover
+    dedup_distance: float = 1.0  # plane distance tolerance, in pixel footprints of the covering view
+    dedup_normal_degrees: float = 20.0  # normal agreement of a duplicate
+    dedup_footprint_ratio: float = 1.5  # the covering view may sample the surface at most this much coarser
+    merge_levels: int = 2  # quadtree depth: blocks up to 2^levels x 2^levels pixels (0: no merging)
+    plane_tolerance: float = 0.05  # children's distance from the fitted plane, in child spacings (pixel footprints)
+    normal_degrees: float = 10.0  # angle between a child's normal and the fitted plane's
+    ring_tolerance: float = 0.5  # distance of the surfels around a block from its plane, in child spacings
+    colour_tolerance: float = 0.02  # largest deviation of a child's base colour (0..1) from the block's mean
+    opacity_tolerance: float = 0.05  # largest deviation of a child's opacity from the block's mean
+    scale_ratio: float = 1.5  # largest ratio between the children's scales along one axis
+    max_rounds: int = 6  # prune/dedup/merge rounds at most (stops earlier when a round changes nothing)
+
+    def __post_init__(self) -> None:
+        if self.prune_weight < 0:
+            raise SurfSplatInputError(f"compact.prune_weight: expected >= 0, got {self.prune_weight}")
+        if self.nearby_views < 0 or self.merge_levels < 0 or self.max_rounds < 1:
+            raise SurfSplatInputError(
+                "compact: nearby_views >= 0, merge_levels >= 0 and max_rounds >= 1 expected, got "
+                f"{self.nearby_views}, {self.merge_levels}, {self.max_rounds}"
+            )
+        for name in ("dedup_distance", "plane_tolerance", "ring_tolerance", "colour_tolerance", "opacity_tolerance"):
+            if not getattr(self, name) >= 0:
+                raise SurfSplatInputError(f"compact.{name}: expected >= 0, got {getattr(self, name)}")
+        if self.dedup_footprint_ratio < 1 or self.scale_ratio < 1:
+            raise SurfSplatInputError("compact.dedup_footprint_ratio and scale_ratio: expected >= 1")
+
+
+# Presets of `--compact LEVEL`: each level merges one quadtree level deeper and tolerates more.
+LEVELS: dict[int, CompactConfig] = {
+    1: CompactConfig(merge_levels=1, colour_tolerance=0.015),
+    2: CompactConfig(merge_levels=2, colour_tolerance=0.025),
+    3: CompactConfig(merge_levels=3, colour_tolerance=0.05, opacity_tolerance=0.15, scale_ratio=2.0),
+    4: CompactConfig(
+        merge_levels=4,
+        colour_tolerance=0.1,
+        opacity_tolerance=0.2,
+        scale_ratio=3.0,
+        plane_tolerance=0.15,
+        normal_degrees=25.0,
+        ring_tolerance=1.0,
+    ),
+    5: CompactConfig(
+        merge_levels=5,
+        colour_tolerance=0.5,
+        opacity_tolerance=1.0,
+        scale_ratio=8.0,
+        plane_tolerance=0.5,
+        normal_degrees=45.0,
+        ring_tolerance=3.0,
+    ),
+}
+DEFAULT_LEVEL = 3  # the strongest level measured within 0.1 dB everywhere (docs/compact.json)
+
+
+def level_config(level: int) -> CompactConfig:
+    """The preset of a `--compact` level (SurfSplatInputError for an unknown one)."""
+    if level not in LEVELS:
+        raise SurfSplatInputError(f"compact level: expected one of {sorted(LEVELS)}, got {level!r}")
+    return LEVELS[level]
+
+
+@dataclass
+class CompactResult:
+    """What `compact_surfels` returns."""
+
+    gaussians: Gaussians  # [M] surfels, sorted by (view, row, column) of their cells
+    cells: Tensor  # [M, 4] int64 (view, row, column, size): the size x size pixel block each surfel stands for
+    stats: dict[str, int] = field(default_factory=dict)  # input, pruned, duplicates, merged away, output, rounds
+
+
+def pixel_cells(views: int, height: int, width: int) -> Tensor:
+    """[V*H*W, 4] the cells of the model's output: one pixel each, in (view, row, column) order."""
+    v, r, c = torch.meshgrid(torch.arange(views), torch.arange(height), torch.arange(width), indexing="ij")
+    return torch.stack((v.flatten(), r.flatten(), c.flatten(), torch.ones(v.numel(), dtype=torch.long)), dim=-1)
+
+
+def compact(
+    gaussians: Gaussians,
+    context_cameras: Cameras,
+    height: int,
+    width: int,
+    level: int = DEFAULT_LEVEL,
+    *,
+    config: CompactConfig | None = None,
+    cells: Tensor | None = None,
+    mode: RenderMode = "surfel",
+    backend: Backend = "auto",
+    alpha_threshold: float | None = 0.001,
+) -> Gaussians:
+    """Fewer surfels rendering the same picture (see the module docstring).
+
+    gaussians:       [N] unbatched; without `cells`, the model's output: N = V*H*W in (view, row,
+                     column) order, one surfel per pixel of each context view
+    context_cameras: the V context cameras, K in pixels of the H x W maps
+    level:           a preset of `LEVELS` (1 gentle .. 5 strong); `config` overrides it
+    cells:           [N, 4] (view, row, column, size) when the input is already compacted
+    mode, backend, alpha_threshold: how the reconstruction is rendered (the pruning pass uses them)
+    Returns Gaussians [M], M <= N.
+    """
+    return compact_surfels(
+        gaussians,
+        context_cameras,
+        height,
+        width,
+        level,
+        config=config,
+        cells=cells,
+        mode=mode,
+        backend=backend,
+        alpha_threshold=alpha_threshold,
+    ).gaussians
+
+
+def compact_surfels(
+    gaussians: Gaussians,
+    context_cameras: Cameras,
+    height: int,
+    width: int,
+    level: int = DEFAULT_LEVEL,
+    *,
+    config: CompactConfig | None = None,
+    cells: Tensor | None = None,
+    mode: RenderMode = "surfel",
+    backend: Backend = "auto",
+    alpha_threshold: float | None = 0.001,
+) -> CompactResult:
+    """`compact` with the cells of the result and counts of what each step removed."""
+    cfg = config if config is not None else level_config(level)
+    cells = _validate(gaussians, context_cameras, height, width, cells, mode, backend)
+    g = gaussians.detach()
+    cameras = context_cameras.to(device=g.means.device, dtype=g.means.dtype)
+    probe_cameras = _probe_cameras(cameras, cfg.nearby_views)
+    stats = {"input": len(g), "pruned": 0, "duplicates": 0, "merged_away": 0, "rounds": 0}
+    for _ in range(cfg.max_rounds):
+        before = len(g)
+        changed = False
+        if cfg.prune_weight > 0:
+            weights = blending_weights(
+                g, probe_cameras, width, height, mode=mode, backend=backend, alpha_threshold=alpha_threshold
+            )
+            keep = weights >= cfg.prune_weight
+            stats["pruned"] += int((~keep).sum())
+            changed |= not bool(keep.all())
+            g, cells = g.subset(keep), cells[keep]
+        if cfg.dedup and len(cameras) > 1:
+            cover = _duplicate_cover(g, cells, cameras, height, width, cfg)
+            keep = cover < 0
+            stats["duplicates"] += int((~keep).sum())
+            changed |= not bool(keep.all())
+            g = _absorb(g, torch.nonzero(~keep).squeeze(-1), cover[~keep], _footprints(g, cells, cameras))
+            g, cells = g.subset(keep), cells[keep]
+        for depth in range(cfg.merge_levels):
+            count = len(g)
+            g, cells = _merge_level(g, cells, cameras, len(cameras), height, width, 2**depth, cfg)
+            stats["merged_away"] += count - len(g)
+            changed |= len(g) != count
+        stats["rounds"] += 1
+        if not changed:
+            break
+        assert len(g) < before  # every change removes surfels, so rounds terminate
+    order = _cell_order(cells, height, width)
+    g, cells = g.subset(order), cells[order]
+    stats["output"] = len(g)
+    return CompactResult(g, cells, stats)
+
+
+# ---------------------------------------------------------------------------------------------- validation
+def _validate(
+    g: Gaussians, cameras: Cameras, height: int, width: int, cells: Tensor | None, mode: str, backend: str
+) -> Tensor:
+    if not isinstance(g, Gaussians) or g.means.ndim != 2:
+        raise SurfSplatInputError("compact: expected unbatched surfsplat.Gaussians ([N, 3] means)")
+    if not isinstance(cameras, Cameras):
+        raise SurfSplatInputError(f"compact: context_cameras must be surfsplat.Cameras, got {type(cameras).__name__}")
+    if height < 1 or width < 1:
+        raise SurfSplatInputError(f"compact: expected a positive height and width, got {height} x {width}")
+    if mode not in ("surfel", "ewa"):
+        raise SurfSplatInputError(f"compact: mode expected 'surfel' or 'ewa', got {mode!r}")
+    if backend not in BACKENDS:
+        raise SurfSplatInputError(f"compact: backend expected one of {BACKENDS}, got {backend!r}")
+    views = len(cameras)
+    if cells is None:
+        if len(g) != views * height * width:
+            raise SurfSplatInputError(
+                f"compact: expected one surfel per pixel of each context view, {views} x {height} x {width} = "
+                f"{views * height * width}, got {len(g)} (pass cells= for an already compacted reconstruction)"
+            )
+        return pixel_cells(views, height, width).to(g.means.device)
+    if cells.shape != (len(g), 4) or cells.dtype != torch.long:
+        raise SurfSplatInputError(
+            f"compact: cells expected int64 [{len(g)}, 4], got {cells.dtype} {tuple(cells.shape)}"
+        )
+    v, r, c, s = cells.unbind(-1)
+    ok = (v >= 0) & (v < views) & (s >= 1) & (r >= 0) & (c >= 0) & (r + s <= height) & (c + s <= width)
+    ok &= (r % s == 0) & (c % s == 0) & ((s & (s - 1)) == 0)
+    if not bool(ok.all()):
+        raise SurfSplatInputError("compact: cells must be aligned power-of-two blocks inside the context views")
+    return cells.to(g.means.device)
+
+
+def _cell_order(cells: Tensor, height: int, width: int) -> Tensor:
+    """Indices sorting cells by (view, row, column); cells do not overlap, so the keys are unique."""
+    key = (cells[:, 0] * height + cells[:, 1]) * width + cells[:, 2]
+    return torch.argsort(key, stable=True)
+
+
+# ---------------------------------------------------------------------------------------------- pruning
+def _probe_cameras(cameras: Cameras, nearby: int) -> Cameras:
+    """The context cameras plus `nearby` cameras strictly between each consecutive pair."""
+    if nearby == 0 or len(cameras) < 2:
+        return cameras
+    from .export.paths import interpolate_cameras
+
+    c2w, K = [cameras.c2w], [cameras.K]
+    for i in range(len(cameras) - 1):
+        between = interpolate_cameras(cameras[i : i + 2], nearby + 2)
+        c2w.append(between.c2w[1:-1])
+        K.append(between.K[1:-1])
+    return Cameras(torch.cat(c2w), torch.cat(K), validate=False)
+
+
+def blending_weights(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    *,
+    mode: RenderMode = "surfel",
+    backend: Backend = "auto",
+    alpha_threshold: float | None = 0.001,
+) -> Tensor:
+    """[N] each surfel's largest, over the cameras, total normalized blending weight.
+
+    In one view that is sum_p w_ip / A_p (A_p: the pixel's alpha where forced alpha blending divides
+    by it, else 1): the number of pixels' worth of final colour the surfel makes. Exact, by one
+    backward pass per view through the renderer: with every surfel's colour 1 (SH degree 0,
+    DC = 0.5 / SH_C0), d(sum_p colour_p / A_p) / d(DC_i) = SH_C0 * sum_p w_ip / A_p.
+    """
+    g = gaussians.detach()
+    dc = torch.full_like(g.sh[:, :1, :1], 0.5 / SH_C0).requires_grad_(True)
+    best = torch.zeros(len(g), dtype=g.means.dtype, device=g.means.device)
+    from .render import render
+
+    with torch.enable_grad():
+        for c in range(len(cameras)):
+            dc.grad = None
+            probe = replace(g, sh=dc.expand(-1, 3, -1), validate=False)
+            out = render(probe, cameras[c], width, height, mode=mode, backend=backend, alpha_threshold=None)
+            alpha = out.alpha.detach()
+            if alpha_threshold is None:
+                scale = torch.ones_like(alpha)
+            else:
+                scale = torch.where(alpha >= alpha_threshold, 1 / alpha.clamp_min(alpha_threshold), 1.0)
+            (out.color[:, :1] * scale).sum().backward()
+            best = torch.maximum(best, dc.grad[:, 0, 0] / SH_C0)
+    return best
+
+
+# ---------------------------------------------------------------------------------------------- duplicates
+def _owner_map(cells: Tensor, views: int, height: int, width: int) -> Tensor:
+    """[V, H, W] index of the surfel whose cell covers each pixel (-1: none)."""
+    owner = torch.full((views, height, width), -1, dtype=torch.long, device=cells.device)
+    for s in torch.unique(cells[:, 3]).tolist():
+        idx = torch.nonzero(cells[:, 3] == s).squeeze(-1)
+        dr, dc = torch.meshgrid(
+            torch.arange(s, device=cells.device), torch.arange(s, device=cells.device), indexing="ij"
+        )
+        rows = cells[idx, 1, None] + dr.flatten()
+        cols = cells[idx, 2, None] + dc.flatten()
+        owner[cells[idx, 0, None].expand_as(rows), rows, cols] = idx[:, None].expand_as(rows)
+    return owner
+
+
+def _oriented_normals(g: Gaussians, cells: Tensor, cameras: Cameras) -> Tensor:
+    """[N, 3] unit normals facing the camera of each surfel's own view."""
+    n = g.normals
+    to_camera = cameras.centers.to(g.means)[cells[:, 0]] - g.means
+    return torch.where((n * to_camera).sum(-1, keepdim=True) < 0, -n, n)
+
+
+def _duplicate_cover(
+    g: Gaussians, cells: Tensor, cameras: Cameras, height: int, width: int, cfg: CompactConfig
+) -> Tensor:
+    """[N] for each surfel of a view j > 0 lying on a surface an earlier view's surfels cover, the index
+    of the covering surfel; -1 for the others."""
+    views = len(cameras)
+    keep = torch.ones(len(g), dtype=torch.bool, device=g.means.device)
+    owner = _owner_map(cells, views, height, width)
+    normals = _oriented_normals(g, cells, cameras)
+    w2c = cameras.w2c.to(g.means)
+    K = cameras.K.to(g.means)
+    cos_tol = math.cos(math.radians(cfg.dedup_normal_degrees))
+    # World size of one pixel of each surfel's own view at its depth.
+    own = cells[:, 0]
+    footprint_own = _footprints(g, cells, cameras) / cells[:, 3]
+    cover = torch.full((len(g),), -1, dtype=torch.long, device=g.means.device)
+    interior = {0: _interior(g, normals, owner[0], w2c[0], K[0], cfg.dedup_distance)}
+    for j in range(1, views):
+        idx = torch.nonzero(own == j).squeeze(-1)
+        gone = torch.zeros(len(idx), dtype=torch.bool, device=idx.device)
+        m = g.means[idx]
+        for i in range(j):
+            p = m @ w2c[i, :3, :3].T + w2c[i, :3, 3]
+            z = p[:, 2]
+            front = z > 1e-6
+            uv = (p @ K[i].T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
+            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+            col = uv[:, 0].floor().clamp(0, width - 1).long()
+            row = uv[:, 1].floor().clamp(0, height - 1).long()
+            t = owner[i, row, col]
+            ok = inside & (t >= 0) & interior[i][row, col]
+            t = t.clamp_min(0)
+            footprint_i = z / K[i, 0, 0]
+            plane = ((m - g.means[t]) * normals[t]).sum(-1).abs() <= cfg.dedup_distance * footprint_i
+            agree = (normals[idx] * normals[t]).sum(-1) >= cos_tol
+            # Per pixel, view i must sample the surface about as finely as view j (a merged covering
+            # cell stands for its pixels, so the comparison is with view i's pixel, not its cell).
+            finer = footprint_i <= cfg.dedup_footprint_ratio * footprint_own[idx]
+            found = ok & plane & agree & finer & ~gone
+            cover[idx[found]] = t[found]
+            gone |= found
+        keep[idx[gone]] = False
+        # View j is final now: later views compare with its surviving surfels only.
+        held = owner[j] >= 0
+        owner[j][held] = torch.where(keep[owner[j][held]], owner[j][held], -1)
+        interior[j] = _interior(g, normals, owner[j], w2c[j], K[j], cfg.dedup_distance)
+    return cover
+
+
+def _footprints(g: Gaussians, cells: Tensor, cameras: Cameras) -> Tensor:
+    """[N] world size of each surfel's pixel block in its own view (camera z / focal * block size)."""
+    own = cells[:, 0]
+    w2c, K = cameras.w2c.to(g.means)[own], cameras.K.to(g.means)[own]
+    z = (w2c[:, 2, :3] * g.means).sum(-1) + w2c[:, 2, 3]
+    return z.abs() / K[:, 0, 0] * cells[:, 3]
+
+
+def _absorb(g: Gaussians, removed: Tensor, cover: Tensor, footprint: Tensor) -> Gaussians:
+    """Covering surfels take over the alpha and colour of the duplicates they replace.
+
+    Two layers of opacity o_t and o_s composite to 1 - (1 - o_t)(1 - o_s) with colour weights o_t and
+    (1 - o_t) o_s; the covering surfel gets that opacity and that mix of SH, with o_s and the SH of
+    its duplicates averaged, so removing a layer neither thins the surface nor shifts its colour.
+    Two interleaved layers also fill each other's gaps where the adapter clamped the scales below
+    the pixel spacing (gaps the screen-space filter hides at x1 but not at x4): a covering surfel's
+    scales are raised to at least that filter's 1/sqrt(2) of its footprint, as merged surfels' are.
+    removed: [R] indices of duplicates, cover: [R] their covering surfels, footprint: [N].
+    """
+    if len(removed) == 0:
+        return g
+    n = len(g)
+    count = torch.zeros(n, dtype=g.means.dtype, device=g.means.device).index_add_(
+        0, cover, torch.ones_like(cover, dtype=g.means.dtype)
+    )
+    o_sum = torch.zeros_like(count).index_add_(0, cover, g.opacities[removed])
+    sh_sum = torch.zeros_like(g.sh).index_add_(0, cover, g.sh[removed] * g.opacities[removed, None, None])
+    hit = count > 0
+    o_s = o_sum[hit] / count[hit]  # mean opacity of the absorbed duplicates
+    sh_s = sh_sum[hit] / o_sum[hit].clamp_min(1e-30)[:, None, None]  # their opacity-weighted mean SH
+    o_t = g.opacities[hit]
+    w_t, w_s = o_t, (1 - o_t) * o_s
+    opacities = g.opacities.clone()
+    opacities[hit] = 1 - (1 - o_t) * (1 - o_s)
+    sh = g.sh.clone()
+    sh[hit] = (w_t[:, None, None] * g.sh[hit] + w_s[:, None, None] * sh_s) / (w_t + w_s).clamp_min(1e-30)[:, None, None]
+    scales = g.scales.clone()
+    floor = footprint[hit, None] / math.sqrt(LOWPASS_RHO_SCALE)
+    scales[hit] = torch.maximum(scales[hit], floor)
+    covariances = g.explicit_covariances
+    if covariances is not None:
+        # Explicit covariances grow by the same amount along the surfel's tangents.
+        R = g.rotations[hit][..., :2]  # [H, 3, 2] tangent axes
+        extra = (floor.square() - g.scales[hit].square()).clamp_min(0)  # [H, 2]
+        covariances = covariances.clone()
+        covariances[hit] = covariances[hit] + (R * extra[:, None, :]) @ R.transpose(-1, -2)
+    return replace(g, opacities=opacities, sh=sh, scales=scales, explicit_covariances=covariances, validate=False)
+
+
+def _interior(g: Gaussians, normals: Tensor, owner: Tensor, w2c: Tensor, K: Tensor, tolerance: float) -> Tensor:
+    """[H, W] pixels whose 3 x 3 neighbourhood is owned by surfels on the centre surfel's plane."""
+    H, W = owner.shape
+    ok = owner >= 0
+    centre = owner.clamp_min(0)
+    mean, normal = g.means[centre], normals[centre]
+    z = mean @ w2c[2, :3] + w2c[2, 3]
+    footprint = z / K[0, 0]
+    padded = torch.nn.functional.pad(owner, (1, 1, 1, 1), value=-1)
+    for dr in (0, 1, 2):
+        for dc in (0, 1, 2):
+            other = padded[dr : dr + H, dc : dc + W]
+            ok &= other >= 0
+            distance = ((g.means[other.clamp_min(0)] - mean) * normal).sum(-1).abs()
+            ok &= distance <= tolerance * footprint
+    return ok
+
+
+# ---------------------------------------------------------------------------------------------- merging
+def _merge_level(
+    g: Gaussians, cells: Tensor, cameras: Cameras, views: int, height: int, width: int, size: int, cfg: CompactConfig
+) -> tuple[Gaussians, Tensor]:
+    """Merge every qualifying 2 x 2 block of size-`size` cells into one cell of twice the size."""
+    rows, cols = height // size, width // size
+    if rows < 2 or cols < 2:
+        return g, cells
+    grid = torch.full((views, rows, cols), -1, dtype=torch.long, device=cells.device)
+    at = cells[:, 3] == size
+    idx = torch.nonzero(at).squeeze(-1)
+    grid[cells[idx, 0], cells[idx, 1] // size, cells[idx, 2] // size] = idx
+    r2, c2 = rows // 2 * 2, cols // 2 * 2
+    # Children a b / c d of each aligned block, [V, rows/2, cols/2] each.
+    a, b = grid[:, 0:r2:2, 0:c2:2], grid[:, 0:r2:2, 1:c2:2]
+    c, d = grid[:, 1:r2:2, 0:c2:2], grid[:, 1:r2:2, 1:c2:2]
+    children = torch.stack((a, b, c, d), dim=-1)  # [V, R, C, 4]
+    full = (children >= 0).all(-1)
+    if not bool(full.any()):
+        return g, cells
+    block_v, block_r, block_c = torch.nonzero(full, as_tuple=True)
+    kids = children[full]  # [B, 4]
+    ring = _ring_owners(
+        _owner_map(cells, views, height, width), block_v, block_r * 2 * size, block_c * 2 * size, 2 * size
+    )
+    merged, ok = _merge_blocks(g, cells, cameras, kids, ring, cfg)
+    if not bool(ok.any()):
+        return g, cells
+    kids = kids[ok]
+    new_cells = torch.stack(
+        (block_v[ok], block_r[ok] * 2 * size, block_c[ok] * 2 * size, torch.full_like(block_v[ok], 2 * size)), dim=-1
+    )
+    keep = torch.ones(len(g), dtype=torch.bool, device=cells.device)
+    keep[kids.flatten()] = False
+    merged = merged.subset(ok)
+    return Gaussians.cat([g.subset(keep), merged]), torch.cat([cells[keep], new_cells])
+
+
+def _std_along(R: Tensor, scales: Tensor, e: Tensor) -> Tensor:
+    """[B] standard deviation of surfels (rotations [B, 3, 3], scales [B, 2]) along unit directions [B, 3]."""
+    local = (R[..., :2] * e[..., None]).sum(-2)  # direction in the surfels' tangent axes
+    return (local.square() * scales.square()).sum(-1).sqrt()
+
+
+def _ring_owners(owner: Tensor, v: Tensor, r: Tensor, c: Tensor, size: int) -> Tensor:
+    """[B, 8 size + 4] owners of the one-pixel ring around each size x size block (-1: none, -2: outside
+    the image, where nothing of this view is to be covered)."""
+    V, H, W = owner.shape
+    span = torch.arange(-1, size + 1, device=owner.device)
+    inner = torch.arange(size, device=owner.device)
+    top_bottom_r = torch.cat((torch.full_like(span, -1), torch.full_like(span, size)))
+    top_bottom_c = torch.cat((span, span))
+    sides_r = torch.cat((inner, inner))
+    sides_c = torch.cat((torch.full_like(inner, -1), torch.full_like(inner, size)))
+    rows = r[:, None] + torch.cat((top_bottom_r, sides_r))
+    cols = c[:, None] + torch.cat((top_bottom_c, sides_c))
+    inside = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
+    found = owner[v[:, None].expand_as(rows), rows.clamp(0, H - 1), cols.clamp(0, W - 1)]
+    return torch.where(inside, found, -2)
+
+
+def _merge_blocks(
+    g: Gaussians, cells: Tensor, cameras: Cameras, kids: Tensor, ring: Tensor, cfg: CompactConfig
+) -> tuple[Gaussians, Tensor]:
+    """One merged surfel per block of four children [B, 4] (a b / c d), and which blocks qualify [B].
+
+    ring: [B, R] owners of the pixels around each block (see `_ring_owners`). A block merges only
+    inside a surface of its colour: the ring's pixels in the image are covered by surfels near its
+    plane and of its colour, because a merged surfel's alpha falls off towards the block's border,
+    where only neighbours keep the coverage (at a silhouette the background would show through), and
+    its falloff reaches into the neighbours' pixels (across a colour edge it would blur it), so
+    surface borders and colour edges keep full resolution.
+    """
+    P = g.means[kids]  # [B, 4, 3]
+    normals = _oriented_normals(g, cells, cameras)[kids]  # [B, 4, 3]
+    R_kids = g.rotations[kids]  # [B, 4, 3, 3]
+    scales = g.scales[kids]  # [B, 4, 2]
+    opac = g.opacities[kids]  # [B, 4]
+    rgb = g.sh[kids][..., 0] * SH_C0 + 0.5  # [B, 4, 3] base colour (SH DC)
+
+    centroid = P.mean(1)
+    Q = P - centroid[:, None]
+    _, eigvecs = torch.linalg.eigh(Q.transpose(1, 2) @ Q)
+    n = eigvecs[..., 0]  # least-squares plane normal
+    mean_normal = normals.sum(1)
+    n = torch.where((n * mean_normal).sum(-1, keepdim=True) < 0, -n, n)
+    # Child spacing: the world size of a child's pixel block at the centroid's depth in its own view
+    # (the children's own distances would grow across the depth edges this is meant to detect).
+    view = cells[kids[:, 0], 0]
+    w2c, K = cameras.w2c.to(P)[view], cameras.K.to(P)[view]
+    depth = (w2c[:, 2, :3] * centroid).sum(-1) + w2c[:, 2, 3]
+    spacing = depth.abs() / K[:, 0, 0] * cells[kids[:, 0], 3]
+    planar = (Q * n[:, None]).sum(-1).abs().amax(1) <= cfg.plane_tolerance * spacing
+    aligned = (normals * n[:, None]).sum(-1).amin(1) >= math.cos(math.radians(cfg.normal_degrees))
+    uniform = (rgb - rgb.mean(1, keepdim=True)).abs().amax((1, 2)) <= cfg.colour_tolerance
+    uniform &= (opac - opac.mean(1, keepdim=True)).abs().amax(1) <= cfg.opacity_tolerance
+    # Scales compared as drawn: never below the renderer's low-pass filter (see `extent` below).
+    effective = torch.maximum(scales, spacing[:, None, None] / math.sqrt(LOWPASS_RHO_SCALE))
+    similar = (effective.amax(1) <= cfg.scale_ratio * effective.amin(1)).all(-1)
+    ring_distance = ((g.means[ring.clamp_min(0)] - centroid[:, None]) * n[:, None]).sum(-1).abs()
+    # ... and of the block's colour: a merged surfel's falloff reaches into its neighbours' pixels,
+    # where it would blur a colour edge.
+    ring_rgb = g.sh[ring.clamp_min(0), :, 0] * SH_C0 + 0.5  # [B, R, 3]
+    ring_match = (ring_rgb - rgb.mean(1, keepdim=True)).abs().amax(-1) <= cfg.colour_tolerance
+    near_plane = (ring >= 0) & (ring_distance <= cfg.ring_tolerance * spacing[:, None]) & ring_match
+    surrounded = (near_plane | (ring == -2)).all(1)
+    ok = planar & aligned & uniform & similar & surrounded & (spacing > 0)
+
+    # Tangent u along the block's rows (right column minus left column), v = n x u.
+    u = (P[:, 1] + P[:, 3]) - (P[:, 0] + P[:, 2])
+    u = u - (u * n).sum(-1, keepdim=True) * n
+    fallback = R_kids[:, 0, :, 0] - (R_kids[:, 0, :, 0] * n).sum(-1, keepdim=True) * n
+    u = torch.where(u.norm(dim=-1, keepdim=True) > 1e-12 * spacing[:, None], u, fallback)
+    u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    v = torch.linalg.cross(n, u, dim=-1)
+    R = torch.stack((u, v, n), dim=-1)  # columns: tangent u, tangent v, normal
+
+    # The renderer never draws a surfel thinner than its screen-space low-pass filter (a Gaussian of
+    # 1/sqrt(2) px), so children one pixel apart cover their gaps even when their own scales are
+    # smaller (tangent-clamped, small multipliers): their effective extent along an axis is at least
+    # 1/sqrt(2) of their spacing. The merged surfel gets twice the effective extent, so it covers
+    # its block as the children did.
+    step_u = 0.5 * ((P[:, 1] + P[:, 3]) - (P[:, 0] + P[:, 2]))  # between the children's columns
+    step_v = 0.5 * ((P[:, 2] + P[:, 3]) - (P[:, 0] + P[:, 1]))  # between their rows
+
+    def extent(axis: Tensor, step: Tensor) -> Tensor:  # [B, 3] -> [B] twice the children's effective extent
+        sigma = sum(_std_along(R_kids[:, k], scales[:, k], axis) for k in range(4)) / 4
+        floor = (step * axis).sum(-1).abs() / math.sqrt(LOWPASS_RHO_SCALE)
+        return 2 * torch.maximum(sigma, floor)
+
+    mass = opac * scales[..., 0] * scales[..., 1]  # integrated alpha of each child
+    weights = mass / mass.sum(1, keepdim=True).clamp_min(1e-30)
+    sh = (g.sh[kids] * weights[..., None, None]).sum(1)
+    merged_scales = torch.stack((extent(u, step_u), extent(v, step_v)), dim=-1)
+    covariances = None
+    if g.explicit_covariances is not None:
+        # The same rule for explicit covariances: the merged tangent extents, and twice the children's
+        # mean thickness along the normal.
+        children = g.explicit_covariances[kids]  # [B, 4, 3, 3]
+        thickness = 4 * (weights * torch.einsum("bi,bkij,bj->bk", n, children, n)).sum(1)
+        variances = torch.cat((merged_scales.square(), thickness[:, None]), dim=-1)
+        covariances = (R * variances[:, None, :]) @ R.transpose(-1, -2)
+    merged = Gaussians(
+        means=centroid,
+        quats=matrix_to_quat(R),
+        scales=merged_scales,
+        opacities=opac.mean(1),
+        sh=sh,
+        explicit_covariances=covariances,
+        validate=False,
+    )
+    return merged, ok

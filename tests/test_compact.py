@@ -1,0 +1,242 @@
+"""Compact surfels (`surfsplat.compact`) against closed forms.
+
+The scenes are built by the real adapter from constant depth maps, so the surfels are exactly what
+the model would output for them: a textureless plane seen by two cameras 8 pixels apart (every
+count and every rendered value is known), and a checkerboard with a depth step for partial merges.
+Rendering uses the torch reference backend in float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from surfsplat import Cameras, compact
+from surfsplat.checks import SurfSplatInputError
+from surfsplat.cli import main
+from surfsplat.compaction import LEVELS, CompactConfig, blending_weights, compact_surfels, pixel_cells
+from surfsplat.export.paths import save_cameras
+from surfsplat.export.ply import load_ply, save_ply
+from surfsplat.model.adapter import GaussianAdapter
+from surfsplat.render import render
+from surfsplat.viewer.server import splat_buffer
+
+H = W = 16
+FOCAL, DEPTH, BASELINE = 16.0, 4.0, 1.0  # the second camera sees the plane shifted by f b / D = 4 pixels
+SHIFT = 4
+
+
+def _cameras(extra_middle: bool = False) -> Cameras:
+    K = torch.tensor([[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1.0]], dtype=torch.float64)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(3 if extra_middle else 2, 1, 1)
+    c2w[1, 0, 3] = BASELINE
+    if extra_middle:
+        c2w[2, 0, 3] = BASELINE / 2
+    return Cameras(c2w, K.repeat(len(c2w), 1, 1))
+
+
+def _surfels(depth: torch.Tensor, image: torch.Tensor, cams: Cameras):
+    """The adapter's surfels for per-view depth [V, H, W] and images [V, 3, H, W] (opacity ~0.6)."""
+    adapter = GaussianAdapter().eval()
+    V = len(cams)
+    raw = torch.zeros(1, V, adapter.num_raw_channels, H, W, dtype=torch.float64)
+    raw[:, :, 0] = 5.0
+    out = adapter(depth[None], raw, image[None], cams.K[None], cams.c2w[None])
+    return out.gaussians.select(0)
+
+
+def _plane():
+    cams = _cameras()
+    colour = torch.tensor([0.3, 0.5, 0.7], dtype=torch.float64)
+    image = colour[None, :, None, None].expand(2, 3, H, W)
+    return _surfels(torch.full((2, H, W), DEPTH, dtype=torch.float64), image, cams), cams
+
+
+def _checker_step():
+    """Two views of a 3-pixel checkerboard on a plane, with a nearer square in view 0's centre."""
+    cams = _cameras()
+    rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    checker = ((rows // 3 + cols // 3) % 2).double()
+    image = torch.stack((0.2 + 0.6 * checker, 0.4 + 0.0 * checker, 0.8 - 0.5 * checker))[None].repeat(2, 1, 1, 1)
+    depth = torch.full((2, H, W), DEPTH, dtype=torch.float64)
+    depth[0, 5:10, 6:11] = DEPTH * 0.75
+    return _surfels(depth, image, cams), cams, image
+
+
+def _views() -> Cameras:
+    return _cameras(extra_middle=True)
+
+
+def _render(g, cams: Cameras, scale: int):
+    return render(g, cams.scaled(scale), W * scale, H * scale, backend="torch")
+
+
+def test_plane_compacts_to_few_surfels_with_the_same_rendering():
+    g, cams = _plane()
+    result = compact_surfels(g, cams, H, W, 3, backend="torch")
+    # View 1's 154 duplicates go (see the next test) and view 0's surfels under them absorb their
+    # opacity; blocks of one opacity merge up to 8 x 8 pixels. What stays fine: view 1's column 23 and
+    # the border rows, where blocks lost pixels or mix absorbed and plain opacities.
+    assert result.stats["duplicates"] == 154
+    assert len(result.gaussians) <= 2 * H * W // 8  # >= 8x fewer than 512
+    assert int((result.cells[:, 3] == 8).sum()) >= 2
+    assert result.stats["output"] == len(result.gaussians)
+    for scale in (1, 4):
+        before, after = _render(g, _views(), scale), _render(result.gaussians, _views(), scale)
+        covered = before.alpha >= 1e-3
+        assert torch.equal(covered, after.alpha >= 1e-3)  # no hole opens, none is filled
+        # A uniform plane renders its colour and depth exactly wherever it is covered.
+        assert (after.color - before.color).abs().max() < 1e-9
+        assert (after.depth - before.depth)[covered].abs().max() < 1e-9
+    # Accumulated alpha at the context resolution stays within 0.1 on average (it dips towards the image
+    # borders, where a merged surfel's falloff has no neighbour beyond). At x4 the per-pixel surfels,
+    # whose tangents the adapter clamped, leave gaps the screen-space filter no longer fills; merged
+    # surfels cover their whole block, so the surface only gets denser.
+    x1 = (_render(result.gaussians, _views(), 1).alpha, _render(g, _views(), 1).alpha)
+    assert (x1[0] - x1[1]).abs().mean() < 0.1
+    x4 = (_render(result.gaussians, _views(), 4).alpha, _render(g, _views(), 4).alpha)
+    assert x4[0].mean() > x4[1].mean()
+
+
+def test_cross_view_duplicates_removed_without_holes():
+    g, cams = _plane()
+    dedup_only = CompactConfig(prune_weight=0.0, merge_levels=0)
+    result = compact_surfels(g, cams, H, W, config=dedup_only, backend="torch")
+    # View 1's column c lands on view 0's column c + 4. A duplicate needs an interior pixel of view 0
+    # (its 3 x 3 neighbourhood inside the image): columns 4..14, rows 1..14 -> 11 x 14 surfels.
+    expected_gone = (W - SHIFT - 1) * (H - 2)
+    assert result.stats["duplicates"] == expected_gone == 154
+    kept_view1 = result.cells[result.cells[:, 0] == 1]
+    assert len(kept_view1) == H * W - expected_gone
+    assert torch.equal(result.cells[result.cells[:, 0] == 0], pixel_cells(1, H, W))  # view 0 untouched
+    for scale in (1, 4):
+        before, after = _render(g, _views(), scale), _render(result.gaussians, _views(), scale)
+        assert torch.equal(before.alpha >= 1e-3, after.alpha >= 1e-3)
+        assert (before.color - after.color).abs().max() < 1e-12  # uniform plane: colour exact wherever covered
+        # No pixel thins: the covering surfels absorb the duplicates' opacity (1 - (1 - o)^2 for o ~ 0.6)
+        # and, at x4, cover their pixel as the two interleaved layers did.
+        assert (after.alpha - before.alpha).min() > -0.1
+        if scale == 1:
+            assert torch.equal(before.alpha >= 0.5, after.alpha >= 0.5)
+            assert (after.alpha - before.alpha).abs().max() < 0.1
+
+
+def test_merges_stop_at_texture_and_depth_edges():
+    g, cams, image = _checker_step()
+    # The merge rule alone (deduplication would mix view 1's colours into view 0's surfels).
+    merge_only = dataclasses.replace(LEVELS[4], dedup=False)
+    result = compact_surfels(g, cams, H, W, config=merge_only, backend="torch")
+    assert result.stats["merged_away"] > 0
+    view0 = result.cells[:, 0] == 0
+    for v, r, c, s in result.cells[view0 & (result.cells[:, 3] > 1)].tolist():
+        block = image[v, :, r : r + s, c : c + s]
+        assert (block - block[:, :1, :1]).abs().max() == 0, (r, c, s)  # one colour per merged cell
+        overlaps = r < 10 and r + s > 5 and c < 11 and c + s > 6
+        within = r >= 5 and r + s <= 10 and c >= 6 and c + s <= 11
+        assert within or not overlaps, (r, c, s)  # never across the depth step
+
+
+def test_deterministic_and_idempotent():
+    g, cams, _ = _checker_step()
+    level = 3
+    first = compact_surfels(g, cams, H, W, level, backend="torch")
+    assert first.stats["duplicates"] > 0 and first.stats["merged_away"] > 0  # every step did something
+    again = compact_surfels(g, cams, H, W, level, backend="torch")
+    twice = compact_surfels(first.gaussians, cams, H, W, level, cells=first.cells, backend="torch")
+    for result in (again, twice):
+        assert torch.equal(result.cells, first.cells)
+        for name in ("means", "quats", "scales", "opacities", "sh"):
+            assert torch.equal(getattr(result.gaussians, name), getattr(first.gaussians, name)), name
+    assert twice.stats["rounds"] == 1 and twice.stats["output"] == first.stats["output"]
+
+
+def test_blending_weights_sum_to_the_covered_pixels():
+    # Forced alpha blending normalises every covered pixel's weights to 1, so the weights of all
+    # surfels in one view sum to the covered pixel count plus the alpha of uncovered pixels.
+    g, cams, _ = _checker_step()
+    view = cams[1:2]
+    weights = blending_weights(g, view, W, H, backend="torch", alpha_threshold=1e-3)
+    alpha = _render(g, view, 1).alpha
+    expected = (alpha >= 1e-3).sum() + alpha[alpha < 1e-3].sum()
+    assert abs(float(weights.sum()) - float(expected)) < 1e-9
+    assert bool((weights >= 0).all())
+
+
+def test_invisible_surfels_are_pruned():
+    g, cams = _plane()
+    hidden = torch.arange(0, 2 * H * W, 37)  # moved behind both cameras: no view sees them
+    means = g.means.clone()
+    means[hidden, 2] = -DEPTH
+    g = dataclasses.replace(g, means=means)
+    no_merge = CompactConfig(dedup=False, merge_levels=0)
+    result = compact_surfels(g, cams, H, W, config=no_merge, backend="torch")
+    assert result.stats["pruned"] == len(hidden)
+    kept = torch.ones(2 * H * W, dtype=torch.bool)
+    kept[hidden] = False
+    assert torch.equal(result.cells, pixel_cells(2, H, W)[kept])
+
+
+def test_compacted_ply_round_trips(tmp_path):
+    g, cams, _ = _checker_step()
+    small = compact(g, cams, H, W, 3, backend="torch")
+    loaded = load_ply(save_ply(small, tmp_path / "surfels.ply", precision="float64"), dtype=torch.float64)
+    for name in ("means", "quats", "scales", "opacities", "sh"):  # scales travel as logarithms
+        torch.testing.assert_close(getattr(loaded, name), getattr(small, name), rtol=1e-14, atol=0), name
+    a, b = _render(small, _views(), 1), _render(loaded, _views(), 1)
+    assert (a.color - b.color).abs().max() < 1e-12
+    # The viewer shows every surfel of it, each with its own (merged) radius.
+    payload, meta = splat_buffer(loaded)
+    assert meta["count"] == meta["total"] == len(small)
+    radii = np.frombuffer(payload, dtype="<f4").reshape(-1, 8)[:, 7]
+    np.testing.assert_allclose(radii, small.scales.amax(-1).numpy(), rtol=1e-6)
+
+
+def test_compact_errors():
+    g, cams = _plane()
+    with pytest.raises(SurfSplatInputError, match="one surfel per pixel"):
+        compact(g.subset(torch.arange(10)), cams, H, W)
+    with pytest.raises(SurfSplatInputError, match="compact level"):
+        compact(g, cams, H, W, level=9)
+    with pytest.raises(SurfSplatInputError, match="cells"):
+        compact(g, cams, H, W, cells=pixel_cells(2, H, W) * 3)
+    assert sorted(LEVELS) == [1, 2, 3, 4, 5]
+
+
+def test_export_compact_option(tmp_path, capsys):
+    g, cams = _plane()
+    ply = save_ply(g, tmp_path / "surfels.ply")
+    save_cameras(tmp_path / "cameras.json", cams, W, H, ["a.png", "b.png"])
+    out = tmp_path / "out"
+    argv = ["export", str(ply), "--cameras", str(tmp_path / "cameras.json"), "--formats", "ply", "--out", str(out)]
+    assert main([*argv, "--compact", "2"]) == 0
+    assert "compact level 2: 512 ->" in capsys.readouterr().out
+    compacted = len(load_ply(out / "surfels.ply"))
+    assert compacted < 2 * H * W // 3
+    # The 3DGS-layout copy for 3DGS-only viewers: the standard properties, one vertex per surfel.
+    vertex = PlyData.read(str(out / "surfels_3dgs.ply"))["vertex"]
+    names = {p.name for p in vertex.properties}
+    assert {"x", "y", "z", "f_dc_0", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_3"} <= names
+    assert vertex.count == compacted
+    # A compacted PLY is no longer one surfel per pixel: compacting it again is refused plainly.
+    code = main(["export", str(out / "surfels.ply"), "--cameras", str(tmp_path / "cameras.json"), "--compact"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "--compact: expected the uncompacted" in err
+
+
+def test_explicit_covariances_compact_like_surfels():
+    # Reconstructions of the release's adapter carry explicit covariances and render with EWA: merged
+    # and absorbing surfels grow their covariances as their scales, so nothing thins either.
+    g, cams = _plane()
+    g = g.with_explicit_covariances(g.covariances)
+    result = compact_surfels(g, cams, H, W, 3, mode="ewa", backend="torch")
+    assert result.gaussians.explicit_covariances.shape == (len(result.gaussians), 3, 3)
+    assert len(result.gaussians) <= 2 * H * W // 8
+    before = render(g, _views(), W, H, mode="ewa", backend="torch")
+    after = render(result.gaussians, _views(), W, H, mode="ewa", backend="torch")
+    assert torch.equal(before.alpha >= 1e-3, after.alpha >= 1e-3)
+    assert (after.color - before.color).abs().max() < 1e-12
+    assert (after.alpha - before.alpha).abs().mean() < 0.1
