@@ -23,7 +23,7 @@ from surfsplat.export.paths import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model.adapter import GaussianAdapter
 from surfsplat.render import render
-from surfsplat.viewer.server import splat_buffer
+from surfsplat.viewer.scene import splat_arrays
 
 H = W = 16
 FOCAL, DEPTH, BASELINE = 16.0, 4.0, 1.0  # the second camera sees the plane shifted by f b / D = 4 pixels
@@ -188,11 +188,12 @@ def test_compacted_ply_round_trips(tmp_path):
         torch.testing.assert_close(getattr(loaded, name), getattr(small, name), rtol=1e-14, atol=0), name
     a, b = _render(small, _views(), 1), _render(loaded, _views(), 1)
     assert (a.color - b.color).abs().max() < 1e-12
-    # The viewer shows every surfel of it, each with its own (merged) radius.
-    payload, meta = splat_buffer(loaded)
-    assert meta["count"] == meta["total"] == len(small)
-    radii = np.frombuffer(payload, dtype="<f4").reshape(-1, 8)[:, 7]
-    np.testing.assert_allclose(radii, small.scales.amax(-1).numpy(), rtol=1e-6)
+    # The viewer shows every surfel of it, each with its own (merged) covariance.
+    arrays = splat_arrays(loaded)
+    assert len(arrays.centers) == len(small)
+    cov = arrays.covariances.astype(np.float64) * arrays.unit**2
+    expected = small.covariances.numpy()
+    np.testing.assert_allclose(cov, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
 
 
 def test_compact_errors():
