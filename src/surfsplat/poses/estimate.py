@@ -64,6 +64,8 @@ class PoseConfig:
     min_inliers: int = 30  # verified matches a pair needs to define a relative pose
     focal_observable_angle: float = 20.0  # degrees of optical-axis spread needed to refine an EXIF focal
     min_triangulation_angle: float = 1.0  # degrees: median angle below this is a (near) pure rotation
+    max_homography_ratio: float = 0.9  # two views: H inliers / E inliers (at 1 px) at which a pair is degenerate
+    min_homography_translation: float = 0.02  # below this (x the plane's distance) a homography is a pure rotation
     max_reprojection_error: float = 4.0  # px: points worse than this after two-view BA are dropped
     median_depth: float = 4.0  # scale convention: median point depth seen from the first camera
     depth_margin: float = 1.5  # near = p2 / margin, far = p98 * margin of the points' depths
@@ -418,12 +420,6 @@ class _Workspace:
             )
         if pair.geometry == "PANORAMIC":
             raise _rotation_error(what, None)
-        if pair.geometry in ("PLANAR", "PLANAR_OR_PANORAMIC"):
-            raise SurfSplatInputError(
-                f"{what}: the matches fit a single homography ({pair.geometry.lower()}): a flat scene or a "
-                "camera that only turned; the two-view pose of a plane is ambiguous. Photograph something "
-                "with depth, move the camera sideways between shots, or add more images"
-            )
         a, b = self.ids[pair.first], self.ids[pair.second]
         db = pycolmap.Database.open(self.database)
         try:
@@ -444,6 +440,7 @@ class _Workspace:
                 "(--focal) or take photos with more overlap"
             )
         mask = np.asarray(estimate["inlier_mask"], dtype=bool).reshape(-1)
+        self._check_not_homography(what, camera, p1, p2, int(mask.sum()), ransac)
         pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera, p1, camera, p2, mask)
         if isinstance(pose, dict):
             pose = pose["cam2_from_cam1"]
@@ -467,6 +464,38 @@ class _Workspace:
         self._filter(recon, cfg.max_reprojection_error)
         self._bundle_adjust(recon, refine_focal=False)
         return recon
+
+    def _check_not_homography(self, what: str, camera, p1: np.ndarray, p2: np.ndarray, e_inliers: int, ransac) -> None:
+        """Refuse pairs whose matches one homography explains about as well as the epipolar geometry:
+        a camera that only turned (any translation fits E), or a single plane (two poses fit).
+        COLMAP's own verdict (PLANAR_OR_PANORAMIC at 4 px) also fires on rooms whose floor dominates,
+        so the test is redone at the 1 px of the pose estimate."""
+        pycolmap = self.pycolmap
+        # The homography's transfer error is a 2-D distance, the Sampson error of E a 1-D one: at
+        # sqrt(2) times the threshold both accept the same isotropic noise.
+        options = pycolmap.RANSACOptions()
+        options.max_error = math.sqrt(2) * ransac.max_error
+        options.random_seed = ransac.random_seed
+        homography = pycolmap.estimate_homography_matrix(p1, p2, options)
+        if homography is None:
+            return
+        inliers = np.asarray(homography["inlier_mask"], dtype=bool).reshape(-1)
+        ratio = inliers.sum() / max(e_inliers, 1)
+        if ratio < self.config.max_homography_ratio:
+            return
+        rays1 = np.concatenate([camera.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
+        rays2 = np.concatenate([camera.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
+        K = camera.calibration_matrix()
+        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K, K, rays1, rays2)
+        # H = R - t n^T / d: the translation comes out in units of the plane's distance d
+        moved = float(np.linalg.norm(decomposed["cam2_from_cam1"].translation))
+        if moved < self.config.min_homography_translation:
+            raise _rotation_error(what, None)
+        raise SurfSplatInputError(
+            f"{what}: one homography explains {ratio:.0%} of the matches the epipolar geometry explains: the "
+            "scene is (nearly) one plane, or the camera mostly turned; two different camera poses fit such photos. "
+            "Include objects at other depths, step sideways between photos, add a third photo, or give --focal"
+        )
 
     def _triangulate(self, recon, a: int, b: int, matches: np.ndarray) -> None:
         pycolmap = self.pycolmap
