@@ -4,8 +4,8 @@
     python benchmarks/poses.py --views 8 --sizes 1000 --repeats 3 --min-idle 0.9
 
 The photos are the procedural room (seed 0) ray-cast natively at each size (not upscaled) from
-cameras on a 40 degree arc around its middle, so the rotation error against the exact cameras is
-reported beside the time. Focal length unknown (the prior, refined by bundle adjustment) for 3+
+cameras 5.7 degrees apart on an arc around its middle (8 views span 40 degrees), so the rotation
+error against the exact cameras is reported beside the time. Focal length unknown (the prior, refined by bundle adjustment) for 3+
 views, given for two (the two-view path). Each measurement runs in a fresh process, so its peak
 resident memory is its own; pycolmap uses every core (`--threads` to change). Results go to
 benchmarks/results/poses.json and a table is printed. Goal: 8 photos at 1000 px in 10 s on 2 cores.
@@ -31,14 +31,15 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SIZES = {400: (400, 300), 1000: (1000, 750)}
 
 
-def orbit(n: int, width: int, height: int, spread_deg: float = 40.0, fov_deg: float = 60.0):
+def orbit(n: int, width: int, height: int, step_deg: float = 40.0 / 7, fov_deg: float = 60.0):
     import torch
 
     from surfsplat.data.synthetic.scene import look_at
     from surfsplat.geometry.cameras import Cameras
 
     target = torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64)
-    angles = torch.deg2rad(torch.linspace(-spread_deg / 2, spread_deg / 2, n, dtype=torch.float64))
+    spread = step_deg * (n - 1)
+    angles = torch.deg2rad(torch.linspace(-spread / 2, spread / 2, n, dtype=torch.float64))
     eyes = torch.stack([2 * torch.cos(angles), 2 * torch.sin(angles), torch.full_like(angles, 1.4)], -1)
     f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -134,7 +135,7 @@ def main() -> int:
 
     report = {
         "benchmark": "camera estimation (surfsplat.poses.estimate_cameras)",
-        "images": "procedural room, seed 0, ray-cast natively at each size, 40 degree arc",
+        "images": "procedural room, seed 0, ray-cast natively at each size, views 5.7 degrees apart on an arc",
         "machine": {
             "platform": platform.platform(),
             "processor": platform.processor() or platform.machine(),

@@ -6,6 +6,7 @@ summary, and an HTML report that shows each photo beside its estimated camera.
 
 from __future__ import annotations
 
+import html
 import json
 import math
 from pathlib import Path
@@ -73,7 +74,7 @@ def write_pose_outputs(
         rows,
     )
     written["camera layout"] = write_text(out / "poses/cameras.svg", top_view_svg(c))
-    report.figure("poses/cameras.svg", "Top view of the cameras (x right, z forward of the first camera)", width=480)
+    report.figure("poses/cameras.svg", "Top view of the cameras (x right, z forward of the first camera)")
     if renders:
         shown = [(str(Path(p).relative_to(out)), f"render from the camera of {n}") for p, n in zip(renders, c.names)]
         report.heading("Reconstruction seen from the estimated cameras")
@@ -115,13 +116,14 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
     lo, hi = every.min(0), every.max(0)
     margin = 40
     scale = (size - 2 * margin) / max(float((hi - lo).max()), 1e-9)
+    height = round(2 * margin + float(hi[1] - lo[1]) * scale)  # the picture is as deep as the layout
 
     def px(p: np.ndarray) -> str:
         # x to the right, z (forward) up the page
-        return f"{margin + (p[0] - lo[0]) * scale:.1f},{size - margin - (p[1] - lo[1]) * scale:.1f}"
+        return f"{margin + (p[0] - lo[0]) * scale:.1f},{height - margin - (p[1] - lo[1]) * scale:.1f}"
 
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{size}" font-family="sans-serif">']
-    parts.append(f'<rect width="{size}" height="{size}" fill="white" stroke="#ccc"/>')
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{height}" font-family="sans-serif">']
+    parts.append(f'<rect width="{size}" height="{height}" fill="white" stroke="#ccc"/>')
     for (centre, left, right), name in zip(shapes, camera_set.names):
         parts.append(
             f'<polygon points="{px(centre)} {px(left)} {px(right)}" fill="#0072B2" fill-opacity="0.15" stroke="#0072B2"/>'
@@ -139,6 +141,4 @@ def _rotate(v: np.ndarray, angle: float) -> np.ndarray:
 
 
 def _escape(text: str) -> str:
-    import html
-
     return html.escape(text)
