@@ -18,6 +18,7 @@ import json
 import math
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -72,12 +73,13 @@ def run_one(folder: Path, n: int, size: int, repeats: int, threads: int, min_idl
     truth = orbit(n, width, height)
     paths = sorted(folder.glob("view*.png"))
     focal = float(truth.K[0, 0, 0]) if n == 2 else None
-    seconds, idle = [], []
+    seconds, cpu, idle = [], [], []
     for _ in range(repeats):
         idle.append(wait_for_idle(min_idle, timeout) if min_idle > 0 else idle_fraction(0.2))
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), _cpu_seconds()
         cams, summary = estimate_cameras(paths, focal=focal, config=PoseConfig(threads=threads))
         seconds.append(time.perf_counter() - start)
+        cpu.append(_cpu_seconds() - start_cpu)
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     return {
         "views": n,
@@ -88,6 +90,8 @@ def run_one(folder: Path, n: int, size: int, repeats: int, threads: int, min_idl
         "method": summary.method,
         "seconds": seconds,
         "median_s": statistics.median(seconds),
+        "cpu_s": cpu,  # user + system time of every thread: the work, whatever the machine's load
+        "stages_s": summary.timings,
         "idle_before": idle,
         "peak_mb": peak_rss_bytes() / 2**20,
         "registered": len(summary.registered),
@@ -96,6 +100,11 @@ def run_one(folder: Path, n: int, size: int, repeats: int, threads: int, min_idl
         "max_translation_error_deg": float(trans.max()),
         "focal_error": abs(summary.focal / float(truth.K[0, 0, 0]) - 1),
     }
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def main() -> int:
@@ -150,15 +159,18 @@ def main() -> int:
     out.write_text(json.dumps(report, indent=2))
 
     print(
-        f"{'views':>5} {'size':>9} {'SIFT at':>9} {'method':>11} {'seconds (median, min)':>22} {'peak MB':>8} "
-        f"{'points':>7} {'rot err':>8} {'idle before':>12}"
+        f"{'views':>5} {'size':>9} {'SIFT at':>9} {'method':>11} {'seconds (median, min)':>22} {'CPU s':>6} "
+        f"{'extract/match/solve s':>22} {'peak MB':>8} {'points':>7} {'rot err':>8} {'idle before':>12}"
     )
     for r in rows:
         idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
         timing = f"{r['median_s']:.2f}, {min(r['seconds']):.2f}"
+        st = r["stages_s"]
+        stages = f"{st['extract']:.1f}/{st['match']:.1f}/{st['reconstruct']:.1f}"
         print(
             f"{r['views']:>5} {r['width']:>4}x{r['height']:<4} {r['extraction_size'][0]:>4}x{r['extraction_size'][1]:<4} "
-            f"{r['method']:>11} {timing:>22} {r['peak_mb']:>8.0f} {r['points']:>7} "
+            f"{r['method']:>11} {timing:>22} {statistics.median(r['cpu_s']):>6.1f} {stages:>22} "
+            f"{r['peak_mb']:>8.0f} {r['points']:>7} "
             f"{r['max_rotation_error_deg']:>7.3f}° {idle:>12}"
         )
     print(f"(load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
