@@ -77,11 +77,13 @@ def test_synthetic_room_four_views_focal_unknown_within_tolerances(orbit_views):
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     assert rot.max() < 1.0 and trans.max() < 2.0, (rot, trans)
     assert abs(summary.focal / float(truth.K[0, 0, 0]) - 1) < 0.05
-    # convention: the first camera is the world frame, and the median depth of its points is 4
+    # convention: the first camera is the world frame, and the median depth of its triangulated
+    # points is 4: a depth between the 10th and 90th percentiles of what it truly sees
     assert torch.allclose(cams.cameras.c2w[0], torch.eye(4, dtype=torch.float64), atol=1e-9)
     scale = float(cams.cameras.centers[3].norm() / (truth.centers[3] - truth.centers[0]).norm())
-    visible = depth[depth > 0].double() * scale  # true depths in the estimate's unit
-    assert 2.5 < float(depth[0][depth[0] > 0].median()) * scale < 6  # a textured room: median near 4
+    first = depth[0][depth[0] > 0].double() * scale  # true depths in the estimate's unit
+    assert float(first.quantile(0.1)) < 4 < float(first.quantile(0.9))
+    visible = depth[depth > 0].double() * scale
     assert cams.near < float(visible.quantile(0.02)) and cams.far > float(visible.quantile(0.98))
 
 

@@ -17,12 +17,16 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    bundle adjustment with a Cauchy loss (first camera and the baseline length fixed: the gauge).
    Three or more: COLMAP's incremental mapper, then one more global bundle adjustment with a
    Cauchy loss. If the mapper registers fewer than two images, the two-view path runs on the
-   pair with most inliers.
+   pair with most inliers. Degenerate pairs (a camera that only turned, a single plane) are
+   refused with the cause named (`_Workspace._check_not_homography`).
 4. Intrinsics: one shared pinhole camera (SIMPLE_PINHOLE: f, principal point at the centre, no
    distortion, so the images need no undistortion). f comes from `focal`, else EXIF, else the
    prior 1.2 x the long side (COLMAP's default guess, a 45 degree field of view on the long side).
-   With 3+ views bundle adjustment refines f unless it was given; with two it is not observable
-   and stays at its source.
+   With 3+ views bundle adjustment refines the prior always and an EXIF value only when the
+   optical axes span `focal_observable_angle` (20 degrees): with nearly parallel views (LLFF fern
+   views 0-3 span 11 degrees) focal length and depth trade off, and refining a correct EXIF focal
+   moved it by 16 % and the rotations by 1.8 degrees. With two views f is not observable and stays
+   at its source; a given f is never changed.
 5. Frame and scale: world = the first registered camera (identity rotation, centre at the
    origin), OpenCV axes. Scale: the median depth of the triangulated points seen from that camera
    is `PoseConfig.median_depth` (4 by default: the room scale RealEstate10K-trained checkpoints and
