@@ -341,3 +341,13 @@ def test_reconstruct_two_fern_photos_without_a_camera_file(data_dir, tmp_path, c
         assert f'src="poses/photo{k:02d}.png"' in report and (out / "poses" / f"photo{k:02d}.png").is_file()
     assert "IMG_4027.png: centre (" in report and "renders/view01_color.png" in report
     assert (out / "poses" / "cameras.svg").read_text().count("<polygon") == 2
+
+
+def test_reconstruct_refuses_focal_with_a_camera_file(orbit_views, tmp_path, capsys):
+    paths = _save(orbit_views[0][:2], tmp_path)
+    args = ["reconstruct", "--checkpoint", str(tmp_path / "none"), "--images", *map(str, paths)]
+    assert main([*args, "--cameras", str(tmp_path / "cameras.json"), "--focal", "300"]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err == "surfsplat reconstruct: error: --focal: only used when the cameras are estimated (without --cameras)\n"
+    )

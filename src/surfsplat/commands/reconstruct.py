@@ -89,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
         cams, poses = estimate_from_args(args)
         args.images = [p for p in args.images if p.name in cams.names]
     else:
+        if args.focal is not None:
+            raise SurfSplatInputError("--focal: only used when the cameras are estimated (without --cameras)")
         cams = load_cameras(args.cameras, images=args.images_folder).select(
             [p.name for p in args.images], str(args.cameras)
         )

@@ -80,6 +80,7 @@ class PoseConfig:
     far: float | None = None  # overrides the far bound from the points
     threads: int = -1  # CPU threads for pycolmap (-1: all)
     seed: int = 0  # RANSAC and mapper seed: the same photos give the same cameras
+    colmap_log: bool = False  # let COLMAP log its stages to stderr
 
     def __post_init__(self) -> None:
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
@@ -193,13 +194,24 @@ def estimate_cameras(
         config = PoseConfig(**{**vars(config), "focal": float(focal)})
     start = time.perf_counter()
     arrays, names, paths = _load_images(images_or_paths, names)
+    import pycolmap
+
+    # COLMAP logs every stage to stderr; its failures reach the user as this module's errors instead
+    quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 0 if config.colmap_log else 3
+    try:
+        camera_set, summary = _estimate(arrays, names, paths, config, start)
+    finally:
+        pycolmap.logging.minloglevel = quiet
+    return camera_set, summary
+
+
+def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[CameraSet, PoseSummary]:
     height, width = arrays[0].shape[:2]
     f0, focal_source, focal_origin = _initial_focal(config, paths, width, height)
     long_side = max(width, height)
     target = min(max(long_side, config.min_extraction_size), config.max_size)
     s = target / long_side
     ext_size = (max(1, round(width * s)), max(1, round(height * s)))
-
     with tempfile.TemporaryDirectory(prefix="surfsplat-poses-") as tmp:
         work = _Workspace(Path(tmp), names, (width, height), f0, focal_origin, config)
         timings = {"read": time.perf_counter() - start}
