@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "surfsplat.commands.reconstruct",
         "posed images -> surfels (PLY), renders, depth/normal maps, videos, mesh",
     ),
+    "poses": ("surfsplat.commands.poses", "camera file (poses, focal, near/far) estimated from photos alone"),
     "eval": (
         "surfsplat.commands.eval",
         "standard and HRRC metrics over an evaluation index, in the paper's table layout",

@@ -1,13 +1,16 @@
 """`surfsplat reconstruct`: posed photos -> surfels, renders, depth and normal maps, videos, a mesh.
 
     surfsplat reconstruct --checkpoint runs/tiny --images a.png b.png --cameras cameras.json --out out/
+    surfsplat reconstruct --checkpoint runs/tiny --images a.jpg b.jpg --out out/     # cameras estimated
     surfsplat reconstruct --checkpoint depthsplat_small.ckpt --trust-pickle --preset small \\
         --images scan24/images_4/000000.png scan24/images_4/000001.png --cameras scan24 --images-folder images_4
 
 CAMS is a JSON camera file (see `surfsplat.export.paths.load_cameras`), a COLMAP model folder, or a
 scene folder of any format `load_scene` reads (LLFF, DTU, transforms.json, COLMAP, RE10K); the
 images are matched to its cameras by file name. Images are rescaled and centre-cropped to a size
-the network accepts (multiples of 16; `--size` to choose), with K following exactly.
+the network accepts (multiples of 16; `--size` to choose), with K following exactly. Without
+`--cameras` the cameras are estimated from the images first (`surfsplat poses`): the output folder
+then also holds estimated_cameras.json, poses.json and report.html (each photo beside its camera).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from .export import (
     options_from_args,
     print_written,
 )
+from .poses import add_pose_arguments, estimate_from_args
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
     )
     parser.add_argument("--images", nargs="+", required=True, type=Path, help="two or more context images")
-    parser.add_argument("--cameras", required=True, type=Path, help="JSON camera file, COLMAP model or scene folder")
+    parser.add_argument(
+        "--cameras",
+        default=None,
+        type=Path,
+        help="JSON camera file, COLMAP model or scene folder (default: estimate them from the images)",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
     parser.add_argument(
         "--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)"
@@ -70,6 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
+    add_pose_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -88,9 +98,16 @@ def run(args: argparse.Namespace) -> int:
     for path in args.images:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: image file not found")
-    cams = load_cameras(args.cameras, images=args.images_folder).select(
-        [p.name for p in args.images], str(args.cameras)
-    )
+    photos, poses = list(args.images), None
+    if args.cameras is None:  # estimated (nothing is written before the reconstruction succeeds)
+        cams, poses = estimate_from_args(args)
+        args.images = [p for p in args.images if p.name in cams.names]
+    else:
+        if args.focal is not None:
+            raise SurfSplatInputError("--focal: only used when the cameras are estimated (without --cameras)")
+        cams = load_cameras(args.cameras, images=args.images_folder).select(
+            [p.name for p in args.images], str(args.cameras)
+        )
     images = []
     for path in args.images:
         rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))
@@ -140,6 +157,12 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..export.figures import write_text
 
+    if poses is not None:
+        from ..poses.report import write_pose_outputs
+
+        renders = [args.out / "renders" / f"view{i:02d}_color.png" for i in range(len(args.images))]
+        renders = renders if "context renders" in written else None
+        written.update(write_pose_outputs(args.out, cams, poses, photos, renders))
     summary = {
         "checkpoint": str(args.checkpoint),
         "model": label,
@@ -153,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
         "render_mode": mode,
         "alpha_threshold": prediction.alpha_threshold,
         "files": {k: str(v) for k, v in written.items()},
+        "cameras": str(args.cameras) if args.cameras is not None else "estimated from the images (poses.json)",
     }
     written["summary"] = write_text(args.out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")
     print(f"wrote {args.out}/:")

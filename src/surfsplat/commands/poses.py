@@ -1,0 +1,72 @@
+"""`surfsplat poses`: camera file from photos alone (no calibration, no poses needed).
+
+    surfsplat poses photos/*.jpg --out cameras.json
+    surfsplat poses a.png b.png --out cameras.json --focal 723 --max-size 1200
+
+Writes the JSON camera file `load_cameras` reads (OpenCV camera-to-world, K in pixels of the
+photos, near/far) and prints what happened: images registered, matches and inliers per pair, 3D
+points, mean reprojection error, the focal length and where it came from. World frame: the first
+registered photo's camera; unit of length: the median depth of the points it sees is 4. See
+`surfsplat.poses` for the pipeline.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..checks import SurfSplatInputError
+
+
+def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared with `reconstruct` when it estimates cameras itself."""
+    parser.add_argument(
+        "--focal", type=float, default=None, help="focal length in pixels of the photos (default: EXIF, else estimated)"
+    )
+    parser.add_argument(
+        "--max-size",
+        type=int,
+        default=1600,
+        help="long side in pixels above which photos are downscaled for feature matching (default 1600)",
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
+    parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
+    add_pose_arguments(parser)
+    parser.add_argument("--near", type=float, default=None, help="nearest depth (default: from the 3D points)")
+    parser.add_argument("--far", type=float, default=None, help="farthest depth (default: from the 3D points)")
+
+
+def estimate_from_args(args: argparse.Namespace):
+    """(CameraSet, PoseSummary) for args.images with the pose options of `add_pose_arguments`;
+    the summary is printed. Raises SurfSplatInputError with the cause when the photos give no cameras."""
+    from ..poses import PoseConfig, estimate_cameras
+
+    for path in args.images:
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: image file not found")
+    config = PoseConfig(focal=args.focal, max_size=args.max_size, near=args.near, far=args.far)
+    camera_set, summary = estimate_cameras(args.images, config=config)
+    print("\n".join(summary.lines()))
+    return camera_set, summary
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..export.paths import save_cameras
+
+    if args.out.suffix.lower() != ".json":
+        raise SurfSplatInputError(f"--out: expected a .json camera file name, got {args.out}")
+    camera_set, _ = estimate_from_args(args)
+    written = save_cameras(
+        args.out,
+        camera_set.cameras,
+        camera_set.width,
+        camera_set.height,
+        camera_set.names,
+        camera_set.near,
+        camera_set.far,
+    )
+    print(f"wrote {written}")
+    return 0

@@ -1,0 +1,8 @@
+"""Camera poses and intrinsics from the photos alone (pycolmap), for `surfsplat poses` and
+`surfsplat reconstruct` without a camera file. See `estimate.py` for the pipeline and conventions."""
+
+from .errors import relative_pose_errors
+from .estimate import PairStats, PoseConfig, PoseSummary, estimate_cameras
+from .exif import exif_focal
+
+__all__ = ["PairStats", "PoseConfig", "PoseSummary", "estimate_cameras", "exif_focal", "relative_pose_errors"]
