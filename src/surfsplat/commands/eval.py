@@ -21,7 +21,7 @@ import argparse
 from pathlib import Path
 
 from ..checks import SurfSplatInputError
-from ..compaction import DEFAULT_LEVEL, LEVELS
+from .export import add_compact_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,15 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     metric.add_argument(
         "--mode", choices=("auto", "surfel", "ewa"), default="auto", help="rasterization (auto follows the adapter)"
     )
-    metric.add_argument(
-        "--compact",
-        nargs="?",
-        type=int,
-        const=DEFAULT_LEVEL,
-        default=None,
-        choices=sorted(LEVELS),
-        metavar="LEVEL",
-        help="score the compacted reconstruction (surfsplat.compact, level 1-5) to measure what compaction costs",
+    add_compact_argument(
+        metric, "score the compacted reconstruction (surfsplat.compact, level 1-5) to measure what compaction costs"
     )
     metric.add_argument("--lpips-vgg", default=None, help="torchvision's vgg16-397923af.pth")
     metric.add_argument("--lpips-lin", default=None, help="the lpips package's v0.1 vgg.pth")

@@ -87,6 +87,16 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.001,
         help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off",
     )
+    add_compact_argument(
+        group,
+        f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 5 (strong); "
+        f"{DEFAULT_LEVEL} when no level is given",
+    )
+    group.add_argument("--no-progress", action="store_true")
+
+
+def add_compact_argument(group: argparse._ActionsContainer, help_text: str) -> None:
+    """`--compact [LEVEL]`: a compaction level of `surfsplat.compact`, the default level when none is given."""
     group.add_argument(
         "--compact",
         nargs="?",
@@ -95,10 +105,8 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         choices=sorted(LEVELS),
         metavar="LEVEL",
-        help=f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 5 (strong); "
-        f"{DEFAULT_LEVEL} when no level is given",
+        help=help_text,
     )
-    group.add_argument("--no-progress", action="store_true")
 
 
 def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: str) -> ExportOptions:
