@@ -96,11 +96,17 @@ class _Clock:
         return self.now
 
 
-def test_off_a_terminal_progress_is_a_line_per_tenth(capsys) -> None:
+def test_off_a_terminal_progress_is_a_line_per_tenth(monkeypatch, capsys) -> None:
+    clock = _Clock()
+    monkeypatch.setattr(log.time, "perf_counter", clock)
     log.configure(logging.INFO)
     bar = log.progress(range(50), desc="score", unit="room")
     assert isinstance(bar, log.LogProgress)  # pytest captures stderr: not a terminal
-    assert sum(1 for _ in bar) == 50
+    count = 0
+    for _ in bar:
+        clock.now += 1.0  # a room a second: every tenth (5 rooms) is more than LINE_MIN_SECONDS apart
+        count += 1
+    assert count == 50
     err = capsys.readouterr().err
     assert "\r" not in err
     lines = err.splitlines()
@@ -108,6 +114,16 @@ def test_off_a_terminal_progress_is_a_line_per_tenth(capsys) -> None:
         range(5, 51, 5)
     ), err
     assert "eta" in lines[0] and "eta" not in lines[-1]  # the last line is the total, not a forecast
+
+
+def test_off_a_terminal_a_fast_loop_logs_only_its_final_line(monkeypatch, capsys) -> None:
+    clock = _Clock()
+    monkeypatch.setattr(log.time, "perf_counter", clock)
+    log.configure(logging.INFO)
+    for _ in log.progress(range(36), desc="render", unit="frame"):
+        clock.now += 0.01  # 0.36 s in all: percent lines would be noise
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("render: 36/36 frame (100%)"), lines
 
 
 def test_off_a_terminal_a_long_loop_logs_every_few_seconds(monkeypatch, capsys) -> None:
@@ -154,6 +170,7 @@ def test_a_training_run_logged_to_a_file_has_lines_not_redraws(tmp_path: Path) -
     assert proc.returncode == 0, err
     assert "\r" not in err
     steps = [int(m) for m in re.findall(r"^train: (\d)/3 step \(\d+%\)", err, flags=re.M)]
-    assert steps == [1, 2, 3], err  # a third of the run each: a line per step, then none at close
+    # Three fast steps: no line is due before LINE_MIN_SECONDS, so the run reports its final line only.
+    assert steps[-1] == 3 and len(steps) == len(set(steps)), err
     assert "loss " in err.splitlines()[-1]
     assert proc.stdout.startswith("trained steps 0..3: loss ")

@@ -34,7 +34,8 @@ from tqdm import tqdm
 
 ROOT = "surfsplat"  # every logger of the package lives under this name
 LINE_SECONDS = 10.0  # off a terminal: a progress line at least this often...
-LINE_PERCENT = 10.0  # ...and each time this share of the total is done
+LINE_PERCENT = 10.0  # ...and each time this share of the total is done,
+LINE_MIN_SECONDS = 2.0  # but never sooner than this after the last line (a fast loop gets its final line only)
 
 _progress_logger = logging.getLogger(f"{ROOT}.progress")
 
@@ -197,7 +198,8 @@ class LogProgress:
         now = time.perf_counter()
         due = now - self.last_time >= LINE_SECONDS
         if self.total:
-            due = due or (self.n - self.last_n) * 100.0 / self.total >= LINE_PERCENT
+            share = (self.n - self.last_n) * 100.0 / self.total
+            due = due or (share >= LINE_PERCENT and now - self.last_time >= LINE_MIN_SECONDS)
         if due:
             self._line(now)
 
