@@ -777,7 +777,7 @@ def write_demo_report(
                     (row["depth error"], f"depth error x{s} (0-{DEPTH_ERROR_MAX:.0%})"),
                     (row["normal error"], f"normal error x{s} (0-{NORMAL_ERROR_MAX:.0f} deg)"),
                 ],
-                width=120,
+                width=104,
                 pixelated=True,
             )
         report.figure(
