@@ -27,7 +27,7 @@ h1 { font-size: 1.6em; } h2 { font-size: 1.25em; margin-top: 1.6em; border-botto
 table { border-collapse: collapse; margin: 0.6em 0; font-variant-numeric: tabular-nums; }
 th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: right; } th { background: #f3f3f3; }
 td:first-child, th:first-child { text-align: left; }
-figure { display: inline-block; margin: 0.4em 0.8em 0.8em 0; vertical-align: top; }
+figure { display: inline-block; margin: 0.4em 0.8em 0.8em 0; vertical-align: top; width: min-content; }
 figcaption { font-size: 0.85em; color: #555; max-width: 520px; }
 img.pixel { image-rendering: pixelated; }
 pre { background: #f6f6f6; padding: 0.6em; overflow-x: auto; font-size: 0.85em; }
