@@ -56,6 +56,9 @@ def test_fronto_parallel_square_covers_exactly_the_pixel_centres_inside_it() -> 
     assert (picture.depth[0][~inside] == 0).all()
     # The face normal is +-z; facing the camera means -z.
     assert torch.allclose(picture.normal[:, inside].T, torch.tensor([0.0, 0.0, -1.0]), atol=1e-6)
+    # Same lighting on both pictures: the shape picture is the 0.5 grey quad's shading at albedo 0.8.
+    assert torch.allclose(picture.shape, picture.shaded * (mesh_render.SHAPE_GREY / 0.5), atol=1e-6)
+    assert (picture.shape[:, ~inside] == 0).all() and (picture.shape[:, inside] > 0.2).all()
 
 
 def test_tilted_plane_depth_is_perspective_correct_at_every_pixel_centre() -> None:

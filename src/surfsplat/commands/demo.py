@@ -619,9 +619,8 @@ def picture_mesh(config: DemoConfig, scene, mesh_path: Path, folder: Path) -> di
         pred.gaussians, big, size, size, mode="surfel", alpha_threshold=model.adapter.alpha_threshold()
     ).color[0]
     mesh = load_mesh(mesh_path)
-    colored = render_mesh(mesh, big, size, size).shaded
-    shape = render_mesh(mesh, big, size, size, colored=False).shaded
-    pictures = {"truth": truth, "surfels": surfels, "mesh": colored, "mesh shape": shape}
+    picture = render_mesh(mesh, big, size, size)
+    pictures = {"truth": truth, "surfels": surfels, "mesh": picture.shaded, "mesh shape": picture.shape}
     files = {k: write_png(folder / f"novel_{k.replace(' ', '_')}.png", v) for k, v in pictures.items()}
     files["grid"] = write_png(folder / "novel_view_grid.png", image_grid([list(pictures.values())], size=(size, size)))
     return {k: str(p) for k, p in files.items()}

@@ -1,7 +1,7 @@
 """Pictures of a triangle mesh from any camera: a z-buffer rasterizer with headlight shading.
 
     picture = render_mesh(mesh, camera, width, height)
-    picture.shaded, picture.depth, picture.normal, picture.mask   # [3|1|3|1, H, W]
+    picture.shaded, picture.shape, picture.depth, picture.normal, picture.mask   # [3|3|1|3|1, H, W]
 
 Written here because none of the project's dependencies rasterizes triangles on a CPU without an
 OpenGL context (trimesh and pyrender render through OpenGL; scikit-image only fills 2D polygons
@@ -25,6 +25,7 @@ from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
 from .mesh import Mesh
 
+SHAPE_GREY = 0.8  # albedo of the shape-only picture
 MAX_CANDIDATES = 4_000_000  # (triangle, pixel) pairs tested at once; bounds memory (~150 MB)
 
 
@@ -32,7 +33,8 @@ MAX_CANDIDATES = 4_000_000  # (triangle, pixel) pairs tested at once; bounds mem
 class MeshPicture:
     """One view of a mesh."""
 
-    shaded: Tensor  # [3, H, W] headlight-shaded vertex colours (or grey), black where empty
+    shaded: Tensor  # [3, H, W] headlight-shaded vertex colours (grey without colours), black where empty
+    shape: Tensor  # [3, H, W] the same shading on a uniform light grey: the geometry alone
     depth: Tensor  # [1, H, W] camera z of the visible surface, 0 where empty
     normal: Tensor  # [3, H, W] world-frame unit normal of the visible face, facing the camera
     mask: Tensor  # [1, H, W] bool, True where a triangle covers the pixel centre
@@ -45,7 +47,6 @@ def render_mesh(
     width: int,
     height: int,
     *,
-    colored: bool = True,  # shade the vertex colours; False: a uniform light grey (shape only)
     near: float = 1e-3,
     ambient: float = 0.3,  # shading = ambient + (1 - ambient) * |cos(normal, view ray)|
 ) -> MeshPicture:
@@ -147,18 +148,21 @@ def render_mesh(
     cos = (n * rays).sum(-1)
     n = torch.where((cos > 0)[:, None], -n, n)
     shade = ambient + (1 - ambient) * cos.abs()
-    if colored and mesh.colors.numel():
-        albedo = mesh.colors.double()[faces[ids]].mean(1)  # [HW, 3] mean of the face's vertex colours
-    else:
-        albedo = torch.full((height * width, 3), 0.8, dtype=torch.float64)
-    shaded = torch.where(mask[:, None], albedo * shade[:, None], torch.zeros_like(albedo))
+    grey = torch.full((height * width, 3), SHAPE_GREY, dtype=torch.float64)
+    # [HW, 3] mean of the visible face's vertex colours
+    albedo = mesh.colors.double()[faces[ids]].mean(1) if mesh.colors.numel() else grey
+
+    def lit(colour: Tensor) -> Tensor:
+        return torch.where(mask[:, None], colour * shade[:, None], torch.zeros_like(colour))
+
     normal = torch.where(mask[:, None], n, torch.zeros_like(n))
 
     def image(x: Tensor) -> Tensor:  # [HW, C] -> [C, H, W] float32
         return x.reshape(height, width, -1).permute(2, 0, 1).float().contiguous()
 
     return MeshPicture(
-        shaded=image(shaded),
+        shaded=image(lit(albedo)),
+        shape=image(lit(grey)),
         depth=image(depth_map[:, None]),
         normal=image(normal),
         mask=mask.reshape(1, height, width),
