@@ -15,8 +15,7 @@ import json
 from pathlib import Path
 
 from surfsplat.model.checkpoint import load_checkpoint, save_checkpoint, training_metadata
-
-PACKAGE_WEIGHTS = Path(__file__).resolve().parents[1] / "src" / "surfsplat" / "model" / "weights"
+from surfsplat.model.pretrained import package_file
 
 
 def main() -> None:
@@ -47,7 +46,7 @@ def main() -> None:
             "geometry": scores.get("geometry", {}).get("mean"),
         },
     }
-    weights, config = save_checkpoint(model, PACKAGE_WEIGHTS / args.name, metadata=metadata)
+    weights, config = save_checkpoint(model, package_file(args.name), metadata=metadata)
     print(f"wrote {weights} ({weights.stat().st_size / 1e6:.1f} MB) and {config}")
 
 

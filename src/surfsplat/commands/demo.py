@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -587,11 +588,8 @@ def novel_viewpoint(pred, orbit_degrees: float = 25.0, lift: float = 0.35) -> Ca
     depth = r.depth[0, 0][r.alpha[0, 0] >= tau]
     distance = float(depth.median()) if depth.numel() else 2.0
     pivot = c2w[:3, 3] + distance * c2w[:3, 2]
-    angle = torch.tensor(orbit_degrees, dtype=torch.float64).deg2rad()
-    rot = torch.tensor(
-        [[float(angle.cos()), -float(angle.sin()), 0.0], [float(angle.sin()), float(angle.cos()), 0.0], [0, 0, 1.0]],
-        dtype=torch.float64,
-    )
+    c, s = math.cos(math.radians(orbit_degrees)), math.sin(math.radians(orbit_degrees))
+    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # about world z
     eye = pivot + rot @ (c2w[:3, 3] - pivot) + torch.tensor([0.0, 0.0, lift], dtype=torch.float64)
     pose = look_at(eye, pivot, down=(0.0, 0.0, -1.0))
     return Cameras(pose[None].float(), pred.sample.target_cameras.K[:1].clone())
