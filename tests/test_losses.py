@@ -105,3 +105,63 @@ def test_bad_config_and_inputs_are_named():
         loss(torch.rand(3, 8, 8), torch.rand(3, 8, 8))
     with pytest.raises(SurfSplatInputError, match="renders"):
         cascade_loss(loss, [], torch.rand(1, 3, 8, 8))
+
+
+# ------------------------------------------------------------------------------ geometry supervision
+def _pinhole(batch=(1, 1), size=16, focal=20.0) -> torch.Tensor:
+    K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]])
+    return K.expand(*batch, 3, 3).clone()
+
+
+def _plane_depth(normal, offset: float, K: torch.Tensor, size=16) -> torch.Tensor:
+    """[H, W] camera-z depth of the plane n . X = offset seen through K (pixel centres)."""
+    from surfsplat.model.adapter import unproject_depth
+
+    rays = unproject_depth(torch.ones(size, size), K)  # z = 1 rays
+    n = torch.nn.functional.normalize(torch.tensor(normal, dtype=torch.float32), dim=0)
+    return offset / (rays @ n)
+
+
+def test_geometry_loss_is_relative_depth_error_and_normal_angle():
+    from surfsplat.train.losses import geometry_loss
+
+    K = _pinhole()
+    truth = torch.full((1, 1, 1, 16, 16), 2.0)  # fronto-parallel wall 2 m away
+    unknown = torch.zeros(16, 16, dtype=torch.bool)
+    unknown[:4, :4] = True
+    truth[0, 0, 0][unknown] = 0  # no truth there: left out of both terms
+    config = LossConfig(lpips_weight=0, depth_weight=0.5, normal_weight=0.25)
+
+    # 10% too far everywhere: relative error 0.1 exactly, and the same (flat) normals.
+    scaled = torch.where(unknown, torch.tensor(7.0), torch.tensor(2.2))[None, None]
+    terms = geometry_loss(config, scaled, truth, K)
+    assert terms.depth.item() == pytest.approx(0.1, rel=1e-5)
+    assert terms.normal.item() == pytest.approx(0.0, abs=1e-6)  # the 7 m block never enters a stencil
+    assert terms.total.item() == pytest.approx(0.5 * 0.1, rel=1e-5)
+
+    # A plane tilted by 30 degrees about the camera's y axis, through (0, 0, 2): 1 - cos 30 at every
+    # pixel whose 3x3 stencil has truth, whatever the depth error is.
+    angle = torch.deg2rad(torch.tensor(30.0))
+    tilted = _plane_depth((float(torch.sin(angle)), 0.0, float(torch.cos(angle))), 2 * float(torch.cos(angle)), K[0, 0])
+    terms = geometry_loss(config, tilted[None, None], truth, K)
+    assert terms.normal.item() == pytest.approx(1 - float(torch.cos(angle)), rel=1e-4)
+    inside = torch.ones(16, 16, dtype=torch.bool)
+    inside[:4, :4] = False
+    expected_depth = ((tilted - 2).abs() / 2)[inside].mean()
+    assert terms.depth.item() == pytest.approx(float(expected_depth), rel=1e-5)
+
+    # Exact depth gives zero for both; a weight of 0 leaves its term out.
+    exact = geometry_loss(LossConfig(lpips_weight=0, depth_weight=1.0), truth[:, :, 0].clamp_min(2.0), truth, K)
+    assert exact.depth.item() == 0 and exact.normal is None and exact.total.item() == 0
+
+
+def test_geometry_loss_needs_some_truth_and_matching_shapes():
+    from surfsplat.train.losses import geometry_loss
+
+    config = LossConfig(lpips_weight=0, depth_weight=1.0)
+    with pytest.raises(SurfSplatInputError, match="no pixel with a true depth"):
+        geometry_loss(config, torch.ones(1, 1, 8, 8), torch.zeros(1, 1, 1, 8, 8), _pinhole(size=8))
+    with pytest.raises(SurfSplatInputError, match="true_depths"):
+        geometry_loss(config, torch.ones(1, 1, 8, 8), torch.ones(1, 2, 1, 8, 8), _pinhole(size=8))
+    with pytest.raises(SurfSplatInputError, match="normal_weight"):
+        ImageLoss(LossConfig(lpips_weight=0, normal_weight=-1.0))

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -85,6 +86,37 @@ def test_missing_lpips_weights_stop_before_anything_is_written(tmp_path: Path) -
     assert not (tmp_path / "run").exists()
 
 
+def test_geometry_terms_join_the_loss_where_the_data_has_depth(tmp_path: Path) -> None:
+    config = _quick(tmp_path / "run", **{"loss.depth_weight": 0.1, "loss.normal_weight": 0.2, "val_every": 0})
+    fit(config)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    train_rows = [r for r in rows if "loss/total" in r]
+    assert len(train_rows) == 2
+    for r in train_rows:
+        assert r["loss/depth"] > 0 and r["loss/normal"] > 0 and "loss/lpips" not in r
+        assert r["loss/total"] == pytest.approx(
+            r["loss/mse"] + 0.1 * r["loss/depth"] + 0.2 * r["loss/normal"], rel=1e-5
+        )
+
+    from surfsplat.model.decoder import decoder_mode
+    from surfsplat.train import build_optimizer
+    from surfsplat.train.loop import training_step
+    from surfsplat.train.losses import ImageLoss
+
+    sample = _one_sample()
+    without_depth = replace(sample, context=replace(sample.context, depths=None))
+    model = build_model(config)
+    with pytest.raises(SurfSplatInputError, match="need true depth, and this batch has none"):
+        training_step(
+            model,
+            model,
+            without_depth,
+            ImageLoss(config.loss),
+            build_optimizer(model, config),
+            mode=decoder_mode(model.cfg.adapter),
+        )
+
+
 def test_resume_needs_a_checkpoint(tmp_path: Path) -> None:
     with pytest.raises(SurfSplatInputError, match="resume: no checkpoint"):
         fit(_quick(tmp_path / "empty"), resume=True)
@@ -122,6 +154,26 @@ def test_tiny_training_beats_the_untrained_model_on_held_out_rooms(tmp_path: Pat
     assert after["num_images"] == before["num_images"] == 2 * config.data.val_samples
     assert after["x1/psnr"] > before["x1/psnr"] + MIN_PSNR_GAIN_DB, (before, after)
     assert after["x1/ssim"] > before["x1/ssim"]
+
+
+# Held-out context-depth AbsRel after the 60 steps below (64x64 rooms), measured on this project's
+# 2-core CPU: 0.382 with the paper's image loss alone, 0.320 with depth and normal supervision added
+# (PSNR 22.00 and 22.31 dB). The test asks for half of that gain, at no loss of PSNR beyond 0.3 dB.
+MIN_ABS_REL_GAIN = 0.03
+
+
+@pytest.mark.slow
+def test_geometry_supervision_gives_better_depth_on_held_out_rooms(tmp_path: Path) -> None:
+    results = {}
+    for name, weights in (("image", {}), ("geometry", {"loss.depth_weight": 0.1, "loss.normal_weight": 0.1})):
+        config = override(
+            train_preset("tiny", out_dir=str(tmp_path / name), steps=60, val_every=60, checkpoint_every=60),
+            {"val_factors": [1], "progress": False, **weights},
+        )
+        results[name] = fit(config).validation[60]
+    image, geometry = results["image"], results["geometry"]
+    assert geometry["depth/abs_rel"] < image["depth/abs_rel"] - MIN_ABS_REL_GAIN, results
+    assert geometry["x1/psnr"] > image["x1/psnr"] - 0.3, results
 
 
 def test_precision_rules_and_float32_adapter_under_autocast() -> None:

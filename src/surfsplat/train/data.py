@@ -316,7 +316,8 @@ class StreamBatches:
 
 
 # ---------------------------------------------------------------------------------------- builders
-def synthetic_dataset(config: DataConfig, validation: bool = False) -> SyntheticDataset:
+def synthetic_dataset(config: DataConfig, validation: bool = False, with_depth: bool = False) -> SyntheticDataset:
+    """Procedural rooms for training or validation; validation scenes always carry their depth."""
     length = config.val_samples if validation else config.synthetic_length
     seed = config.synthetic_seed + (VALIDATION_SEED_OFFSET if validation else 0)
     return SyntheticDataset(
@@ -327,7 +328,7 @@ def synthetic_dataset(config: DataConfig, validation: bool = False) -> Synthetic
             num_context_views=config.num_context_views,
             num_target_views=config.num_target_views,
             supersample=config.synthetic_supersample,
-            with_depth=validation,
+            with_depth=validation or with_depth,
         )
     )
 
@@ -351,12 +352,14 @@ def build_train_batches(
     seed: int,
     start_step: int,
     stream_state: dict[str, Any] | None = None,
+    with_depth: bool = False,
 ) -> MapBatches | StreamBatches:
-    """The training batch source of this rank, positioned at `start_step`."""
+    """The training batch source of this rank, positioned at `start_step`; `with_depth` adds the true
+    depth of procedural rooms (chunks add it wherever they store it)."""
     if global_batch % world_size:
         raise SurfSplatInputError(f"batch_size: {global_batch} does not split evenly over {world_size} ranks")
     if config.dataset == "synthetic":
-        dataset: Dataset = synthetic_dataset(config)
+        dataset: Dataset = synthetic_dataset(config, with_depth=with_depth)
         if config.cache_samples:
             dataset = CachedDataset(dataset)
         return MapBatches(dataset, global_batch, rank, world_size, seed, start_step, config.num_workers)

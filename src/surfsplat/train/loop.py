@@ -10,7 +10,8 @@ averages gradients over ranks), clip, AdamW. Rank 0 alone writes checkpoints, Te
 metrics.jsonl and the progress; every number it reports is first reduced over all ranks.
 
 TensorBoard (`tensorboard --logdir <out_dir>/tensorboard`), written with torch's SummaryWriter:
-- scalars: loss/total, loss/mse, loss/lpips; train/grad_norm, train/lr (the main group's rate),
+- scalars: loss/total, loss/mse, loss/lpips (and loss/depth, loss/normal when the loss supervises
+  geometry); train/grad_norm, train/lr (the main group's rate),
   train/lr_vit (the pretrained ViT's), train/seconds_per_step, train/samples_per_second; at each
   validation val/x{s}/{psnr,ssim,lpips}, val/depth/{abs_rel,delta1}, val/num_images. metrics.jsonl
   holds the same values, one JSON line per logged step.
@@ -75,7 +76,7 @@ from .distributed import (
     init_distributed,
     shutdown,
 )
-from .losses import ImageLoss, LossTerms, cascade_loss
+from .losses import GeometryTerms, ImageLoss, LossTerms, cascade_loss, geometry_loss, supervises_geometry
 from .schedule import learning_rate
 from .validation import validate
 
@@ -281,6 +282,7 @@ class StepOutput:
     terms: list[LossTerms]  # per render, coarse to final
     grad_norm: Tensor  # global gradient norm before clipping
     renders: list[Tensor]  # [B, V, 3, H, W] per render, coarse to final
+    geometry: GeometryTerms | None = None  # depth / normal supervision when the loss has it
 
 
 def training_step(
@@ -319,6 +321,15 @@ def training_step(
         for g in [*coarse, prediction.gaussians]
     ]
     loss, terms = cascade_loss(loss_fn, renders, target.images)
+    geometry = None
+    if supervises_geometry(loss_fn.config):
+        if context.depths is None:
+            raise SurfSplatInputError(
+                "loss.depth_weight / loss.normal_weight need true depth, and this batch has none "
+                "(procedural rooms and chunks that store depth have it)"
+            )
+        geometry = geometry_loss(loss_fn.config, prediction.depths.float(), context.depths, context.K)
+        loss = loss + geometry.total
     if scaler is not None:
         scaler.scale(loss).backward()
         scaler.unscale_(optimizer)  # clip the true gradients, not the scaled ones
@@ -331,7 +342,7 @@ def training_step(
     else:
         optimizer.step()
     optimizer.zero_grad(set_to_none=True)
-    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders)
+    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders, geometry=geometry)
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -435,7 +446,14 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
 
     stream_state = data_state if data_state and data_state.get("kind") == "stream" else None
     source = build_train_batches(
-        config.data, config.batch_size, ctx.rank, ctx.world_size, config.seed, start_step, stream_state
+        config.data,
+        config.batch_size,
+        ctx.rank,
+        ctx.world_size,
+        config.seed,
+        start_step,
+        stream_state,
+        with_depth=supervises_geometry(config.loss),
     )
     val_samples = (
         build_validation_samples(config.data, ctx.rank, ctx.world_size, config.seed) if config.val_every else []
@@ -464,7 +482,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     result = TrainResult(
         out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step, checkpoint=resume_from
     )
-    pending: list[Tensor] = []  # per-step [total, mse, lpips, grad norm] not yet reduced over ranks
+    pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, grad norm] not yet reduced
     started = time.perf_counter()
     window_start, window_steps = started, 0
     try:
@@ -488,13 +506,15 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
             )
             loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
 
-            final = terms[-1]
+            final, geometry = terms[-1], out.geometry
+            zero = torch.zeros((), device=device)
+            parts = [final.lpips] + ([geometry.depth, geometry.normal] if geometry is not None else [None, None])
             pending.append(
                 torch.stack(
                     [
                         loss.detach().float(),
                         final.mse.detach().float(),
-                        (final.lpips.detach().float() if final.lpips is not None else torch.zeros((), device=device)),
+                        *(zero if t is None else t.detach().float() for t in parts),
                         grad_norm.detach().float(),
                     ]
                 )
@@ -515,14 +535,15 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 values = {
                     "loss/total": float(last[0]),
                     "loss/mse": float(last[1]),
-                    "train/grad_norm": float(last[3]),
+                    "train/grad_norm": float(last[5]),
                     "train/lr": lr,
                     **{f"train/lr_{g['name']}": g["lr"] for g in optimizer.param_groups if g["name"] == "vit"},
                     "train/samples_per_second": config.batch_size / seconds_per_step,
                     "train/seconds_per_step": seconds_per_step,
                 }
-                if final.lpips is not None:
-                    values["loss/lpips"] = float(last[2])
+                for column, (name, term) in enumerate(zip(("lpips", "depth", "normal"), parts), start=2):
+                    if term is not None:
+                        values[f"loss/{name}"] = float(last[column])
                 reporter.scalars(done, values)
                 reporter.progress(
                     loss=f"{float(last[0]):.4f}",

@@ -8,6 +8,15 @@ cancels), and LPIPS takes images in [0, 1] (the lpips package's `normalize=True`
 Base and large models predict depth in a cascade (num_scales = 2) and the release renders the
 Gaussians of every intermediate depth too: with n intermediate renders ordered coarse to fine,
 intermediate i (0-based) is weighted 0.9^(n - i) and the final render 1 = 0.9^0.
+
+Where the training data has exact geometry (procedural rooms, chunks that store depth) two optional
+terms supervise it; both are off by default, so the paper's loss is unchanged (real datasets have no
+dense depth):
+- depth: mean relative error |d - d*| / d* of the predicted context depth, i.e. the AbsRel metric;
+- normal: mean 1 - n . n* between the normals of the predicted and the true depth map, both taken
+  from Sobel tangents of the unprojected depth exactly as the surface continuity prior takes them
+  (Eq. 2-3), so a correct depth map gives zero and the term shapes what the surfels' rotations see.
+Pixels without truth (depth 0) are left out; for normals, every pixel of the 3x3 stencil must have it.
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ from torch import Tensor, nn
 
 from ..checks import SurfSplatInputError, check_tensor
 from ..metrics.lpips import Lpips, LpipsUnavailable, load_lpips
+from ..model.adapter import sobel_tangents, unproject_depth
 
 
 @dataclass(frozen=True)
@@ -33,6 +43,8 @@ class LossConfig:
     lpips_vgg_path: str | None = None  # torchvision's vgg16-397923af.pth; None = torch hub cache
     lpips_lin_path: str | None = None  # the lpips package's v0.1 vgg.pth; None = installed packages
     intermediate_weight: float = 0.9  # base of the cascade weights 0.9^(n - i) (release default)
+    depth_weight: float = 0.0  # context depth against true depth (relative L1); needs data with depth
+    normal_weight: float = 0.0  # normals of the context depth against the true ones (1 - cos)
 
 
 @dataclass
@@ -53,7 +65,7 @@ class ImageLoss(nn.Module):
 
     def __init__(self, config: LossConfig = LossConfig(), lpips: Lpips | None = None) -> None:
         super().__init__()
-        for name in ("mse_weight", "lpips_weight", "intermediate_weight"):
+        for name in ("mse_weight", "lpips_weight", "intermediate_weight", "depth_weight", "normal_weight"):
             value = getattr(config, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise SurfSplatInputError(f"config.{name}: expected a finite number >= 0, got {value!r}")
@@ -83,6 +95,59 @@ class ImageLoss(nn.Module):
             lpips = self.lpips(flat_pred, flat_target).mean()
             total = total + self.config.lpips_weight * lpips
         return LossTerms(total=total, mse=mse, lpips=lpips)
+
+
+@dataclass
+class GeometryTerms:
+    """The weighted sum of the geometry terms and each term (scalars, None when its weight is 0)."""
+
+    total: Tensor
+    depth: Tensor | None
+    normal: Tensor | None
+
+
+def supervises_geometry(config: LossConfig) -> bool:
+    """Whether the loss needs true depth in the training batches."""
+    return config.depth_weight > 0 or config.normal_weight > 0
+
+
+def depth_normals(depths: Tensor, K: Tensor) -> Tensor:
+    """[..., H, W, 3] unit normals (t1 x t2, Sobel tangents of the unprojected depth, Eq. 2-3).
+
+    Not reoriented: the predicted and the true map are compared with the same formula, so the sign
+    convention cancels and the loss stays smooth where a surface turns edge-on.
+    """
+    t1, t2 = sobel_tangents(unproject_depth(depths, K))
+    return torch.nn.functional.normalize(torch.linalg.cross(t1, t2, dim=-1), dim=-1, eps=1e-12)
+
+
+def geometry_loss(config: LossConfig, depths: Tensor, true_depths: Tensor, K: Tensor) -> GeometryTerms:
+    """Depth and normal supervision of the predicted context depth (see the module docstring).
+
+    depths: [B, V, H, W] predicted camera-z depth; true_depths: [B, V, 1, H, W] (0 = unknown);
+    K: [B, V, 3, 3] intrinsics of the H x W maps.
+    """
+    b, v, h, w = depths.shape
+    check_tensor("true_depths", true_depths, (b, v, 1, h, w), finite=False)
+    check_tensor("K", K, (b, v, 3, 3), finite=False)
+    truth = true_depths[:, :, 0].to(depths.dtype)
+    known = truth > 0
+    if not bool(known.any()):
+        raise SurfSplatInputError("geometry loss: the batch has no pixel with a true depth")
+    total = depths.new_zeros(())
+    depth_term = normal_term = None
+    if config.depth_weight > 0:
+        relative = (depths - truth).abs() / truth.clamp_min(1e-6)
+        depth_term = relative[known].mean()
+        total = total + config.depth_weight * depth_term
+    if config.normal_weight > 0:
+        stencil = -torch.nn.functional.max_pool2d(-known.float().flatten(0, 1)[:, None], 3, 1, 1)
+        inside = stencil.reshape(b, v, h, w) > 0.5
+        safe = torch.where(known, truth, truth.new_ones(()))
+        cos = (depth_normals(depths, K) * depth_normals(safe, K.to(depths.dtype))).sum(-1)
+        normal_term = (1 - cos)[inside].mean() if bool(inside.any()) else depths.new_zeros(())
+        total = total + config.normal_weight * normal_term
+    return GeometryTerms(total=total, depth=depth_term, normal=normal_term)
 
 
 def _load_for_training(config: LossConfig) -> Lpips:
