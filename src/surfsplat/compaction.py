@@ -25,6 +25,13 @@ redundancy in three steps, repeated until a round changes nothing:
    the block's image rows, its scales are twice the children's effective ones (the surfel field of
    a coarser pixel grid: same overlap; the renderer's low-pass filter counts), its opacity the mean
    and its SH the alpha-mass-weighted mean. Depth and colour edges keep full resolution.
+4. refit (levels 3-5): the surviving surfels' SH, opacities and tangent scales are fitted by Adam
+   to the renders of the input reconstruction at the pruning pass's views, at 1x and 2x their
+   resolution (mean squared colour error); positions, rotations and the cells stay.
+   Steps 1-3 each replace several surfels by one chosen by a local rule; this step lets all of
+   them settle together on the picture the input made (and 2x keeps the surface closed when it is
+   rendered finer). It runs only when steps 1-3 removed something, so compacting a compacted
+   reconstruction again changes nothing.
 
 Every surfel carries the pixel block it stands for (`CompactResult.cells`: view, row, column,
 size), so the result can be compacted again; because rounds repeat until nothing changes (every
@@ -69,6 +76,9 @@ class CompactConfig:
     opacity_tolerance: float = 0.05  # largest deviation of a child's opacity from the block's mean
     scale_ratio: float = 1.5  # largest ratio between the children's scales along one axis
     max_rounds: int = 6  # prune/dedup/merge rounds at most (stops earlier when a round changes nothing)
+    refit_steps: int = 0  # Adam steps fitting SH, opacity and scales to the input's renders (0: none)
+    refit_factors: tuple[int, ...] = (1, 2)  # resolutions (times the context views') the refit compares at
+    refit_lr: float = 0.005  # Adam rate of SH and log-scales (opacity logits take 4x)
 
     def __post_init__(self) -> None:
         if self.prune_weight < 0:
@@ -83,13 +93,26 @@ class CompactConfig:
                 raise SurfSplatInputError(f"compact.{name}: expected >= 0, got {getattr(self, name)}")
         if self.dedup_footprint_ratio < 1 or self.scale_ratio < 1:
             raise SurfSplatInputError("compact.dedup_footprint_ratio and scale_ratio: expected >= 1")
+        if self.refit_steps < 0 or not self.refit_lr > 0 or not all(int(f) == f >= 1 for f in self.refit_factors):
+            raise SurfSplatInputError(
+                "compact: refit_steps >= 0, refit_lr > 0 and integer refit_factors >= 1 expected, got "
+                f"{self.refit_steps}, {self.refit_lr}, {self.refit_factors}"
+            )
 
 
 # Presets of `--compact LEVEL`: each level merges one quadtree level deeper and tolerates more.
 LEVELS: dict[int, CompactConfig] = {
     1: CompactConfig(merge_levels=1, colour_tolerance=0.015),
     2: CompactConfig(merge_levels=2, colour_tolerance=0.025),
-    3: CompactConfig(merge_levels=3, colour_tolerance=0.05, opacity_tolerance=0.15, scale_ratio=2.0),
+    3: CompactConfig(
+        merge_levels=3,
+        colour_tolerance=0.05,
+        opacity_tolerance=0.15,
+        scale_ratio=2.0,
+        dedup_distance=3.0,
+        dedup_normal_degrees=30.0,
+        refit_steps=50,
+    ),
     4: CompactConfig(
         merge_levels=4,
         colour_tolerance=0.1,
@@ -98,6 +121,9 @@ LEVELS: dict[int, CompactConfig] = {
         plane_tolerance=0.15,
         normal_degrees=25.0,
         ring_tolerance=1.0,
+        dedup_distance=6.0,
+        dedup_normal_degrees=45.0,
+        refit_steps=50,
     ),
     5: CompactConfig(
         merge_levels=5,
@@ -107,6 +133,9 @@ LEVELS: dict[int, CompactConfig] = {
         plane_tolerance=0.5,
         normal_degrees=45.0,
         ring_tolerance=3.0,
+        dedup_distance=6.0,
+        dedup_normal_degrees=45.0,
+        refit_steps=50,
     ),
 }
 DEFAULT_LEVEL = 3  # the strongest level measured within 0.1 dB everywhere (docs/compact.json)
@@ -218,6 +247,8 @@ def compact_surfels(
         if not changed:
             break
         assert len(g) < before  # every change removes surfels, so rounds terminate
+    if cfg.refit_steps > 0 and len(g) < len(gaussians):
+        g = refit(g, gaussians.detach(), probe_cameras, width, height, cfg, mode, backend, alpha_threshold)
     order = _cell_order(cells, height, width)
     g, cells = g.subset(order), cells[order]
     stats["output"] = len(g)
@@ -313,6 +344,80 @@ def blending_weights(
                 scale = torch.where(alpha >= alpha_threshold, 1 / alpha.clamp_min(alpha_threshold), 1.0)
             (out.color[:, :1] * scale).sum().backward()
             best = torch.maximum(best, dc.grad[:, 0, 0] / SH_C0)
+    return best
+
+
+# ---------------------------------------------------------------------------------------------- refit
+def refit(
+    student: Gaussians,
+    teacher: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    cfg: CompactConfig,
+    mode: RenderMode = "surfel",
+    backend: Backend = "auto",
+    alpha_threshold: float | None = 0.001,
+) -> Gaussians:
+    """`student` with SH, opacities and tangent scales fitted to `teacher`'s renders (step 4).
+
+    Loss: the mean squared colour error over `cameras` at each of cfg.refit_factors times
+    width x height, summed (colour only: where alpha falls below the threshold the background shows,
+    so a hole costs colour too); cfg.refit_steps Adam steps. Opacities are
+    fitted as logits and scales as logarithms, so both stay in range; the third scale (a surfel's
+    zero thickness) is kept, and so are explicit covariances (their scales do not render).
+    """
+    from .render import render
+
+    views = [(cameras.scaled(float(f)), width * int(f), height * int(f)) for f in cfg.refit_factors]
+    with torch.no_grad():
+        targets = [
+            render(teacher, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold).color
+            for cams, w, h in views
+        ]
+    sh = student.sh.clone().requires_grad_(True)
+    logits = torch.logit(student.opacities.clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
+    # Explicit covariances (the release's adapter) render without the scales: those are not fitted.
+    fit_scales = student.explicit_covariances is None
+    log_scales = student.scales[:, :2].log().requires_grad_(fit_scales)
+    thickness = student.scales[:, 2:]
+    optimizer = torch.optim.Adam(
+        [
+            {"params": [sh, log_scales] if fit_scales else [sh], "lr": cfg.refit_lr},
+            {"params": [logits], "lr": 4 * cfg.refit_lr},
+        ]
+    )
+
+    def current() -> Gaussians:
+        scales = torch.cat((log_scales.exp(), thickness), dim=-1)
+        return replace(student, sh=sh, opacities=torch.sigmoid(logits), scales=scales, validate=False)
+
+    def loss_of(g: Gaussians) -> Tensor:
+        return sum(
+            (out.color - target).square().mean()
+            for (cams, w, h), target in zip(views, targets)
+            for out in [render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold)]
+        )
+
+    # Adam's steps keep a size near the rate however small the gradient is, so the lowest-loss
+    # iterate (the input included) is returned: the refit never moves away from a better fit.
+    best, best_loss = student, math.inf
+    with torch.enable_grad():
+        for step in range(cfg.refit_steps + 1):
+            optimizer.zero_grad(set_to_none=True)
+            g = current()
+            loss = loss_of(g) if step < cfg.refit_steps else None
+            value = float(loss.detach()) if loss is not None else float(loss_of(g).detach())
+            if value < best_loss:
+                best_loss = value
+                best = (
+                    student
+                    if step == 0
+                    else replace(g, sh=g.sh.detach(), opacities=g.opacities.detach(), scales=g.scales.detach())
+                )
+            if loss is not None:
+                loss.backward()
+                optimizer.step()
     return best
 
 
