@@ -402,22 +402,22 @@ def refit(
     # Adam's steps keep a size near the rate however small the gradient is, so the lowest-loss
     # iterate (the input included) is returned: the refit never moves away from a better fit.
     best, best_loss = student, math.inf
-    with torch.enable_grad():
-        for step in range(cfg.refit_steps + 1):
-            optimizer.zero_grad(set_to_none=True)
+    for step in range(cfg.refit_steps + 1):
+        last = step == cfg.refit_steps  # the final iterate is only scored
+        with torch.set_grad_enabled(not last):
             g = current()
-            loss = loss_of(g) if step < cfg.refit_steps else None
-            value = float(loss.detach()) if loss is not None else float(loss_of(g).detach())
-            if value < best_loss:
-                best_loss = value
-                best = (
-                    student
-                    if step == 0
-                    else replace(g, sh=g.sh.detach(), opacities=g.opacities.detach(), scales=g.scales.detach())
-                )
-            if loss is not None:
-                loss.backward()
-                optimizer.step()
+            loss = loss_of(g)
+        if float(loss.detach()) < best_loss:
+            best_loss = float(loss.detach())
+            best = (
+                student
+                if step == 0
+                else replace(g, sh=sh.detach(), opacities=g.opacities.detach(), scales=g.scales.detach())
+            )
+        if not last:
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
     return best
 
 

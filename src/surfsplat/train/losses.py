@@ -131,6 +131,7 @@ def geometry_loss(config: LossConfig, depths: Tensor, true_depths: Tensor, K: Te
     check_tensor("true_depths", true_depths, (b, v, 1, h, w), finite=False)
     check_tensor("K", K, (b, v, 3, 3), finite=False)
     truth = true_depths[:, :, 0].to(depths.dtype)
+    K = K.to(depths.dtype)
     known = truth > 0
     if not bool(known.any()):
         raise SurfSplatInputError("geometry loss: the batch has no pixel with a true depth")
@@ -144,7 +145,7 @@ def geometry_loss(config: LossConfig, depths: Tensor, true_depths: Tensor, K: Te
         stencil = -torch.nn.functional.max_pool2d(-known.float().flatten(0, 1)[:, None], 3, 1, 1)
         inside = stencil.reshape(b, v, h, w) > 0.5
         safe = torch.where(known, truth, truth.new_ones(()))
-        cos = (depth_normals(depths, K) * depth_normals(safe, K.to(depths.dtype))).sum(-1)
+        cos = (depth_normals(depths, K) * depth_normals(safe, K)).sum(-1)
         normal_term = (1 - cos)[inside].mean() if bool(inside.any()) else depths.new_zeros(())
         total = total + config.normal_weight * normal_term
     return GeometryTerms(total=total, depth=depth_term, normal=normal_term)
