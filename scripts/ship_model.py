@@ -24,6 +24,8 @@ def main() -> None:
     parser.add_argument("--name", required=True, help="registry name of the shipped model")
     parser.add_argument("--eval", type=Path, required=True, help="metrics.json of `surfsplat eval --geometry`")
     parser.add_argument("--command", required=True, help="the commands that trained it (recorded verbatim)")
+    parser.add_argument("--summary", default=None, help="one line saying how it was trained (the demo quotes it)")
+    parser.add_argument("--total-steps", type=int, default=None, help="steps of every stage (default: this run's)")
     args = parser.parse_args()
 
     model = load_checkpoint(args.checkpoint / "model").eval()
@@ -40,6 +42,8 @@ def main() -> None:
             "image_shape": run["data"]["image_shape"],
         },
         "command": args.command,
+        **({"summary": args.summary} if args.summary else {}),
+        **({"steps": args.total_steps, "final_stage_steps": int(state["step"])} if args.total_steps else {}),
         "heldout_metrics": {
             "scenes": scores.get("geometry", {}).get("num_scenes"),
             "hrrc_psnr": {k: v["psnr"] for k, v in scores["mean"].items()},

@@ -16,6 +16,7 @@ from plyfile import PlyData
 from surfsplat.cli import main
 from surfsplat.data.chunks import scene_to_example, write_chunks
 from surfsplat.data.load import load_scene
+from surfsplat.model.pretrained import describe
 
 pytestmark = pytest.mark.slow
 
@@ -74,6 +75,7 @@ def test_demo_writes_report_metrics_ply_videos_mesh(demo):
         s.endswith("_normal_error.png") for s in sources
     )
     assert "What the numbers say" in html and f"median normal error {ship['median_deg']:.1f} deg" in html
+    assert describe("tiny-synthetic")["summary"] in html  # how the shipped model was trained, from its metadata
     for src in sources:
         path = demo / src
         assert path.is_file(), src

@@ -8,7 +8,7 @@
              `surfsplat eval` reads;
 2. train:    the `tiny` preset (MSE only: lambda_lpips = 0, no VGG files needed) for 150 steps
              (--steps), stopped at a hard time limit on a slow or busy machine (--train-minutes);
-3. evaluate: the shipped model (`tiny-synthetic`, trained 4,000 steps on procedural rooms), the
+3. evaluate: the shipped model (`tiny-synthetic`, trained on procedural rooms: its metadata says how), the
              model just trained and the untrained network: renders at x1, x2, x4 (K scaled) scored
              against the ground truth upsampled bicubically (the paper's HRRC) and against native
              high-resolution truth, which the synthetic scenes provide exactly; geometry (depth and
@@ -678,6 +678,13 @@ def read_numbers(metrics: dict, train: dict) -> str:
     return " ".join(text)
 
 
+def shipped_summary() -> str:
+    """How the shipped model was trained, as its metadata records it (`scripts/ship_model.py --summary`)."""
+    from ..model.pretrained import describe
+
+    return str(describe(SHIPPED_MODEL)["summary"])
+
+
 def write_demo_report(
     config: DemoConfig,
     out: Path,
@@ -695,7 +702,7 @@ def write_demo_report(
     size = config.image_size
     report.paragraph(
         f"Three networks are scored on {config.eval_scenes} held-out procedural rooms at {size}x{size}: "
-        f"{SHIPPED_LABEL}, the tiny preset trained for 4,000 steps (under an hour on one CPU core) on procedural rooms and shipped with the "
+        f"{SHIPPED_LABEL}, {shipped_summary()}, shipped with the "
         f"package (--checkpoint {SHIPPED_MODEL}); the same preset trained here for {train['steps']} "
         f"steps ({train['seconds']:.0f} s) on {train['scenes']} rooms with the MSE loss, to show training; and the "
         "untrained network. Renders at x2 and x4 use K scaled by the factor (HRRC, paper Sec. 3.6). Two ground "

@@ -125,15 +125,24 @@ def line_chart(
             f'<text x="14" y="{(top + height - bottom) / 2}" text-anchor="middle" '
             f'transform="rotate(-90 14 {(top + height - bottom) / 2})">{html.escape(y_label + (" (log)" if log_y else ""))}</text>'
         )
-    for k, (name, pts) in enumerate(clean.items()):
+    # The legend sits in the top right corner on a white box as wide as its longest name (about
+    # 6.5 px per character at this font size), so no name runs past the frame.
+    legend_x = width - right - 34 - 6.5 * max(len(name) for name in clean)
+    parts.append(
+        f'<rect x="{legend_x - 4:.1f}" y="{top + 3}" width="{width - right - legend_x:.1f}" '
+        f'height="{14 * len(clean) + 4}" fill="white" fill-opacity="0.85"/>'
+    )
+    for k, pts in enumerate(clean.values()):
         colour = SERIES_COLOURS[k % len(SERIES_COLOURS)]
         coords = " ".join(f"{px(x):.1f},{py(y):.1f}" for x, y in pts)
         parts.append(f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" points="{coords}"/>')
+    for k, name in enumerate(clean):
+        colour = SERIES_COLOURS[k % len(SERIES_COLOURS)]
         ly = top + 14 + 14 * k
         parts.append(
-            f'<line x1="{width - right - 120}" x2="{width - right - 100}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colour}" stroke-width="2"/>'
+            f'<line x1="{legend_x:.1f}" x2="{legend_x + 20:.1f}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colour}" stroke-width="2"/>'
         )
-        parts.append(f'<text x="{width - right - 96}" y="{ly}">{html.escape(name)}</text>')
+        parts.append(f'<text x="{legend_x + 24:.1f}" y="{ly}">{html.escape(name)}</text>')
     parts.append("</svg>")
     return "\n".join(parts) + "\n"
 
