@@ -115,8 +115,8 @@ LEVELS: dict[int, CompactConfig] = {
     ),
     4: CompactConfig(
         merge_levels=4,
-        colour_tolerance=0.2,
-        opacity_tolerance=0.3,
+        colour_tolerance=0.1,
+        opacity_tolerance=0.2,
         scale_ratio=4.0,
         plane_tolerance=0.25,
         normal_degrees=30.0,
