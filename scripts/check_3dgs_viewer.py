@@ -7,10 +7,11 @@ as 3DGS-layout PLY files (the thin-Gaussian form `surfsplat export` writes as su
 turned so that our z-up world stands upright in the viewer.
 PlayCanvas's `splat-transform` (the converter behind SuperSplat; fetched by npx) then reads each
 file, prints its per-column summary and writes it as the SuperSplat viewer's self-contained HTML
-page, whose camera is set to a viewpoint between the two context views; headless Chromium (software
+page, whose camera is set behind the middle of the two context views; headless Chromium (software
 WebGL) shows each page and takes a picture. The same viewpoint is rendered by surfsplat's own
-renderer. Written: the PLY files, the pages, `viewer_check.png` (ours | SuperSplat, full |
-SuperSplat, compacted) and `viewer_check.json` (counts read back and PSNR between the pictures).
+renderer, as it renders and as a 3DGS viewer blends. Written: the PLY files, the pages,
+`viewer_check.png` (ours | ours as 3DGS | SuperSplat, full | SuperSplat, compacted) and
+`viewer_check.json` (counts read back and PSNR between the pictures).
 
 Needs node/npm (for npx) and Chromium (Debian: apt-get install chromium); neither is a dependency
 of the package, so this is a script, not a test.
@@ -34,9 +35,11 @@ import torch
 from surfsplat.compaction import compact_surfels
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
 from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.export.images import to_uint8
 from surfsplat.export.ply import save_ply
 from surfsplat.gaussians import Gaussians
 from surfsplat.geometry.sh_rotation import rotate_sh
+from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
 from surfsplat.render import render
 
@@ -85,20 +88,17 @@ def main() -> None:
     mode = decoder_mode(model.cfg.adapter)
     small = compact_surfels(full, context, args.size, args.size, args.level, mode=mode, alpha_threshold=tau).gaussians
 
-    ours = render(full, viewpoint, args.view, args.view, mode=mode, alpha_threshold=tau).color[0]
-    ours = (ours.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    ours = to_uint8(render(full, viewpoint, args.view, args.view, mode=mode, alpha_threshold=tau).color[0])
     # What a 3DGS viewer draws: the thin Gaussians blended without forced alpha blending.
-    plain = render(full, viewpoint, args.view, args.view, mode="ewa", alpha_threshold=None).color[0]
-    plain = (plain.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-    settings = viewer_settings(viewpoint)
+    plain = to_uint8(render(full, viewpoint, args.view, args.view, mode="ewa", alpha_threshold=None).color[0])
+    settings_file = args.out / "viewer_settings.json"
+    settings_file.write_text(json.dumps(viewer_settings(viewpoint), indent=1))
     report = {"checkpoint": label, "level": args.level, "seed": args.seed, "viewer": tool, "files": {}}
     pictures = {"surfsplat renderer, full": ours, "surfsplat renderer as 3DGS (EWA, no alpha normalization)": plain}
     for name, g in (("full", full), ("compact", small)):
         ply = save_ply(turned(g), args.out / f"{name}_3dgs.ply")
         summary = run(tool + [str(ply), "-m", "null"])
         rows = int(re.search(r"Row Count:\*\*\s*(\d+)", summary).group(1))
-        settings_file = args.out / "viewer_settings.json"
-        settings_file.write_text(json.dumps(settings, indent=1))
         page = args.out / f"{name}.html"
         run(tool + ["-w", "-g", "cpu", "-E", str(settings_file), str(ply), str(page)])
         picture = screenshot(page, args.view)
@@ -113,8 +113,8 @@ def main() -> None:
 
     names = list(pictures)
     report["psnr_db"] = {
-        "SuperSplat full vs surfsplat as 3DGS": psnr(pictures[names[2]], pictures[names[1]]),
-        "SuperSplat compact vs SuperSplat full": psnr(pictures[names[3]], pictures[names[2]]),
+        "SuperSplat full vs surfsplat as 3DGS": picture_psnr(pictures[names[2]], pictures[names[1]]),
+        "SuperSplat compact vs SuperSplat full": picture_psnr(pictures[names[3]], pictures[names[2]]),
     }
     iio.imwrite(args.out / "viewer_check.png", np.concatenate(list(pictures.values()), axis=1))
     (args.out / "viewer_check.json").write_text(json.dumps(report, indent=1) + "\n")
@@ -175,9 +175,10 @@ def screenshot(page: Path, size: int) -> np.ndarray:
         return browser.wait_for(lambda image: image.std() > 5, settle=2.0, timeout=60)
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) / 255 - b.astype(np.float64) / 255) ** 2))
-    return 10 * math.log10(1 / max(mse, 1e-12))
+def picture_psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB between two [H, W, 3] uint8 pictures (surfsplat.metrics.image.psnr)."""
+    as_batch = lambda p: torch.from_numpy(p).permute(2, 0, 1)[None].double() / 255  # noqa: E731
+    return float(psnr(as_batch(a), as_batch(b))[0])
 
 
 if __name__ == "__main__":
