@@ -2,13 +2,19 @@
 
     python benchmarks/compact.py --checkpoint runs/tiny
     python benchmarks/compact.py --checkpoint runs/tiny --data ../data --levels 1 2 3 4
+    python benchmarks/compact.py --checkpoint tiny-synthetic --data ../data \
+        --capture-checkpoint fern=runs/capture-fern dtu_scan24=runs/capture-dtu_scan24
 
 For each scene the model reconstructs the context views once; the reconstruction is then compacted
 at every level (0 = as predicted, one surfel per pixel per view) and its target views are rendered at
 x1 and x4. Held-out procedural rooms are scored against native ray-cast truth at both scales; the
 real captures (`--data` folder holding llff_fern and dtu_scan24) against their photos at x1 and the
 bicubic-upsampled photos at x4 (HRRC). Every loss is against the uncompacted reconstruction of the
-same scene. Writes benchmarks/results/compact.json, prints a table and, when matplotlib is
+same scene; "fidelity" is the PSNR of the compacted render against the uncompacted one (the same
+picture: higher is closer). `--capture-checkpoint NAME=CKPT` reconstructs a capture with its own
+model (scripts/capture_models.sh fine-tunes one per capture with the benchmark's target views held
+out), since a model trained on synthetic rooms reconstructs photos too poorly for a loss against
+them to mean much. Writes benchmarks/results/compact.json, prints a table and, when matplotlib is
 installed (`pip install 'surfsplat[bench]'`), draws benchmarks/results/compact.png.
 """
 
@@ -16,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import statistics
 import tempfile
@@ -53,6 +60,13 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=4, help="held-out procedural rooms")
     parser.add_argument("--image-size", type=int, default=64, help="procedural room size (the tiny preset's)")
     parser.add_argument("--data", type=Path, default=None, help="folder with llff_fern and dtu_scan24 (optional)")
+    parser.add_argument(
+        "--capture-checkpoint",
+        nargs="+",
+        default=[],
+        metavar="NAME=CKPT",
+        help=f"reconstruct capture NAME ({', '.join(REAL)}) with CKPT instead of --checkpoint",
+    )
     parser.add_argument("--real-size", nargs=2, type=int, default=(192, 256), metavar=("H", "W"))
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "compact.json")
     parser.add_argument("--plot", type=Path, default=ROOT / "benchmarks" / "results" / "compact.png")
@@ -61,20 +75,30 @@ def main() -> None:
         if level not in LEVELS:
             parser.error(f"--levels: expected values in {sorted(LEVELS)}, got {level}")
 
+    capture_checkpoints = {}
+    for item in args.capture_checkpoint:
+        name, _, path = item.partition("=")
+        if name not in REAL or not path:
+            parser.error(f"--capture-checkpoint: expected NAME=CKPT with NAME in {sorted(REAL)}, got {item!r}")
+        capture_checkpoints[name] = path
+
     model, label = load_model(ModelSpec(args.checkpoint), "cpu")
     model.eval()
+    models = {name: load_model(ModelSpec(path), "cpu") for name, path in capture_checkpoints.items()}
     scenes = procedural_scenes(args.scenes, args.image_size)
     if args.data is not None:
         scenes += real_scenes(args.data, tuple(args.real_size))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in scenes:
-            rows += measure_scene(model, scene, [0, *args.levels], Path(tmp))
+            scene_model = models[scene["group"]][0].eval() if scene["group"] in models else model
+            rows += measure_scene(scene_model, scene, [0, *args.levels], Path(tmp))
     summary = summarize(rows)
     document = {
         "settings": {
             "checkpoint": str(args.checkpoint),
             "model": label,
+            "capture_models": {name: models[name][1] for name in models},
             "levels": {str(k): vars(LEVELS[k]) for k in args.levels},
             "procedural_scenes": args.scenes,
             "procedural_size": args.image_size,
@@ -162,6 +186,7 @@ def measure_scene(model, scene: dict, levels: list[int], tmp: Path) -> list[dict
     tau = prediction.alpha_threshold
     mode = decoder_mode(model.cfg.adapter)
     rows = []
+    uncompacted: dict[int, torch.Tensor] = {}  # level 0's renders, for the fidelity of the others
     for level in levels:
         start = time.perf_counter()
         if level == 0:
@@ -191,6 +216,8 @@ def measure_scene(model, scene: dict, levels: list[int], tmp: Path) -> list[dict
             # The renderer's work, independent of the machine's load: (pixel, surfel) pairs with alpha >= 1/255.
             row[f"pairs_x{f}"] = sum(contributing_pairs(g, targets.scaled(f), W * f, H * f, mode))
             row[f"psnr_x{f}"] = float(psnr(out.color, scene["truth"][f]).mean())
+            uncompacted.setdefault(f, out.color)
+            row[f"fidelity_x{f}"] = fidelity(out.color, uncompacted[f])
         rows.append(row)
         print(
             f"{scene['name']:>24} level {level}: {len(g):>7,} surfels, PSNR x1 {row['psnr_x1']:.3f} "
@@ -198,6 +225,13 @@ def measure_scene(model, scene: dict, levels: list[int], tmp: Path) -> list[dict
             flush=True,
         )
     return rows
+
+
+def fidelity(image: torch.Tensor, uncompacted: torch.Tensor) -> float | None:
+    """PSNR in dB of a compacted render against the uncompacted one over all target views (None:
+    identical pictures, as level 0 is with itself)."""
+    mse = float((image.clamp(0, 1) - uncompacted.clamp(0, 1)).square().mean())
+    return -10 * math.log10(mse) if mse > 0 else None
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -218,34 +252,43 @@ def summarize(rows: list[dict]) -> dict:
                 "render_x4": r["seconds_render_x4"] / b["seconds_render_x4"],
                 "pairs_x1": r["pairs_x1"] / b["pairs_x1"],
                 "pairs_x4": r["pairs_x4"] / b["pairs_x4"],
+                "fidelity_x1": r["fidelity_x1"],
+                "fidelity_x4": r["fidelity_x4"],
                 "ply_mb": r["ply_bytes"] / 2**20,
                 "seconds_compact": r["seconds_compact"],
             }
         )
     return {
-        group: {
-            level: {k: sum(e[k] for e in entries) / len(entries) for k in entries[0]} for level, entries in lv.items()
-        }
+        group: {level: {k: _mean([e[k] for e in entries]) for k in entries[0]} for level, entries in lv.items()}
         for group, lv in out.items()
     }
+
+
+def _mean(values: list) -> float | None:
+    return None if None in values else sum(values) / len(values)
+
+
+def _db(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def table(summary: dict) -> str:
     head = (
         "group        | level | surfels | fewer x | PSNR x1 | loss x1 dB | PSNR x4 | loss x4 dB "
-        "| render x1 | render x4 | pairs x1 | pairs x4 | PLY MB | compact s"
+        "| fidelity x1 | fidelity x4 | render x1 | render x4 | pairs x1 | pairs x4 | PLY MB | compact s"
     )
     lines = [head, "-" * len(head)]
     for group, levels in summary.items():
         for level, m in levels.items():
             lines.append(
                 f"{group:<12} | {level:>5} | {m['surfels']:>7,.0f} | {m['reduction']:>7.2f} | {m['psnr_x1']:>7.3f} | "
-                f"{m['loss_x1']:>10.3f} | {m['psnr_x4']:>7.3f} | {m['loss_x4']:>10.3f} | {m['render_x1']:>9.2f} | "
+                f"{m['loss_x1']:>10.3f} | {m['psnr_x4']:>7.3f} | {m['loss_x4']:>10.3f} | "
+                f"{_db(m['fidelity_x1']):>11} | {_db(m['fidelity_x4']):>11} | {m['render_x1']:>9.2f} | "
                 f"{m['render_x4']:>9.2f} | {m['pairs_x1']:>8.2f} | {m['pairs_x4']:>8.2f} | {m['ply_mb']:>6.2f} | "
                 f"{m['seconds_compact']:>9.2f}"
             )
     lines.append(
-        "render xS: median render time of the targets, pairs xS: (pixel, surfel) pairs with alpha >= 1/255, "
+        "fidelity xS: PSNR against the uncompacted render (same picture), render xS: median render time of the targets, pairs xS: (pixel, surfel) pairs with alpha >= 1/255, "
         "both relative to the uncompacted reconstruction (level 0)"
     )
     return "\n".join(lines)

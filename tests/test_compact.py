@@ -18,7 +18,15 @@ from plyfile import PlyData
 from surfsplat import Cameras, compact
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
-from surfsplat.compaction import LEVELS, CompactConfig, blending_weights, compact_surfels, pixel_cells, refit
+from surfsplat.compaction import (
+    LEVELS,
+    CompactConfig,
+    _local_minima,
+    blending_weights,
+    compact_surfels,
+    pixel_cells,
+    refit,
+)
 from surfsplat.export.paths import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model.adapter import GaussianAdapter
@@ -146,13 +154,15 @@ def test_merges_stop_at_texture_and_depth_edges():
         assert within or not overlaps, (r, c, s)  # never across the depth step
 
 
-def test_deterministic_and_idempotent():
+@pytest.mark.parametrize("level", [3, 4, 5])
+def test_deterministic_and_idempotent(level):
     g, cams, _ = _checker_step()
     g, cams = g.to(torch.float32), cams.to(dtype=torch.float32)  # the compiled renderer's refit
-    level = 3
     first = compact_surfels(g, cams, H, W, level)
-    assert first.stats["duplicates"] > 0 and first.stats["merged_away"] > 0  # every step did something
-    assert not torch.equal(first.gaussians.sh, compact_surfels(g, cams, H, W, config=NO_REFIT[3]).gaussians.sh)
+    # Every step did something (the strong levels' pruning thins the doubled plane to one layer).
+    assert first.stats["duplicates"] > 0 and first.stats["merged_away"] > 0 and first.stats["pruned"] > 0
+    rules = compact_surfels(g, cams, H, W, config=NO_REFIT[level]).gaussians
+    assert len(rules) != len(first.gaussians) or not torch.equal(first.gaussians.sh, rules.sh)
     again = compact_surfels(g, cams, H, W, level)
     twice = compact_surfels(first.gaussians, cams, H, W, level, cells=first.cells)
     for result in (again, twice):
@@ -160,6 +170,50 @@ def test_deterministic_and_idempotent():
         for name in ("means", "quats", "scales", "opacities", "sh"):
             assert torch.equal(getattr(result.gaussians, name), getattr(first.gaussians, name)), name
     assert twice.stats["rounds"] == 1 and twice.stats["output"] == first.stats["output"]
+
+
+def test_a_pruning_pass_never_removes_two_neighbours():
+    # Weights on view 0's 4 x 4 grid (view 1 empty): the local minima of the weight over each cell's
+    # 3 x 3 neighbourhood, ties to the lower index, a merged 2 x 2 cell counting as one.
+    cells = pixel_cells(1, 4, 4)
+    weights = torch.tensor(
+        [[0.1, 0.1, 0.5, 0.2], [0.3, 0.4, 0.6, 0.7], [0.9, 0.8, 0.05, 0.3], [0.2, 0.6, 0.3, 0.01]]
+    ).flatten()
+    minima = _local_minima(weights, cells, 1, 4, 4)
+    # (0,0) beats its tie (0,1); (2,2) has (3,3) beside it.
+    assert torch.nonzero(minima).squeeze(-1).tolist() == [0, 3, 12, 15]
+    merged = torch.cat((cells[[0, 1, 4, 5]][:1] * torch.tensor([1, 1, 1, 2]), cells[[2, 3, 6, 7, 8, 9, 10, 11]]))
+    merged = torch.cat((merged, cells[12:]))
+    w = torch.cat((torch.tensor([0.02]), weights[[2, 3, 6, 7, 8, 9, 10, 11]], weights[12:]))
+    picked = torch.nonzero(_local_minima(w, merged, 1, 4, 4)).squeeze(-1).tolist()
+    assert picked == [0, 2, 9, 12]  # the merged cell (0.02), (0,3), (3,0), (3,3); (2,2) touches two of them
+    for i in picked:  # no two picked cells touch
+        for j in picked:
+            if i < j:
+                (_, ri, ci, si), (_, rj, cj, sj) = merged[i].tolist(), merged[j].tolist()
+                assert ri > rj + sj or rj > ri + si or ci > cj + sj or cj > ci + si
+
+
+def test_strong_pruning_thins_a_doubled_plane_without_holes():
+    # The plane seen by both views is two layers of surfels; pruning at about a pixel's worth, one
+    # neighbour at a time with fresh weights, removes most of a layer, and with the survivors'
+    # scales floored the coverage stays at every scale, x4 included.
+    g, cams = _plane()
+    prune = CompactConfig(
+        dedup=False, merge_levels=0, prune_weight=1.3, prune_factors=(1, 2), prune_local_minima=True, scale_floor=True
+    )
+    result = compact_surfels(g, cams, H, W, config=prune, backend="torch")
+    assert result.stats["pruned"] >= 0.4 * len(g), result.stats
+    for scale in (1, 4):
+        before, after = _render(g, _views(), scale), _render(result.gaussians, _views(), scale)
+        assert torch.equal(before.alpha >= 1e-3, after.alpha >= 1e-3), scale
+        assert (after.color - before.color).abs().max() < 1e-12, scale  # one colour: exact wherever covered
+    # Every survivor covers at least its own pixel's low-pass footprint.
+    z = result.gaussians.means[:, 2]
+    assert bool((result.gaussians.scales[:, :2] >= z[:, None] / FOCAL / 2**0.5 * (1 - 1e-12)).all())
+    # A plain threshold on the same weights, all at once, removes whole layers: the rule matters.
+    weights = blending_weights(g, _views(), W, H, backend="torch", alpha_threshold=1e-3)
+    assert (weights < 1.3).float().mean() > 0.9
 
 
 def test_blending_weights_sum_to_the_covered_pixels():
@@ -266,7 +320,11 @@ def test_refit_brings_the_picture_back_and_keeps_a_perfect_one():
 
     rules = compact_surfels(g, cams, H, W, config=NO_REFIT[4])
     fitted = compact_surfels(g, cams, H, W, 4)
-    assert torch.equal(fitted.cells, rules.cells) and torch.equal(fitted.gaussians.means, rules.gaussians.means)
+    # The refit moves no surfel; what it made redundant goes after it (fewer surfels, never new ones).
+    where = {tuple(c): i for i, c in enumerate(rules.cells.tolist())}
+    same_cells = torch.tensor([where[tuple(c)] for c in fitted.cells.tolist()])
+    assert torch.equal(fitted.gaussians.means, rules.gaussians.means[same_cells])
+    assert len(fitted.gaussians) <= len(rules.gaussians)
     assert error(fitted.gaussians) < 0.7 * error(rules.gaussians), (error(fitted.gaussians), error(rules.gaussians))
     # Refitting the rules' result to itself finds nothing better than where it starts.
     same = refit(rules.gaussians, rules.gaussians, cams, W, H, LEVELS[4])

@@ -2,16 +2,24 @@
 
 The model predicts one surfel per pixel per context view (the paper's second stated limitation:
 "predicting one Gaussian per pixel can lead to redundant representations"). `compact` removes the
-redundancy in three steps, repeated until a round changes nothing:
+redundancy in three steps, repeated until a round changes nothing; a round deduplicates (2), merges
+(3) and prunes (1) last, because merging needs whole blocks, which pruning would break up:
 
-1. prune: surfels whose blending weight is negligible in every context view and in a few views
+1. prune: surfels whose blending weight is small in every context view and in a few views
    interpolated between them. The weight of surfel i is sum over pixels of w_ip / A_p, where w_ip
    is its compositing weight (alpha times transmittance) and A_p the pixel's alpha when forced alpha
    blending divides by it (1 elsewhere): how many pixels' worth of final colour the surfel makes. It
    is computed exactly by one backward pass per view: render every surfel with colour 1, so the
    colour image is sum_i w_ip; the gradient of sum_p colour_p / A_p (A_p held fixed) with respect
    to surfel i's colour is that weight. The compiled CPU renderer (or the torch / gsplat one on a
-   GPU) does this in about the time of one training step.
+   GPU) does this in about the time of one training step. Weights are also taken at 2x (divided by
+   4) where a level asks, so a surfel that alone fills a gap at a finer resolution keeps its weight.
+   At levels 3-5 a pass prunes only surfels below the threshold whose weight is the smallest around
+   their cell (never two neighbours at once), and passes repeat with fresh weights: where two views' layers
+   overlap, the weights of one layer's survivors rise as its other surfels go, so strong levels
+   (a threshold of about a pixel's worth) thin a doubled surface to one layer without opening
+   holes. The survivors' tangent scales are then raised to their footprint's low-pass size (see
+   `_floor_scales`), closing at x4 the gaps removed neighbours used to fill.
 2. deduplicate: views are visited in order; a surfel of view j is dropped when it projects into
    view i < j onto a pixel whose surfel lies on the same plane (distance along the normal within a
    tolerance in view i's pixel footprints, normals within an angle), whose 3 x 3 neighbourhood is
@@ -30,14 +38,15 @@ redundancy in three steps, repeated until a round changes nothing:
    resolution (mean squared colour error); positions, rotations and the cells stay.
    Steps 1-3 each replace several surfels by one chosen by a local rule; this step lets all of
    them settle together on the picture the input made (and 2x keeps the surface closed when it is
-   rendered finer). It runs only when steps 1-3 removed something, so compacting a compacted
-   reconstruction again changes nothing.
+   rendered finer). It runs only when steps 1-3 removed something; the rounds then run once more
+   on its result (it moves weights and colours), without another refit.
 
 Every surfel carries the pixel block it stands for (`CompactResult.cells`: view, row, column,
-size), so the result can be compacted again; because rounds repeat until nothing changes (every
-round that changes something removes surfels; `max_rounds` bounds them), compact at a fixed level is
-idempotent, and it is deterministic (no randomness; the compiled CPU renderer's gradients do not
-depend on threads).
+size), so the result can be compacted again. Rounds repeat until nothing changes (every round that
+changes something removes surfels; `max_rounds` bounds them) and weights are always taken with the
+surfels in (view, row, column) order, so the result is a fixed point of the rounds and gets no
+refit when compacted again: compact at a fixed level is idempotent. It is deterministic (no
+randomness; the compiled CPU renderer's gradients do not depend on threads).
 
 Written here because no library merges splats on a per-view quadtree with these surfel rules.
 """
@@ -75,6 +84,10 @@ class CompactConfig:
     colour_tolerance: float = 0.02  # largest deviation of a child's base colour (0..1) from the block's mean
     opacity_tolerance: float = 0.05  # largest deviation of a child's opacity from the block's mean
     scale_ratio: float = 1.5  # largest ratio between the children's scales along one axis
+    prune_factors: tuple[int, ...] = (1,)  # resolutions (times the context views') the weights are taken at
+    prune_local_minima: bool = False  # a pass prunes only surfels whose weight is the smallest around them
+    prune_passes: int = 16  # weight passes per round at most (local minima: each pass frees a few)
+    scale_floor: bool = False  # survivors' tangent scales at least their footprint's low-pass size (see _floor_scales)
     max_rounds: int = 6  # prune/dedup/merge rounds at most (stops earlier when a round changes nothing)
     refit_steps: int = 0  # Adam steps fitting SH, opacity and scales to the input's renders (0: none)
     refit_factors: tuple[int, ...] = (1, 2)  # resolutions (times the context views') the refit compares at
@@ -93,6 +106,11 @@ class CompactConfig:
                 raise SurfSplatInputError(f"compact.{name}: expected >= 0, got {getattr(self, name)}")
         if self.dedup_footprint_ratio < 1 or self.scale_ratio < 1:
             raise SurfSplatInputError("compact.dedup_footprint_ratio and scale_ratio: expected >= 1")
+        if self.prune_passes < 1 or not all(int(f) == f >= 1 for f in self.prune_factors):
+            raise SurfSplatInputError(
+                f"compact: prune_passes >= 1 and integer prune_factors >= 1 expected, got {self.prune_passes}, "
+                f"{self.prune_factors}"
+            )
         if self.refit_steps < 0 or not self.refit_lr > 0 or not all(int(f) == f >= 1 for f in self.refit_factors):
             raise SurfSplatInputError(
                 "compact: refit_steps >= 0, refit_lr > 0 and integer refit_factors >= 1 expected, got "
@@ -101,41 +119,38 @@ class CompactConfig:
 
 
 # Presets of `--compact LEVEL`: each level merges one quadtree level deeper and tolerates more.
+# From level 3 on, pruning takes weights at 1x and 2x, one neighbour at a time, and floors the
+# survivors' scales; level 4 prunes below 1.3 pixels' worth (thinning overlapping views' layers to
+# one), level 5 below 2 and merges across larger colour and shape differences.
+_LEVEL_3 = CompactConfig(
+    prune_weight=0.5,
+    prune_factors=(1, 2),
+    prune_local_minima=True,
+    scale_floor=True,
+    merge_levels=3,
+    colour_tolerance=0.05,
+    opacity_tolerance=0.15,
+    scale_ratio=2.0,
+    dedup_distance=3.0,
+    dedup_normal_degrees=30.0,
+    refit_steps=50,
+)
+_LEVEL_4 = replace(_LEVEL_3, prune_weight=1.3, merge_levels=4, dedup_distance=6.0, dedup_normal_degrees=90.0)
 LEVELS: dict[int, CompactConfig] = {
     1: CompactConfig(merge_levels=1, colour_tolerance=0.015),
     2: CompactConfig(merge_levels=2, colour_tolerance=0.025),
-    3: CompactConfig(
-        merge_levels=3,
-        colour_tolerance=0.05,
-        opacity_tolerance=0.15,
-        scale_ratio=2.0,
-        dedup_distance=3.0,
-        dedup_normal_degrees=30.0,
-        refit_steps=50,
-    ),
-    4: CompactConfig(
-        merge_levels=4,
+    3: _LEVEL_3,
+    4: _LEVEL_4,
+    5: replace(
+        _LEVEL_4,
+        prune_weight=2.0,
+        merge_levels=5,
         colour_tolerance=0.1,
         opacity_tolerance=0.2,
         scale_ratio=4.0,
         plane_tolerance=0.25,
         normal_degrees=30.0,
         ring_tolerance=1.5,
-        dedup_distance=6.0,
-        dedup_normal_degrees=45.0,
-        refit_steps=50,
-    ),
-    5: CompactConfig(
-        merge_levels=5,
-        colour_tolerance=0.5,
-        opacity_tolerance=1.0,
-        scale_ratio=8.0,
-        plane_tolerance=0.5,
-        normal_degrees=45.0,
-        ring_tolerance=3.0,
-        dedup_distance=6.0,
-        dedup_normal_degrees=45.0,
-        refit_steps=50,
     ),
 }
 DEFAULT_LEVEL = 3  # the strongest level measured within 0.1 dB everywhere (docs/compact.json)
@@ -220,39 +235,65 @@ def compact_surfels(
     cameras = context_cameras.to(device=g.means.device, dtype=g.means.dtype)
     probe_cameras = _probe_cameras(cameras, cfg.nearby_views)
     stats = {"input": len(g), "pruned": 0, "duplicates": 0, "merged_away": 0, "rounds": 0}
+    render_args = (mode, backend, alpha_threshold)
+    g, cells = _rounds(g, cells, cameras, probe_cameras, height, width, cfg, render_args, stats)
+    if cfg.refit_steps > 0 and len(g) < len(gaussians):
+        g = refit(g, gaussians.detach(), probe_cameras, width, height, cfg, *render_args)
+        # The refit moves opacities, scales and colours: what it made redundant goes too (without a
+        # second refit). The result is a fixed point of the rounds, and a compacted input that the
+        # rounds leave as it is gets no refit, so compacting it again changes nothing.
+        g, cells = _rounds(g, cells, cameras, probe_cameras, height, width, cfg, render_args, stats)
+    order = _cell_order(cells, height, width)
+    g, cells = g.subset(order), cells[order]
+    stats["output"] = len(g)
+    return CompactResult(g, cells, stats)
+
+
+def _rounds(
+    g: Gaussians,
+    cells: Tensor,
+    cameras: Cameras,
+    probe_cameras: Cameras,
+    height: int,
+    width: int,
+    cfg: CompactConfig,
+    render_args: tuple,
+    stats: dict[str, int],
+) -> tuple[Gaussians, Tensor]:
+    """Deduplicate, merge and prune, round after round, until a round removes nothing (or
+    cfg.max_rounds); counts go to `stats`."""
     for _ in range(cfg.max_rounds):
         before = len(g)
-        changed = False
-        if cfg.prune_weight > 0:
-            weights = blending_weights(
-                g, probe_cameras, width, height, mode=mode, backend=backend, alpha_threshold=alpha_threshold
-            )
-            keep = weights >= cfg.prune_weight
-            stats["pruned"] += int((~keep).sum())
-            changed |= not bool(keep.all())
-            g, cells = g.subset(keep), cells[keep]
         if cfg.dedup and len(cameras) > 1:
             cover = _duplicate_cover(g, cells, cameras, height, width, cfg)
             keep = cover < 0
             stats["duplicates"] += int((~keep).sum())
-            changed |= not bool(keep.all())
             g = _absorb(g, torch.nonzero(~keep).squeeze(-1), cover[~keep], _footprints(g, cells, cameras))
             g, cells = g.subset(keep), cells[keep]
         for depth in range(cfg.merge_levels):
             count = len(g)
             g, cells = _merge_level(g, cells, cameras, len(cameras), height, width, 2**depth, cfg)
             stats["merged_away"] += count - len(g)
-            changed |= len(g) != count
+        # Last: merging needs whole blocks, which pruning would break up. In (view, row, column)
+        # order, the output's: surfels at equal depth composite in input order, so the weights, and
+        # whether a compacted result prunes again, must not depend on how it was put together.
+        order = _cell_order(cells, height, width)
+        g, cells = g.subset(order), cells[order]
+        for _ in range(cfg.prune_passes if cfg.prune_weight > 0 else 0):
+            weights = _prune_weights(g, probe_cameras, width, height, cfg, *render_args)
+            keep = weights >= cfg.prune_weight
+            if cfg.prune_local_minima:
+                keep |= ~_local_minima(weights, cells, len(cameras), height, width)
+            if bool(keep.all()):
+                break
+            stats["pruned"] += int((~keep).sum())
+            g, cells = g.subset(keep), cells[keep]
+            if cfg.scale_floor:
+                g = _floor_scales(g, _footprints(g, cells, cameras))
         stats["rounds"] += 1
-        if not changed:
+        if len(g) == before:
             break
-        assert len(g) < before  # every change removes surfels, so rounds terminate
-    if cfg.refit_steps > 0 and len(g) < len(gaussians):
-        g = refit(g, gaussians.detach(), probe_cameras, width, height, cfg, mode, backend, alpha_threshold)
-    order = _cell_order(cells, height, width)
-    g, cells = g.subset(order), cells[order]
-    stats["output"] = len(g)
-    return CompactResult(g, cells, stats)
+    return g, cells
 
 
 # ---------------------------------------------------------------------------------------------- validation
@@ -345,6 +386,50 @@ def blending_weights(
             (out.color[:, :1] * scale).sum().backward()
             best = torch.maximum(best, dc.grad[:, 0, 0] / SH_C0)
     return best
+
+
+def _prune_weights(
+    g: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    cfg: CompactConfig,
+    mode: RenderMode,
+    backend: Backend,
+    alpha_threshold: float | None,
+) -> Tensor:
+    """[N] the largest blending weight over cfg.prune_factors, in pixels of the context views' size
+    (a weight at f times the resolution divided by f^2): a surfel that alone fills a gap its
+    neighbours leave at a finer resolution keeps a weight there that it shares at 1x."""
+    weights = [
+        blending_weights(
+            g,
+            cameras.scaled(float(f)),
+            width * f,
+            height * f,
+            mode=mode,
+            backend=backend,
+            alpha_threshold=alpha_threshold,
+        )
+        / f**2
+        for f in cfg.prune_factors
+    ]
+    return torch.stack(weights).amax(0)
+
+
+def _local_minima(weights: Tensor, cells: Tensor, views: int, height: int, width: int) -> Tensor:
+    """[N] surfels whose weight is the smallest among the surfels owning the pixels of their cell and
+    the one-pixel ring around it (ties broken by index), so one pass never removes two neighbours."""
+    rank = torch.empty_like(cells[:, 0])
+    rank[torch.argsort(weights, stable=True)] = torch.arange(len(weights), device=cells.device)
+    owner = _owner_map(cells, views, height, width)
+    big = len(weights)
+    ranks = torch.where(owner >= 0, rank[owner.clamp_min(0)], big).double()
+    around = -torch.nn.functional.max_pool2d(-ranks[:, None], 3, stride=1, padding=1)[:, 0].long()
+    lowest = torch.full_like(rank, big).scatter_reduce_(
+        0, owner[owner >= 0], around[owner >= 0], reduce="amin", include_self=True
+    )
+    return lowest == rank
 
 
 # ---------------------------------------------------------------------------------------------- refit
@@ -528,17 +613,31 @@ def _absorb(g: Gaussians, removed: Tensor, cover: Tensor, footprint: Tensor) -> 
     opacities[hit] = 1 - (1 - o_t) * (1 - o_s)
     sh = g.sh.clone()
     sh[hit] = (w_t[:, None, None] * g.sh[hit] + w_s[:, None, None] * sh_s) / (w_t + w_s).clamp_min(1e-30)[:, None, None]
+    g = replace(g, opacities=opacities, sh=sh, validate=False)
+    return _floor_scales(g, footprint, hit)
+
+
+def _floor_scales(g: Gaussians, footprint: Tensor, which: Tensor | None = None) -> Gaussians:
+    """Tangent scales of surfels `which` (all: None) raised to at least the renderer's low-pass size
+    of their footprint [N] (1/sqrt(2) of it), as merged surfels' are.
+
+    The adapter's tangent clamp leaves many surfels smaller than their pixel spacing; at the
+    resolution they were predicted at the screen-space filter hides the gaps between them, but at
+    x2 or x4 it does not, where overlapping layers and neighbours used to fill them. Once some of
+    those are gone the survivors must cover their own footprint; facing the camera they render the
+    same at 1x (the filter already draws them that large)."""
+    which = torch.ones(len(g), dtype=torch.bool, device=g.means.device) if which is None else which
+    floor = footprint[which, None] / math.sqrt(LOWPASS_RHO_SCALE)
     scales = g.scales.clone()
-    floor = footprint[hit, None] / math.sqrt(LOWPASS_RHO_SCALE)
-    scales[hit] = torch.maximum(scales[hit], floor)
+    scales[which, :2] = torch.maximum(scales[which, :2], floor)
     covariances = g.explicit_covariances
     if covariances is not None:
         # Explicit covariances grow by the same amount along the surfel's tangents.
-        R = g.rotations[hit][..., :2]  # [H, 3, 2] tangent axes
-        extra = (floor.square() - g.scales[hit].square()).clamp_min(0)  # [H, 2]
+        R = g.rotations[which][..., :2]  # [W, 3, 2] tangent axes
+        extra = (floor.square() - g.scales[which, :2].square()).clamp_min(0)  # [W, 2]
         covariances = covariances.clone()
-        covariances[hit] = covariances[hit] + (R * extra[:, None, :]) @ R.transpose(-1, -2)
-    return replace(g, opacities=opacities, sh=sh, scales=scales, explicit_covariances=covariances, validate=False)
+        covariances[which] = covariances[which] + (R * extra[:, None, :]) @ R.transpose(-1, -2)
+    return replace(g, scales=scales, explicit_covariances=covariances, validate=False)
 
 
 def _interior(g: Gaussians, normals: Tensor, owner: Tensor, w2c: Tensor, K: Tensor, tolerance: float) -> Tensor:
