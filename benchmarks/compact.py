@@ -313,7 +313,7 @@ def plot(summary: dict, path: Path) -> bool:
                 ax.annotate(level, (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
         ax.axhline(0.1, color="grey", linestyle=":", linewidth=1)
         ax.set_xscale("log", base=2)
-        ax.set_xticks([1, 2, 4], ["1", "2", "4"])
+        ax.set_xticks([1, 2, 4, 8], ["1", "2", "4", "8"])
         ax.set_xlabel("fewer surfels (x)")
         ax.set_title(f"x{f}")
         ax.grid(alpha=0.3)
