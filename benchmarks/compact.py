@@ -85,13 +85,15 @@ def main() -> None:
     model, label = load_model(ModelSpec(args.checkpoint), "cpu")
     model.eval()
     models = {name: load_model(ModelSpec(path), "cpu") for name, path in capture_checkpoints.items()}
+    for capture_model, _ in models.values():
+        capture_model.eval()
     scenes = procedural_scenes(args.scenes, args.image_size)
     if args.data is not None:
         scenes += real_scenes(args.data, tuple(args.real_size))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in scenes:
-            scene_model = models[scene["group"]][0].eval() if scene["group"] in models else model
+            scene_model = models[scene["group"]][0] if scene["group"] in models else model
             rows += measure_scene(scene_model, scene, [0, *args.levels], Path(tmp))
     summary = summarize(rows)
     document = {

@@ -19,7 +19,7 @@ THREADS=${THREADS:-1}
 
 # Chunks of each capture without the benchmark's target views, and its depth bounds (those of the
 # benchmark's views, which the benchmark passes to the model).
-python - "$DATA" "$RUNS" <<'PY'
+python - "$DATA" "$RUNS" "$(dirname "$0")/../benchmarks/compact.py" <<'PY'
 import importlib.util, sys
 from pathlib import Path
 import torch
@@ -27,7 +27,7 @@ from surfsplat.data.chunks import scene_to_example, write_chunks
 from surfsplat.data.load import load_scene
 
 data, runs = Path(sys.argv[1]), Path(sys.argv[2])
-spec = importlib.util.spec_from_file_location("compact_benchmark", Path("benchmarks/compact.py"))
+spec = importlib.util.spec_from_file_location("compact_benchmark", sys.argv[3])
 bench = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(bench)
 for name, (folder, images, context, target) in bench.REAL.items():

@@ -243,8 +243,6 @@ def compact_surfels(
         # second refit). The result is a fixed point of the rounds, and a compacted input that the
         # rounds leave as it is gets no refit, so compacting it again changes nothing.
         g, cells = _rounds(g, cells, cameras, probe_cameras, height, width, cfg, render_args, stats)
-    order = _cell_order(cells, height, width)
-    g, cells = g.subset(order), cells[order]
     stats["output"] = len(g)
     return CompactResult(g, cells, stats)
 
@@ -261,7 +259,7 @@ def _rounds(
     stats: dict[str, int],
 ) -> tuple[Gaussians, Tensor]:
     """Deduplicate, merge and prune, round after round, until a round removes nothing (or
-    cfg.max_rounds); counts go to `stats`."""
+    cfg.max_rounds); counts go to `stats`. The result is in (view, row, column) order."""
     for _ in range(cfg.max_rounds):
         before = len(g)
         if cfg.dedup and len(cameras) > 1:
@@ -629,12 +627,12 @@ def _floor_scales(g: Gaussians, footprint: Tensor, which: Tensor | None = None) 
     which = torch.ones(len(g), dtype=torch.bool, device=g.means.device) if which is None else which
     floor = footprint[which, None] / math.sqrt(LOWPASS_RHO_SCALE)
     scales = g.scales.clone()
-    scales[which, :2] = torch.maximum(scales[which, :2], floor)
+    scales[which] = torch.maximum(scales[which], floor)
     covariances = g.explicit_covariances
     if covariances is not None:
         # Explicit covariances grow by the same amount along the surfel's tangents.
         R = g.rotations[which][..., :2]  # [W, 3, 2] tangent axes
-        extra = (floor.square() - g.scales[which, :2].square()).clamp_min(0)  # [W, 2]
+        extra = (floor.square() - g.scales[which].square()).clamp_min(0)  # [W, 2]
         covariances = covariances.clone()
         covariances[which] = covariances[which] + (R * extra[:, None, :]) @ R.transpose(-1, -2)
     return replace(g, scales=scales, explicit_covariances=covariances, validate=False)
