@@ -330,3 +330,31 @@ def test_refit_brings_the_picture_back_and_keeps_a_perfect_one():
     same = refit(rules.gaussians, rules.gaussians, cams, W, H, LEVELS[4])
     for name in ("sh", "opacities", "scales"):
         assert torch.equal(getattr(same, name), getattr(rules.gaussians, name)), name
+
+
+def test_recolouring_moves_colours_only_and_brings_the_picture_closer():
+    g, cams, _ = _checker_step()
+    g, cams = g.to(torch.float32), cams.to(dtype=torch.float32)
+    views = _views().to(dtype=torch.float32)
+
+    def error(small) -> float:  # the fit's objective, at views between the context views
+        total = 0.0
+        for s in LEVELS[4].refit_factors:
+            a = render(small, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
+            b = render(g, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
+            total += float((a.color - b.color).square().mean())
+        return total
+
+    plain = compact_surfels(g, cams, H, W, config=dataclasses.replace(LEVELS[4], recolour_steps=0))
+    coloured = compact_surfels(g, cams, H, W, 4)
+    # The same surfels in the same places, drawn as strongly: only their SH moved ...
+    assert torch.equal(coloured.cells, plain.cells)
+    for name in ("means", "quats", "scales", "opacities"):
+        assert torch.equal(getattr(coloured.gaussians, name), getattr(plain.gaussians, name)), name
+    assert not torch.equal(coloured.gaussians.sh, plain.gaussians.sh)
+    # ... so the blending weights pruning reads are the same (they are taken with colour 1) ...
+    assert torch.equal(
+        blending_weights(coloured.gaussians, views, W, H), blending_weights(plain.gaussians, views, W, H)
+    )
+    # ... and the picture is closer to the input's (0.0093 against 0.0111 when written).
+    assert error(coloured.gaussians) < 0.9 * error(plain.gaussians), (error(coloured.gaussians), error(plain.gaussians))

@@ -3,7 +3,8 @@
 The model predicts one surfel per pixel per context view (the paper's second stated limitation:
 "predicting one Gaussian per pixel can lead to redundant representations"). `compact` removes the
 redundancy in three steps, repeated until a round changes nothing; a round deduplicates (2), merges
-(3) and prunes (1) last, because merging needs whole blocks, which pruning would break up:
+(3) and prunes (1) last, because merging needs whole blocks, which pruning would break up. The
+strong levels then fit the survivors to the input's picture (4, 5):
 
 1. prune: surfels whose blending weight is small in every context view and in a few views
    interpolated between them. The weight of surfel i is sum over pixels of w_ip / A_p, where w_ip
@@ -40,12 +41,17 @@ redundancy in three steps, repeated until a round changes nothing; a round dedup
    them settle together on the picture the input made (and 2x keeps the surface closed when it is
    rendered finer). It runs only when steps 1-3 removed something; the rounds then run once more
    on its result (it moves weights and colours), without another refit.
+5. recolour (levels 3-5): what that last round pruned (surfels the refit faded) leaves colour
+   short around it, so the SH alone are fitted once more the same way. Weights are taken with
+   colour 1, and duplicates are found by geometry, so this cannot make anything prunable or a
+   duplicate; it can only let a block of now like-coloured surfels merge, which the rounds, run once
+   more, do (rarely, and few).
 
 Every surfel carries the pixel block it stands for (`CompactResult.cells`: view, row, column,
 size), so the result can be compacted again. Rounds repeat until nothing changes (every round that
 changes something removes surfels; `max_rounds` bounds them) and weights are always taken with the
 surfels in (view, row, column) order, so the result is a fixed point of the rounds and gets no
-refit when compacted again: compact at a fixed level is idempotent. It is deterministic (no
+refit or recolouring when compacted again: compact at a fixed level is idempotent. It is deterministic (no
 randomness; the compiled CPU renderer's gradients do not depend on threads).
 
 Written here because no library merges splats on a per-view quadtree with these surfel rules.
@@ -92,6 +98,7 @@ class CompactConfig:
     refit_steps: int = 0  # Adam steps fitting SH, opacity and scales to the input's renders (0: none)
     refit_factors: tuple[int, ...] = (1, 2)  # resolutions (times the context views') the refit compares at
     refit_lr: float = 0.005  # Adam rate of SH and log-scales (opacity logits take 4x)
+    recolour_steps: int = 0  # Adam steps fitting only SH after the refit's round (0: none; see compact_surfels)
 
     def __post_init__(self) -> None:
         if self.prune_weight < 0:
@@ -111,6 +118,8 @@ class CompactConfig:
                 f"compact: prune_passes >= 1 and integer prune_factors >= 1 expected, got {self.prune_passes}, "
                 f"{self.prune_factors}"
             )
+        if self.recolour_steps < 0:
+            raise SurfSplatInputError(f"compact.recolour_steps: expected >= 0, got {self.recolour_steps}")
         if self.refit_steps < 0 or not self.refit_lr > 0 or not all(int(f) == f >= 1 for f in self.refit_factors):
             raise SurfSplatInputError(
                 "compact: refit_steps >= 0, refit_lr > 0 and integer refit_factors >= 1 expected, got "
@@ -134,6 +143,7 @@ _LEVEL_3 = CompactConfig(
     dedup_distance=3.0,
     dedup_normal_degrees=30.0,
     refit_steps=50,
+    recolour_steps=50,
 )
 _LEVEL_4 = replace(_LEVEL_3, prune_weight=1.3, merge_levels=4, dedup_distance=6.0, dedup_normal_degrees=90.0)
 LEVELS: dict[int, CompactConfig] = {
@@ -153,7 +163,7 @@ LEVELS: dict[int, CompactConfig] = {
         ring_tolerance=1.5,
     ),
 }
-DEFAULT_LEVEL = 3  # the strongest level measured within 0.1 dB everywhere (docs/compact.json)
+DEFAULT_LEVEL = 4  # the strongest level measured within 0.1 dB (mean) on every scene set (docs/compact.json)
 
 
 def level_config(level: int) -> CompactConfig:
@@ -243,6 +253,14 @@ def compact_surfels(
         # second refit). The result is a fixed point of the rounds, and a compacted input that the
         # rounds leave as it is gets no refit, so compacting it again changes nothing.
         g, cells = _rounds(g, cells, cameras, probe_cameras, height, width, cfg, render_args, stats)
+        # What that round pruned leaves its neighbours' colours short: the SH alone are fitted once
+        # more. Weights (taken with colour 1), duplicates and pruning do not depend on colours, so
+        # the rounds on its result can at most merge blocks the new colours made alike; their result
+        # is a fixed point again.
+        if cfg.recolour_steps > 0:
+            recolour = replace(cfg, refit_steps=cfg.recolour_steps)
+            g = refit(g, gaussians.detach(), probe_cameras, width, height, recolour, *render_args, colours_only=True)
+            g, cells = _rounds(g, cells, cameras, probe_cameras, height, width, cfg, render_args, stats)
     stats["output"] = len(g)
     return CompactResult(g, cells, stats)
 
@@ -441,6 +459,7 @@ def refit(
     mode: RenderMode = "surfel",
     backend: Backend = "auto",
     alpha_threshold: float | None = 0.001,
+    colours_only: bool = False,
 ) -> Gaussians:
     """`student` with SH, opacities and tangent scales fitted to `teacher`'s renders (step 4).
 
@@ -449,6 +468,7 @@ def refit(
     so a hole costs colour too); cfg.refit_steps Adam steps. Opacities are
     fitted as logits and scales as logarithms, so both stay in range; the third scale (a surfel's
     zero thickness) is kept, and so are explicit covariances (their scales do not render).
+    colours_only: fit the SH alone; opacities and scales come back exactly as they went in (step 5).
     """
     from .render import render
 
@@ -461,17 +481,18 @@ def refit(
     sh = student.sh.clone().requires_grad_(True)
     logits = torch.logit(student.opacities.clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
     # Explicit covariances (the release's adapter) render without the scales: those are not fitted.
-    fit_scales = student.explicit_covariances is None
+    logits.requires_grad_(not colours_only)
+    fit_scales = student.explicit_covariances is None and not colours_only
     log_scales = student.scales[:, :2].log().requires_grad_(fit_scales)
     thickness = student.scales[:, 2:]
-    optimizer = torch.optim.Adam(
-        [
-            {"params": [sh, log_scales] if fit_scales else [sh], "lr": cfg.refit_lr},
-            {"params": [logits], "lr": 4 * cfg.refit_lr},
-        ]
-    )
+    groups = [{"params": [sh, log_scales] if fit_scales else [sh], "lr": cfg.refit_lr}]
+    if not colours_only:
+        groups.append({"params": [logits], "lr": 4 * cfg.refit_lr})
+    optimizer = torch.optim.Adam(groups)
 
     def current() -> Gaussians:
+        if colours_only:
+            return replace(student, sh=sh, validate=False)
         scales = torch.cat((log_scales.exp(), thickness), dim=-1)
         return replace(student, sh=sh, opacities=torch.sigmoid(logits), scales=scales, validate=False)
 
@@ -492,11 +513,12 @@ def refit(
             loss = loss_of(g)
         if float(loss.detach()) < best_loss:
             best_loss = float(loss.detach())
-            best = (
-                student
-                if step == 0
-                else replace(g, sh=sh.detach(), opacities=g.opacities.detach(), scales=g.scales.detach())
-            )
+            if step == 0:
+                best = student
+            elif colours_only:  # opacities and scales exactly as they came (no round trip through logits)
+                best = replace(student, sh=sh.detach(), validate=False)
+            else:
+                best = replace(g, sh=sh.detach(), opacities=g.opacities.detach(), scales=g.scales.detach())
         if not last:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
