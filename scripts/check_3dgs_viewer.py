@@ -93,7 +93,7 @@ def main() -> None:
     plain = to_uint8(render(full, viewpoint, args.view, args.view, mode="ewa", alpha_threshold=None).color[0])
     settings_file = args.out / "viewer_settings.json"
     settings_file.write_text(json.dumps(viewer_settings(viewpoint), indent=1))
-    report = {"checkpoint": label, "level": args.level, "seed": args.seed, "viewer": tool, "files": {}}
+    report = {"checkpoint": label, "level": args.level, "seed": args.seed, "viewer": " ".join(tool), "files": {}}
     pictures = {"surfsplat renderer, full": ours, "surfsplat renderer as 3DGS (EWA, no alpha normalization)": plain}
     for name, g in (("full", full), ("compact", small)):
         ply = save_ply(turned(g), args.out / f"{name}_3dgs.ply")
@@ -168,11 +168,18 @@ def run(command: list[str]) -> str:
 
 
 def screenshot(page: Path, size: int) -> np.ndarray:
-    """The page's canvas, its buttons hidden, once two captures a second apart agree."""
-    with Browser(chromium(), page.resolve().as_uri(), size, size) as browser:
-        browser.wait_for(lambda image: image.std() > 5, settle=5.0, timeout=120)
+    """The page's canvas, its buttons hidden, once two captures a second apart are the same picture.
+
+    Without an animation track in its settings the viewer makes one (an orbit around the scene, or
+    a figure of eight inside it) and plays it from the initial camera; `noanim` keeps it paused
+    there and `fullload` shows the splats once all are loaded, so the picture is taken from the
+    settings' camera. "The same" is taken strictly (a still frame drawn in software repeats
+    exactly)."""
+    url = page.resolve().as_uri() + "?noanim&noui&fullload"
+    with Browser(chromium(), url, size, size) as browser:
+        browser.wait_for(lambda image: image.std() > 5, settle=5.0, timeout=120, alike=0.02)
         browser.call("Runtime.evaluate", expression=HIDE_UI)
-        return browser.wait_for(lambda image: image.std() > 5, settle=2.0, timeout=60)
+        return browser.wait_for(lambda image: image.std() > 5, settle=2.0, timeout=120, alike=0.02)
 
 
 def picture_psnr(a: np.ndarray, b: np.ndarray) -> float:

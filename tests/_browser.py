@@ -112,19 +112,25 @@ class Browser:
         return iio.imread(io.BytesIO(base64.b64decode(data)))[..., :3]
 
     def wait_for(
-        self, ready: Callable[[np.ndarray], bool], settle: float = 2.0, steady: bool = True, timeout: float = 60.0
+        self,
+        ready: Callable[[np.ndarray], bool],
+        settle: float = 2.0,
+        steady: bool = True,
+        timeout: float = 60.0,
+        alike: float = 1.0,
     ) -> np.ndarray:
         """Capture after `settle` seconds, then every second until `ready(image)` holds, with `steady`
-        for two captures in a row that are alike (viser fades splats in over several frames after
-        they arrive, and a frame drawn in software takes seconds on a loaded machine); after
-        `timeout` seconds the last capture is returned for the test to judge."""
+        for two captures in a row that are alike (mean absolute difference below `alike`, in 0..255;
+        viser fades splats in over several frames after they arrive, and a frame drawn in software
+        takes seconds on a loaded machine); after `timeout` seconds the last capture is returned for
+        the test to judge."""
         deadline = time.monotonic() + timeout
         time.sleep(settle)
         previous = None
         while True:
             image = self.capture()
-            alike = not steady or (previous is not None and np.abs(image.astype(int) - previous).mean() < 1.0)
-            if (ready(image) and alike) or time.monotonic() > deadline:
+            same = not steady or (previous is not None and np.abs(image.astype(int) - previous).mean() < alike)
+            if (ready(image) and same) or time.monotonic() > deadline:
                 return image
             previous = image.astype(int)
             time.sleep(1.0)
