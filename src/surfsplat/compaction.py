@@ -129,8 +129,9 @@ class CompactConfig:
 
 # Presets of `--compact LEVEL`: each level merges one quadtree level deeper and tolerates more.
 # From level 3 on, pruning takes weights at 1x and 2x, one neighbour at a time, and floors the
-# survivors' scales; level 4 prunes below 1.3 pixels' worth (thinning overlapping views' layers to
-# one), level 5 below 2 and merges across larger colour and shape differences.
+# survivors' scales, and the survivors are refitted and recoloured; level 4 (the default) prunes
+# below 1.3 pixels' worth (thinning overlapping views' layers to one), level 5 below 2 and merges
+# across larger colour and shape differences.
 _LEVEL_3 = CompactConfig(
     prune_weight=0.5,
     prune_factors=(1, 2),
