@@ -9,6 +9,7 @@ Rendering uses the torch reference backend in float64.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -305,18 +306,21 @@ def test_explicit_covariances_compact_like_surfels():
     assert (after.alpha - before.alpha).abs().mean() < 0.1
 
 
+def _fit_error(small, reference) -> float:
+    """The refit's objective at views between the context views: colour MSE at each refit factor."""
+    views = _views().to(dtype=torch.float32)
+    total = 0.0
+    for s in LEVELS[4].refit_factors:
+        a = render(small, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
+        b = render(reference, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
+        total += float((a.color - b.color).square().mean())
+    return total
+
+
 def test_refit_brings_the_picture_back_and_keeps_a_perfect_one():
     g, cams, _ = _checker_step()
     g, cams = g.to(torch.float32), cams.to(dtype=torch.float32)
-    views = _views().to(dtype=torch.float32)
-
-    def error(small) -> float:  # the refit's objective, at views between the context views
-        total = 0.0
-        for s in LEVELS[4].refit_factors:
-            a = render(small, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
-            b = render(g, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
-            total += float((a.color - b.color).square().mean())
-        return total
+    error = functools.partial(_fit_error, reference=g)
 
     rules = compact_surfels(g, cams, H, W, config=NO_REFIT[4])
     fitted = compact_surfels(g, cams, H, W, 4)
@@ -336,14 +340,7 @@ def test_recolouring_moves_colours_only_and_brings_the_picture_closer():
     g, cams, _ = _checker_step()
     g, cams = g.to(torch.float32), cams.to(dtype=torch.float32)
     views = _views().to(dtype=torch.float32)
-
-    def error(small) -> float:  # the fit's objective, at views between the context views
-        total = 0.0
-        for s in LEVELS[4].refit_factors:
-            a = render(small, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
-            b = render(g, views.scaled(s), W * s, H * s, alpha_threshold=0.001)
-            total += float((a.color - b.color).square().mean())
-        return total
+    error = functools.partial(_fit_error, reference=g)
 
     plain = compact_surfels(g, cams, H, W, config=dataclasses.replace(LEVELS[4], recolour_steps=0))
     coloured = compact_surfels(g, cams, H, W, 4)
