@@ -35,12 +35,13 @@ strong levels then fit the survivors to the input's picture (4, 5):
    a coarser pixel grid: same overlap; the renderer's low-pass filter counts), its opacity the mean
    and its SH the alpha-mass-weighted mean. Depth and colour edges keep full resolution.
 4. refit (levels 3-5): the surviving surfels' SH, opacities and tangent scales are fitted by Adam
-   to the renders of the input reconstruction at the pruning pass's views, at 1x and 2x their
-   resolution (mean squared colour error); positions, rotations and the cells stay.
-   Steps 1-3 each replace several surfels by one chosen by a local rule; this step lets all of
-   them settle together on the picture the input made (and 2x keeps the surface closed when it is
-   rendered finer). It runs only when steps 1-3 removed something; the rounds then run once more
-   on its result (it moves weights and colours), without another refit.
+   to the renders of the input reconstruction at the pruning pass's views, at their resolution
+   (mean squared colour error; `refit_factors` adds finer ones, which measured no better at x4,
+   since the floored scales already close the surface there, and worse at x1); positions,
+   rotations and the cells stay. Steps 1-3 each replace several surfels by one chosen by a local
+   rule; this step lets all of them settle together on the picture the input made. It runs only
+   when steps 1-3 removed something; the rounds then run once more on its result (it moves
+   weights and colours), without another refit.
 5. recolour (levels 3-5): what that last round pruned (surfels the refit faded) leaves colour
    short around it, so the SH alone are fitted once more the same way. Weights are taken with
    colour 1, and duplicates are found by geometry, so this cannot make anything prunable or a
@@ -96,7 +97,7 @@ class CompactConfig:
     scale_floor: bool = False  # survivors' tangent scales at least their footprint's low-pass size (see _floor_scales)
     max_rounds: int = 6  # prune/dedup/merge rounds at most (stops earlier when a round changes nothing)
     refit_steps: int = 0  # Adam steps fitting SH, opacity and scales to the input's renders (0: none)
-    refit_factors: tuple[int, ...] = (1, 2)  # resolutions (times the context views') the refit compares at
+    refit_factors: tuple[int, ...] = (1,)  # resolutions (times the context views') the refit compares at
     refit_lr: float = 0.005  # Adam rate of SH and log-scales (opacity logits take 4x)
     recolour_steps: int = 0  # Adam steps fitting only SH after the refit's round (0: none; see compact_surfels)
 
