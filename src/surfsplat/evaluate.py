@@ -42,6 +42,7 @@ from .evaluate_geometry import COLUMNS as GEOMETRY_COLUMNS
 from .evaluate_geometry import GeometryConfig, GeometryEvaluator, GeometryReport, format_geometry_table
 from .geometry.cameras import Cameras
 from .log import progress
+from .metrics.closure import ClosureAccumulator, ClosureMetrics, format_closure_table
 from .metrics.depth import depth_metrics
 from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
 from .metrics.lpips import Lpips, LpipsUnavailable
@@ -266,6 +267,20 @@ class ScenePrediction:
     alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
     render_mode: str = "surfel"  # rasterization the renders used ("surfel" or "ewa")
     surfels: int = 0  # surfels rendered (after compaction when asked for)
+    scale_multipliers: Tensor | None = None  # [N, 2] the adapter's Eq. 9 multipliers (None once compacted)
+    multiplier_range: float | None = None  # the clamp's r of those multipliers
+
+    def closure_surfels(self) -> tuple[Tensor, Tensor | None, float | None]:
+        """(pixel footprints [N], multipliers, r) of the rendered surfels, for `ClosureAccumulator`:
+        as predicted, each surfel's own context view judges its size; compacted, the finest view."""
+        from .metrics.closure import pixel_footprints, views_of_pixels
+
+        cams = self.sample.context_cameras
+        h, w = self.sample.context_images.shape[-2:]
+        predicted = self.scale_multipliers is not None
+        views = views_of_pixels(len(cams), h, w) if predicted else None
+        footprints = pixel_footprints(self.gaussians, cams.to(self.gaussians.means.device), w, h, views)
+        return footprints, self.scale_multipliers, self.multiplier_range
 
 
 @torch.no_grad()
@@ -289,6 +304,7 @@ def predict_sample(
     _sync(device)
     forward = time.perf_counter() - start
     gaussians = prediction.gaussians.select(0).to(torch.float32)
+    multipliers = prediction.adapter_output.scales_mul[0].float()
     rmode = decoder_mode(model.cfg.adapter, mode)
     tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
     if compact is not None:
@@ -296,6 +312,7 @@ def predict_sample(
 
         ch, cw = sample.context_images.shape[-2:]
         gaussians = compact_gaussians(gaussians, cams, ch, cw, compact, mode=rmode, alpha_threshold=tau)
+        multipliers = None  # compacted surfels no longer stand one per pixel
     targets = sample.target_cameras.to(device=device, dtype=torch.float32)
     renders, seconds = {}, {}
     for s in factors:
@@ -303,8 +320,19 @@ def predict_sample(
         renders[s] = render(gaussians, targets.scaled(float(s)), w * s, h * s, mode=rmode, alpha_threshold=tau)
         _sync(device)
         seconds[s] = time.perf_counter() - start
+    fixed = model.cfg.adapter.prior != "surface"  # regressed scales have no multiplier
     return ScenePrediction(
-        sample, gaussians, prediction.depths[0], renders, forward, seconds, tau, rmode, len(gaussians)
+        sample,
+        gaussians,
+        prediction.depths[0],
+        renders,
+        forward,
+        seconds,
+        tau,
+        rmode,
+        len(gaussians),
+        scale_multipliers=None if fixed else multipliers,
+        multiplier_range=None if fixed or multipliers is None else model.cfg.adapter.scale_multiplier_range,
     )
 
 
@@ -350,6 +378,7 @@ class EvaluationResult:
     geometry: GeometryReport | None = None  # with EvalConfig.geometry: geometry against exact truth
     surfels_mean: float = 0.0  # surfels rendered per entry (after compaction when asked for)
     compact: int | None = None  # the compaction level, None: as predicted
+    closure: ClosureMetrics | None = None  # does the surface stay closed at every factor (target views)
 
     def to_json(self) -> dict:
         return {
@@ -367,6 +396,7 @@ class EvaluationResult:
             "num_entries": self.num_entries,
             "surfels_mean": self.surfels_mean,
             "compact_level": self.compact,
+            **({"closure": self.closure.to_json()} if self.closure is not None else {}),
         }
 
 
@@ -389,6 +419,7 @@ def evaluate(
     forward, surfels, renders = [], [], {s: [] for s in config.factors}
     depth_rows: dict[str, dict[str, float]] = {}
     geometry = GeometryEvaluator(config.geometry) if config.geometry is not None else None
+    closure = ClosureAccumulator()
     started = time.perf_counter()
     bar = progress(samples, total=total, enabled=config.progress, desc=f"eval {name}", unit="scene")
     for sample in bar:
@@ -396,6 +427,8 @@ def evaluate(
             warned = check_resolution(model, *sample.context_images.shape[-2:]) is not None
         pred = predict_sample(model, sample, config.factors, config.mode, compact=config.compact)
         surfels.append(pred.surfels)
+        closure.add_alpha({s: r.alpha for s, r in pred.renders.items()})
+        closure.add_surfels(pred.gaussians, *pred.closure_surfels())
         evaluator.add_scene(sample.key, sample.target_images.to(device), {s: r.color for s, r in pred.renders.items()})
         forward.append(pred.seconds_forward)
         for s, t in pred.seconds_render.items():
@@ -430,6 +463,7 @@ def evaluate(
         geometry=geometry.report() if geometry is not None else None,
         surfels_mean=sum(surfels) / n,
         compact=config.compact,
+        closure=closure.report(),
     )
 
 
@@ -486,6 +520,10 @@ def format_results(results: dict[str, EvaluationResult]) -> str:
     geometry = {n: r.geometry for n, r in results.items() if r.geometry is not None}
     if geometry:
         lines += ["", format_geometry_table(geometry)]
+    closure = {n: r.closure for n, r in results.items() if r.closure is not None}
+    if closure:
+        lines += ["", "Closure (target views; a closed surface keeps its alpha at every factor):"]
+        lines += [format_closure_table(closure)]
     return "\n".join(lines)
 
 

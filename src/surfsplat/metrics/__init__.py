@@ -1,6 +1,8 @@
 """Evaluation metrics: PSNR, SSIM (scikit-image's published call), LPIPS-VGG, depth errors, HRRC,
-geometry (normals, point-set accuracy / completeness / Chamfer / F-score) and DTU's surface protocol."""
+geometry (normals, point-set accuracy / completeness / Chamfer / F-score), DTU's surface protocol and
+closure (does a surface of surfels keep its alpha when rendered at a higher resolution)."""
 
+from .closure import ClosureAccumulator, ClosureMetrics, closure_metrics, format_closure_table
 from .depth import SCANNET_DEPTH_RANGE, DepthMetrics, depth_metrics
 from .dtu import DtuMetrics, DtuReference, dtu_chamfer, dtu_chamfer_mesh, load_dtu_reference
 from .geometry import (
@@ -33,6 +35,10 @@ from .lpips import (
 )
 
 __all__ = [
+    "ClosureAccumulator",
+    "ClosureMetrics",
+    "closure_metrics",
+    "format_closure_table",
     "SCANNET_DEPTH_RANGE",
     "DepthMetrics",
     "DtuMetrics",

@@ -57,7 +57,13 @@ class AdapterConfig:
     opacity_max: float = 0.6  # tau_opa of Sec. 3.4; 1.0 = "w/o FAB" (also turns alpha normalization off)
     sh_degree: int = 2  # SH degree of the colour, 0..3
     tangent_clamp: float = 0.1  # tangent components clamped to [-g, g] before the scales (depth edges)
+    # Unit of g: "world" (the paper's and the release's absolute bound, so the largest surfel depends
+    # on the scene's scale) or "footprint" (g times the pixel's footprint z / f, scale-invariant).
+    tangent_clamp_unit: Literal["world", "footprint"] = "world"
     scale_multiplier_range: float = 3.0  # multipliers clamp(softplus(raw), 1/r, r) (Eq. 9)
+    # Gradient of that clamp: "clamp" (zero outside [1/r, r], plain autograd) or "inward" (the same
+    # values, but a multiplier stuck at a bound still gets the gradients that pull it back inside).
+    multiplier_gradient: Literal["clamp", "inward"] = "clamp"
     alpha_threshold_train: float = 0.1  # tau_alpha of Eq. 11 while training
     alpha_threshold_eval: float = 0.001  # tau_alpha of Eq. 11 at evaluation
     scale_min: float = 1e-10  # final scales clamped to [scale_min, scale_max] (the release's bounds)
@@ -66,7 +72,13 @@ class AdapterConfig:
     regressed_scale_shift: float = 4.0  # prior="none": scale = softplus(raw - shift), DepthSplat's form
 
     def __post_init__(self) -> None:
-        choices = {"mode": ("paper", "official"), "prior": ("surface", "none"), "primitive": ("surfel", "gaussian3d")}
+        choices = {
+            "mode": ("paper", "official"),
+            "prior": ("surface", "none"),
+            "primitive": ("surfel", "gaussian3d"),
+            "tangent_clamp_unit": ("world", "footprint"),
+            "multiplier_gradient": ("clamp", "inward"),
+        }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise SurfSplatInputError(f"adapter.{name}: expected one of {allowed}, got {getattr(self, name)!r}")
@@ -74,6 +86,11 @@ class AdapterConfig:
             raise SurfSplatInputError(
                 "adapter.mode: 'official' reproduces the release, which has prior='surface' and primitive='surfel'; "
                 f"got prior={self.prior!r}, primitive={self.primitive!r}"
+            )
+        if self.mode == "official" and (self.tangent_clamp_unit, self.multiplier_gradient) != ("world", "clamp"):
+            raise SurfSplatInputError(
+                "adapter.mode: 'official' reproduces the release, which clamps tangents in world units with a plain "
+                f"clamp; got tangent_clamp_unit={self.tangent_clamp_unit!r}, multiplier_gradient={self.multiplier_gradient!r}"
             )
         if not 0 < self.opacity_max <= 1:
             raise SurfSplatInputError(f"adapter.opacity_max: expected a value in (0, 1], got {self.opacity_max}")
@@ -186,13 +203,15 @@ def rodrigues_from_z(normals: Tensor) -> Tensor:
     return eye + V + (V @ V) / (1 + nz)[..., None, None]
 
 
-def surface_frames(points: Tensor, tangent_clamp: float | None = None) -> SurfaceFrames:
+def surface_frames(points: Tensor, tangent_clamp: float | tuple[Tensor, Tensor] | None = None) -> SurfaceFrames:
     """The surface continuity prior (paper Sec. 3.3): normals, rotations and base scales per pixel.
 
     points: [..., H, W, 3] point map in a camera frame with OpenCV axes (x right, y down, z forward),
             e.g. `unproject_depth(depth, K)`; H, W >= 3.
     tangent_clamp: clamp each tangent component to [-g, g] before the scales (not the normals), so
-            depth discontinuities do not make huge surfels; None leaves them unclamped.
+            depth discontinuities do not make huge surfels; a float g for every pixel, or per-pixel
+            bounds (g_u, g_v), each [..., H, W, 1], for t1 and t2 (see `footprint_bounds`); None
+            leaves them unclamped.
 
     Eq. 2: t1, t2 = rightward and downward Sobel tangents (virtual neighbours minus the centre).
     Eq. 3: n = (t1 x t2) / |t1 x t2|, oriented so n_z >= 0: n0 = (0, 0, 1) is a fronto-parallel
@@ -216,7 +235,10 @@ def surface_frames(points: Tensor, tangent_clamp: float | None = None) -> Surfac
     normals = torch.where(defined, n, n0)
     rotations = rodrigues_from_z(normals)
 
-    if tangent_clamp is not None:
+    if isinstance(tangent_clamp, tuple):
+        g_u, g_v = tangent_clamp
+        t1c, t2c = torch.maximum(torch.minimum(t1, g_u), -g_u), torch.maximum(torch.minimum(t2, g_v), -g_v)
+    elif tangent_clamp is not None:
         t1c, t2c = t1.clamp(-tangent_clamp, tangent_clamp), t2.clamp(-tangent_clamp, tangent_clamp)
     else:
         t1c, t2c = t1, t2
@@ -228,6 +250,43 @@ def surface_frames(points: Tensor, tangent_clamp: float | None = None) -> Surfac
         dim=-1,
     )
     return SurfaceFrames(normals, rotations, base_scales, torch.stack((t1, t2), dim=-2))
+
+
+def footprint_bounds(points: Tensor, K: Tensor, multiple: float) -> tuple[Tensor, Tensor]:
+    """Per-pixel tangent bounds `multiple` times the pixel footprint: (g z / f_x, g z / f_y).
+
+    points: [..., H, W, 3] camera-frame point map; K: [..., 3, 3]. A fronto-parallel plane's Sobel
+    tangent is exactly z / f per pixel, so the bound is `multiple` pixels' worth of surface at that
+    depth whatever the scene's units (the world bound of the paper is not: the same g makes surfels
+    of far walls smaller than their pixels and lets near ones grow).
+    """
+    z = points[..., 2:].clamp_min(0)
+    fx = K[..., 0, 0][..., None, None, None]
+    fy = K[..., 1, 1][..., None, None, None]
+    return multiple * z / fx, multiple * z / fy
+
+
+class _InwardClamp(torch.autograd.Function):
+    """clamp(x, lo, hi) whose gradient also passes where x is outside [lo, hi] and the gradient
+    step (x - lr * grad) would move it towards the range; elsewhere outside, zero as a clamp's."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, lo: float, hi: float) -> Tensor:
+        ctx.save_for_backward(x)
+        ctx.bounds = (lo, hi)
+        return x.clamp(lo, hi)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
+        (x,) = ctx.saved_tensors
+        lo, hi = ctx.bounds
+        passes = ((x >= lo) & (x <= hi)) | ((x < lo) & (grad < 0)) | ((x > hi) & (grad > 0))
+        return torch.where(passes, grad, torch.zeros_like(grad)), None, None
+
+
+def clamp_multipliers(x: Tensor, lo: float, hi: float, gradient: Literal["clamp", "inward"]) -> Tensor:
+    """Eq. 9's clamp of the scale multipliers; the values are the same for both gradient rules."""
+    return _InwardClamp.apply(x, lo, hi) if gradient == "inward" else x.clamp(lo, hi)
 
 
 # ---------------------------------------------------------------------------------------------- official
@@ -380,10 +439,14 @@ class GaussianAdapter(torch.nn.Module):
 
         raw_scale = rearrange(raw[:, :, ch["scale"]], "b v c h w -> b v h w c")
         if cfg.prior == "surface":
-            frames = surface_frames(points_cam, cfg.tangent_clamp)
+            bounds = cfg.tangent_clamp
+            if cfg.tangent_clamp_unit == "footprint":
+                bounds = footprint_bounds(points_cam.detach(), K, cfg.tangent_clamp)
+            frames = surface_frames(points_cam, bounds)
             rot_cam = frames.rotations
             r = cfg.scale_multiplier_range
-            multipliers = F.softplus(raw_scale).clamp(1 / r, r)  # Eq. 9's sigma-hat in [1/3, 3]
+            # Eq. 9's sigma-hat in [1/3, 3]
+            multipliers = clamp_multipliers(F.softplus(raw_scale), 1 / r, r, cfg.multiplier_gradient)
             scales = frames.base_scales * multipliers[..., :2]  # Eq. 9
             if cfg.primitive == "gaussian3d":
                 # No base scale exists along the normal; use the mean tangent scale, times its multiplier.

@@ -87,6 +87,10 @@ class DataConfig:
     synthetic_length: int = 100_000  # number of distinct synthetic training rooms
     synthetic_seed: int = 0  # seed of the synthetic training rooms (validation uses a disjoint seed)
     synthetic_supersample: int = 2  # rays per pixel per axis for synthetic images (anti-aliasing)
+    # Native truth of the targets at s times the resolution (procedural rooms), for loss.highres_weight:
+    # 0 = none; a random highres_crop-pixel square of the s-times image per target (0 = all of it).
+    highres_factor: int = 0
+    highres_crop: int = 0
     cache_samples: bool = False  # keep generated samples in memory (small synthetic pools on CPU)
     val_samples: int = 16  # validation samples per evaluation (split across ranks)
     num_workers: int = 0  # data-loader worker processes per rank
@@ -151,6 +155,20 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(0 <= d.flip_probability <= 1, "data.flip_probability", "a probability", d.flip_probability)
     need(d.synthetic_length >= 1, "data.synthetic_length", "at least 1", d.synthetic_length)
     need(d.synthetic_supersample >= 1, "data.synthetic_supersample", "at least 1", d.synthetic_supersample)
+    need(d.highres_factor == 0 or d.highres_factor >= 2, "data.highres_factor", "0 (off) or >= 2", d.highres_factor)
+    need(d.highres_crop >= 0, "data.highres_crop", "0 (whole image) or a size in pixels", d.highres_crop)
+    need(
+        d.highres_factor == 0 or d.dataset == "synthetic",
+        "data.highres_factor",
+        "0 with chunk datasets (native high-resolution truth exists for procedural rooms)",
+        d.highres_factor,
+    )
+    need(
+        (config.loss.highres_weight > 0 or config.loss.closure_weight > 0) <= (d.highres_factor > 0),
+        "loss.highres_weight/closure_weight",
+        "data.highres_factor >= 2 (they compare renders with the high-resolution truth)",
+        (config.loss.highres_weight, config.loss.closure_weight),
+    )
     need(d.val_samples >= 0, "data.val_samples", "a count >= 0", d.val_samples)
     need(d.num_workers >= 0, "data.num_workers", "a count >= 0", d.num_workers)
     need(config.steps >= 1, "steps", "at least 1", config.steps)

@@ -55,6 +55,8 @@ class ViewBatch:
     near: Tensor  # [B, V]
     far: Tensor  # [B, V]
     depths: Tensor | None = None  # [B, V, 1, H, W] ground-truth camera-z depth where the source has it
+    images_hr: Tensor | None = None  # [B, V, 3, h, w] native truth of a window at s times the resolution
+    K_hr: Tensor | None = None  # [B, V, 3, 3] intrinsics of that window (K scaled by s, shifted by the crop)
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
@@ -66,10 +68,21 @@ class ViewBatch:
         """The B*V cameras, batch-major (as the model and the decoder expect)."""
         return Cameras(self.c2w.flatten(0, 1), self.K.flatten(0, 1), validate=False)
 
+    def highres_cameras(self) -> Cameras:
+        """The B*V cameras of the high-resolution windows (`images_hr`)."""
+        if self.K_hr is None:
+            raise SurfSplatInputError("this batch has no high-resolution truth (data.highres_factor is 0)")
+        return Cameras(self.c2w.flatten(0, 1), self.K_hr.flatten(0, 1), validate=False)
+
     def to(self, device: torch.device) -> ViewBatch:
+        def move(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.to(device, non_blocking=True)
+
         return ViewBatch(
             *(t.to(device, non_blocking=True) for t in (self.images, self.c2w, self.K, self.near, self.far)),
-            depths=None if self.depths is None else self.depths.to(device, non_blocking=True),
+            depths=move(self.depths),
+            images_hr=move(self.images_hr),
+            K_hr=move(self.K_hr),
         )
 
 
@@ -95,6 +108,8 @@ def _views(batch: dict[str, Tensor], where: str) -> ViewBatch:
         near=batch["near"].float(),
         far=batch["far"].float(),
         depths=batch["depth"].float() if "depth" in batch else None,
+        images_hr=batch["image_hr"].float() if "image_hr" in batch else None,
+        K_hr=batch["K_hr"].float() if "K_hr" in batch else None,
     )
 
 
@@ -114,11 +129,23 @@ def flip_views(views: ViewBatch, flip: Tensor) -> ViewBatch:
         return views
     images, c2w, K = views.images.clone(), views.c2w.clone(), views.K.clone()
     depths = None if views.depths is None else views.depths.clone()
+    highres = None if views.images_hr is None else (views.images_hr.clone(), views.K_hr.clone())
     for i in flip.nonzero().flatten().tolist():
         images[i], c2w[i], K[i] = horizontal_flip(views.images[i], views.c2w[i], views.K[i])
         if depths is not None:
             depths[i] = views.depths[i].flip(-1)
-    return ViewBatch(images, c2w, K, views.near, views.far, depths)
+        if highres is not None:  # the window mirrors with its own width; the camera mirrors the same way
+            highres[0][i], _, highres[1][i] = horizontal_flip(views.images_hr[i], views.c2w[i], views.K_hr[i])
+    return ViewBatch(
+        images,
+        c2w,
+        K,
+        views.near,
+        views.far,
+        depths,
+        images_hr=None if highres is None else highres[0],
+        K_hr=None if highres is None else highres[1],
+    )
 
 
 def augment(batch: TrainBatch, probability: float, seed: int) -> TrainBatch:
@@ -329,6 +356,8 @@ def synthetic_dataset(config: DataConfig, validation: bool = False, with_depth: 
             num_target_views=config.num_target_views,
             supersample=config.synthetic_supersample,
             with_depth=validation or with_depth,
+            highres_factor=0 if validation else config.highres_factor,
+            highres_crop=config.highres_crop,
         )
     )
 

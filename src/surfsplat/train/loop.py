@@ -13,7 +13,9 @@ TensorBoard (`tensorboard --logdir <out_dir>/tensorboard`), written with torch's
 - scalars: loss/total, loss/mse, loss/lpips (and loss/depth, loss/normal when the loss supervises
   geometry); train/grad_norm, train/lr (the main group's rate),
   train/lr_vit (the pretrained ViT's), train/seconds_per_step, train/samples_per_second; at each
-  validation val/x{s}/{psnr,ssim,lpips}, val/depth/{abs_rel,delta1}, val/num_images. metrics.jsonl
+  validation val/x{s}/{psnr,ssim,lpips}, val/depth/{abs_rel,delta1}, val/closure/{closure,alpha_x{s},
+  undersized,multiplier_at_low} (`surfsplat.metrics.closure`), val/num_images; loss/highres and
+  loss/closure when the loss supervises close-ups. metrics.jsonl
   holds the same values, one JSON line per logged step.
 - images: train/context_target_render (context, target and render rows of one training sample)
   every image_every steps; val/x{s} (a held-out view's truth, upsampled as the metric compares it,
@@ -23,6 +25,7 @@ TensorBoard (`tensorboard --logdir <out_dir>/tensorboard`), written with torch's
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import logging
@@ -53,7 +56,7 @@ from ..model.checkpoint import (
     load_unimatch,
 )
 from ..model.decoder import decoder_mode, render_views
-from ..model.pretrained import resolve
+from ..model.pretrained import resolve, resolve_checkpoint, with_adapter
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
 from ..render.types import Backend, RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
@@ -76,7 +79,18 @@ from .distributed import (
     init_distributed,
     shutdown,
 )
-from .losses import GeometryTerms, ImageLoss, LossTerms, cascade_loss, geometry_loss, supervises_geometry
+from .losses import (
+    GeometryTerms,
+    HighresTerms,
+    ImageLoss,
+    LossTerms,
+    alpha_at_window,
+    cascade_loss,
+    geometry_loss,
+    highres_loss,
+    supervises_geometry,
+    supervises_highres,
+)
 from .schedule import learning_rate
 from .validation import validate
 
@@ -100,17 +114,35 @@ class TrainResult:
 
 
 # ------------------------------------------------------------------------------------------ setup
+# Adapter fields that decide the head's channel layout or what its channels mean as a whole: an
+# initial checkpoint must agree on these; the others may change between the runs.
+_ADAPTER_LAYOUT = ("mode", "prior", "primitive", "sh_degree")
+
+
 def build_model(config: TrainConfig) -> SurfSplat:
     """The network of `config.model`, with its initial weights (random, ours, released, pretrained
     branches). Names are resolved through the weights registry (fetched once when missing)."""
     m = config.model
     if m.init_checkpoint is not None:
-        model = load_checkpoint(resolve(m.init_checkpoint, role="model")[0])
-        if model.cfg.encoder != PRESETS[m.preset] or model.cfg.adapter != m.adapter:
+        model = load_checkpoint(resolve_checkpoint(resolve(m.init_checkpoint, role="model")[0]))
+        layout = [f for f in _ADAPTER_LAYOUT if getattr(model.cfg.adapter, f) != getattr(m.adapter, f)]
+        if model.cfg.encoder != PRESETS[m.preset] or layout:
             raise SurfSplatInputError(
-                f"model.init_checkpoint: {m.init_checkpoint} holds a different configuration than "
-                f"preset {m.preset!r} with the configured adapter"
+                f"model.init_checkpoint: {m.init_checkpoint} holds a different network than preset {m.preset!r} "
+                f"with the configured adapter" + (f" (adapter {', '.join(layout)} differ)" if layout else "")
             )
+        # Fields that only change how the head's channels are read (bounds, clamps, thresholds)
+        # follow the run's configuration: fine-tuning under a new rule is the point of setting them.
+        changed = {
+            f.name: getattr(m.adapter, f.name)
+            for f in dataclasses.fields(m.adapter)
+            if getattr(model.cfg.adapter, f.name) != getattr(m.adapter, f.name)
+        }
+        if changed:
+            before = model.cfg.adapter
+            model = with_adapter(model, changed)
+            shown = ", ".join(f"{k} {getattr(before, k)!r} -> {v!r}" for k, v in changed.items())
+            model.init_report = [f"adapter of {m.init_checkpoint} changed: {shown}"]
         return model
     model = SurfSplat(SurfSplatConfig(encoder=PRESETS[m.preset], adapter=m.adapter))
     reports = {}
@@ -283,6 +315,7 @@ class StepOutput:
     grad_norm: Tensor  # global gradient norm before clipping
     renders: list[Tensor]  # [B, V, 3, H, W] per render, coarse to final
     geometry: GeometryTerms | None = None  # depth / normal supervision when the loss has it
+    highres: HighresTerms | None = None  # close-up supervision when the loss has it
 
 
 def training_step(
@@ -308,7 +341,7 @@ def training_step(
     # Coarse cascade surfels first, the final ones last (the order cascade_loss weights); the
     # renderer always works in float32, at the training tau_alpha the adapter reports.
     coarse = intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far)
-    renders = [
+    decoded = [
         render_views(
             g.to(torch.float32),
             target.cameras(),
@@ -317,10 +350,31 @@ def training_step(
             mode=mode,
             alpha_threshold=prediction.alpha_threshold,
             backend=backend,
-        ).color
+        )
         for g in [*coarse, prediction.gaussians]
     ]
+    renders = [d.color for d in decoded]
     loss, terms = cascade_loss(loss_fn, renders, target.images)
+    highres = None
+    if supervises_highres(loss_fn.config):
+        if target.images_hr is None:
+            raise SurfSplatInputError(
+                "loss.highres_weight / loss.closure_weight need high-resolution truth, and this batch has none "
+                "(set data.highres_factor; procedural rooms have it)"
+            )
+        hh, ww = target.images_hr.shape[-2:]
+        close_up = render_views(
+            prediction.gaussians.to(torch.float32),
+            target.highres_cameras(),
+            ww,
+            hh,
+            mode=mode,
+            alpha_threshold=prediction.alpha_threshold,
+            backend=backend,
+        )
+        window = alpha_at_window(decoded[-1].alpha.detach(), target.K, target.K_hr, (hh, ww))
+        highres = highres_loss(loss_fn.config, close_up.color, close_up.alpha, target.images_hr, window)
+        loss = loss + highres.total
     geometry = None
     if supervises_geometry(loss_fn.config):
         if context.depths is None:
@@ -342,7 +396,7 @@ def training_step(
     else:
         optimizer.step()
     optimizer.zero_grad(set_to_none=True)
-    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders, geometry=geometry)
+    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders, geometry=geometry, highres=highres)
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -482,7 +536,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     result = TrainResult(
         out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step, checkpoint=resume_from
     )
-    pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, grad norm] not yet reduced
+    pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, highres, closure, grad norm] not reduced
     started = time.perf_counter()
     window_start, window_steps = started, 0
     try:
@@ -506,9 +560,10 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
             )
             loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
 
-            final, geometry = terms[-1], out.geometry
+            final, geometry, highres = terms[-1], out.geometry, out.highres
             zero = torch.zeros((), device=device)
             parts = [final.lpips] + ([geometry.depth, geometry.normal] if geometry is not None else [None, None])
+            parts += [highres.highres, highres.closure] if highres is not None else [None, None]
             pending.append(
                 torch.stack(
                     [
@@ -535,13 +590,14 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 values = {
                     "loss/total": float(last[0]),
                     "loss/mse": float(last[1]),
-                    "train/grad_norm": float(last[5]),
+                    "train/grad_norm": float(last[-1]),
                     "train/lr": lr,
                     **{f"train/lr_{g['name']}": g["lr"] for g in optimizer.param_groups if g["name"] == "vit"},
                     "train/samples_per_second": config.batch_size / seconds_per_step,
                     "train/seconds_per_step": seconds_per_step,
                 }
-                for column, (name, term) in enumerate(zip(("lpips", "depth", "normal"), parts), start=2):
+                names = ("lpips", "depth", "normal", "highres", "closure")
+                for column, (name, term) in enumerate(zip(names, parts), start=2):
                     if term is not None:
                         values[f"loss/{name}"] = float(last[column])
                 reporter.scalars(done, values)
@@ -570,12 +626,15 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     lpips=val_lpips,
                     factors=config.val_factors,
                     grids=grids,
+                    multiplier_range=(
+                        model.cfg.adapter.scale_multiplier_range if model.cfg.adapter.prior == "surface" else None
+                    ),
                 )
                 result.validation[done] = metrics
                 reporter.scalars(done, {f"val/{k}": v for k, v in metrics.items()})
                 for s, picture in grids.items():
                     reporter.image(done, f"val/x{s}", picture)
-                shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith("x"))
+                shown = ", ".join(f"{k} {v:.4f}" for k, v in metrics.items() if k.startswith(("x", "closure/closure")))
                 reporter.message(f"step {done}: validation {shown}")
 
             if done % config.checkpoint_every == 0 or is_last:

@@ -17,6 +17,15 @@ dense depth):
   from Sobel tangents of the unprojected depth exactly as the surface continuity prior takes them
   (Eq. 2-3), so a correct depth map gives zero and the term shapes what the surfels' rotations see.
 Pixels without truth (depth 0) are left out; for normals, every pixel of the 3x3 stencil must have it.
+
+Closed surfaces (beyond the paper; off by default). Supervising renders at the input's resolution only
+lets a surfel of a third of a pixel look as good as a whole one (the 2DGS screen-space low-pass widens
+it to about a pixel there, and forced alpha blending divides away the alpha it lacks), so nothing stops
+the network from shrinking its surfels until a closer view sees gaps. Where native truth exists at s
+times the resolution (procedural rooms, `data.highres_factor`), two terms see the close-up:
+- highres: MSE of the render at s times the resolution against that truth (a window of it);
+- closure: mean max(0, alpha_x1 - alpha_xs) over the window, the x1 render's alpha (no gradient)
+  sampled at the window's pixels: a continuous surface keeps its alpha at any resolution.
 """
 
 from __future__ import annotations
@@ -45,6 +54,8 @@ class LossConfig:
     intermediate_weight: float = 0.9  # base of the cascade weights 0.9^(n - i) (release default)
     depth_weight: float = 0.0  # context depth against true depth (relative L1); needs data with depth
     normal_weight: float = 0.0  # normals of the context depth against the true ones (1 - cos)
+    highres_weight: float = 0.0  # MSE at data.highres_factor times the resolution against native truth
+    closure_weight: float = 0.0  # alpha lost between the x1 render and the high-resolution one
 
 
 @dataclass
@@ -65,7 +76,8 @@ class ImageLoss(nn.Module):
 
     def __init__(self, config: LossConfig = LossConfig(), lpips: Lpips | None = None) -> None:
         super().__init__()
-        for name in ("mse_weight", "lpips_weight", "intermediate_weight", "depth_weight", "normal_weight"):
+        names = ("mse_weight", "lpips_weight", "intermediate_weight", "depth_weight", "normal_weight")
+        for name in (*names, "highres_weight", "closure_weight"):
             value = getattr(config, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise SurfSplatInputError(f"config.{name}: expected a finite number >= 0, got {value!r}")
@@ -149,6 +161,59 @@ def geometry_loss(config: LossConfig, depths: Tensor, true_depths: Tensor, K: Te
         normal_term = (1 - cos)[inside].mean() if bool(inside.any()) else depths.new_zeros(())
         total = total + config.normal_weight * normal_term
     return GeometryTerms(total=total, depth=depth_term, normal=normal_term)
+
+
+@dataclass
+class HighresTerms:
+    """The weighted sum of the close-up terms and each term (scalars, None when its weight is 0)."""
+
+    total: Tensor
+    highres: Tensor | None
+    closure: Tensor | None
+
+
+def supervises_highres(config: LossConfig) -> bool:
+    """Whether the loss renders the targets at the high-resolution truth's scale."""
+    return config.highres_weight > 0 or config.closure_weight > 0
+
+
+def alpha_at_window(alpha: Tensor, K: Tensor, K_hr: Tensor, size: tuple[int, int]) -> Tensor:
+    """The x1 alpha [B, V, 1, H, W] sampled (bilinear, edges clamped) at the pixel centres of the
+    high-resolution windows with intrinsics K_hr [B, V, 3, 3] and (height, width) `size`.
+
+    Both K describe one camera: a window pixel centre (x + 0.5, y + 0.5) sees the ray of x1 image
+    point K K_hr^-1 (x + 0.5, y + 0.5, 1), an affine map for pinhole intrinsics.
+    """
+    b, v, _, h, w = alpha.shape
+    hh, ww = size
+    to_x1 = (K @ torch.linalg.inv(K_hr)).flatten(0, 1)  # [B*V, 3, 3]
+    ys = torch.arange(hh, device=alpha.device, dtype=alpha.dtype) + 0.5
+    xs = torch.arange(ww, device=alpha.device, dtype=alpha.dtype) + 0.5
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    pix = torch.stack((gx, gy, torch.ones_like(gx)), -1).reshape(-1, 3)  # [hh*ww, 3]
+    uv = torch.einsum("nij,pj->npi", to_x1, pix)[..., :2]  # x1 pixel coordinates, centres at +0.5
+    grid = torch.stack((2 * uv[..., 0] / w - 1, 2 * uv[..., 1] / h - 1), -1).reshape(b * v, hh, ww, 2)
+    sampled = torch.nn.functional.grid_sample(
+        alpha.flatten(0, 1), grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
+    return sampled.reshape(b, v, 1, hh, ww)
+
+
+def highres_loss(
+    config: LossConfig, color_hr: Tensor, alpha_hr: Tensor, truth_hr: Tensor, alpha_x1_window: Tensor
+) -> HighresTerms:
+    """The close-up terms (module docstring). color_hr, truth_hr: [B, V, 3, h, w]; alpha_hr and
+    alpha_x1_window: [B, V, 1, h, w] (the latter is treated as a constant)."""
+    check_tensor("truth_hr", truth_hr, tuple(color_hr.shape), finite=False)
+    total = color_hr.new_zeros(())
+    highres = closure = None
+    if config.highres_weight > 0:
+        highres = (color_hr - truth_hr).square().mean()
+        total = total + config.highres_weight * highres
+    if config.closure_weight > 0:
+        closure = (alpha_x1_window.detach() - alpha_hr).clamp_min(0).mean()
+        total = total + config.closure_weight * closure
+    return HighresTerms(total=total, highres=highres, closure=closure)
 
 
 def _load_for_training(config: LossConfig) -> Lpips:

@@ -5,7 +5,9 @@ Each rank scores its own share of the held-out scenes in evaluation mode (tau_al
 ground truth upsampled bicubically (paper Sec. 3.6). Per-image sums and counts are then reduced
 over ranks, so every rank returns the same means, equal to a single process scoring all scenes.
 Where the held-out views carry true depth (synthetic rooms), the predicted context depth is scored
-too (abs rel, delta < 1.25).
+too (abs rel, delta < 1.25). Closure (`surfsplat.metrics.closure`) is reported from the same renders:
+the mean alpha at each factor and closure = alpha at the largest / alpha at x1, the share of surfels
+under half their pixel footprint and of scale multipliers at the clamp's lower bound.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from ..export.figures import image_grid
+from ..metrics.closure import UNDERSIZE_FRACTION, pixel_footprints, views_of_pixels
 from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator, upsample_ground_truth
 from ..metrics.lpips import Lpips, LpipsUnavailable
@@ -38,18 +41,22 @@ def validate(
     lpips: Lpips | LpipsUnavailable,
     factors: tuple[int, ...] = (1, 2, 4),
     grids: dict[int, Tensor] | None = None,
+    multiplier_range: float | None = None,
 ) -> dict[str, float]:
     """Means over every rank's held-out scenes: "x{s}/{metric}" for each factor, "depth/..." where
     true depth exists, and "num_images". LPIPS is absent when its weights are (see `lpips`).
 
     `grids`, when given, receives a picture per factor s of this rank's first scene and its first
     target view, the truth the metric compares with (upsampled) left of the render at s times the
-    resolution (`surfsplat.export.figures.image_grid`: [3, s*H + 4, 2*s*W + 6], 2-pixel white borders)."""
+    resolution (`surfsplat.export.figures.image_grid`: [3, s*H + 4, 2*s*W + 6], 2-pixel white borders).
+    `multiplier_range`: the adapter's clamp r of the scale multipliers (None: not reported)."""
     was_training = model.training
     model.eval()
     evaluator = HrrcEvaluator(lpips, HrrcConfig(factors=factors))
     depth_sums = torch.zeros(len(_DEPTH_METRICS), dtype=torch.float64)
     depth_count = 0
+    # Per factor: alpha sum and pixels; then undersized surfels, multipliers at 1/r, surfels.
+    closure_sums = torch.zeros(2 * len(factors) + 3, dtype=torch.float64)
     for i, batch in enumerate(samples):
         batch = batch.to(ctx.device)
         context, target = batch.context, batch.target
@@ -67,10 +74,14 @@ def validate(
                 backend=backend,
             )
             renders[s] = views.color[0]
+            k = factors.index(s)
+            closure_sums[2 * k] += float(views.alpha[0].double().sum())
+            closure_sums[2 * k + 1] += views.alpha[0].numel()
             if grids is not None and i == 0:
                 truth = upsample_ground_truth(target.images[0], s, evaluator.config.upsample)
                 grids[s] = image_grid([[truth[0], views.color[0, 0]]])
         evaluator.add_scene(f"{ctx.rank}:{i}:{batch.scenes[0]}", target.images[0], renders)
+        closure_sums[-3:] += _surfel_counts(prediction, context.cameras(), h, w, multiplier_range)
         if context.depths is not None:
             errors = depth_metrics(prediction.depths[0].float(), context.depths[0, :, 0].float())
             keep = errors.num_valid > 0
@@ -89,6 +100,7 @@ def validate(
         sums[-2] = report.num_images
     sums[len(names) : len(names) + len(_DEPTH_METRICS)] = depth_sums
     sums[-1] = depth_count
+    closure_total = all_reduce_sum(closure_sums, ctx)
     total = all_reduce_sum(sums, ctx)
     num_images, num_depth = float(total[-2]), float(total[-1])
     out: dict[str, float] = {"num_images": num_images}
@@ -100,4 +112,26 @@ def validate(
     if num_depth > 0:
         for k, m in enumerate(_DEPTH_METRICS):
             out[f"depth/{m}"] = float(total[len(names) + k]) / num_depth
+    if num_images > 0:
+        alpha = {s: float(closure_total[2 * k] / closure_total[2 * k + 1]) for k, s in enumerate(factors)}
+        out.update({f"closure/alpha_x{s}": a for s, a in alpha.items()})
+        if 1 in alpha and max(factors) > 1 and alpha[1] > 0:
+            out["closure/closure"] = alpha[max(factors)] / alpha[1]
+        surfels = float(closure_total[-1])
+        out["closure/undersized"] = float(closure_total[-3]) / surfels
+        if multiplier_range is not None:
+            out["closure/multiplier_at_low"] = float(closure_total[-2]) / surfels
     return out
+
+
+def _surfel_counts(prediction, cameras, height: int, width: int, multiplier_range: float | None) -> Tensor:
+    """[undersized surfels, multipliers at 1/r (either axis), surfels] of the batch's first scene."""
+    gaussians = prediction.gaussians.select(0)
+    v = prediction.depths.shape[1]
+    footprints = pixel_footprints(gaussians, cameras[:v], width, height, views_of_pixels(v, height, width))
+    undersized = (gaussians.scales.min(-1).values < UNDERSIZE_FRACTION * footprints.to(gaussians.scales)).sum()
+    at_low = 0.0
+    if multiplier_range is not None:
+        smallest = prediction.adapter_output.scales_mul[0].min(-1).values
+        at_low = float((smallest <= (1 / multiplier_range) * (1 + 1e-4)).sum())
+    return torch.tensor([float(undersized), at_low, float(len(gaussians))], dtype=torch.float64)

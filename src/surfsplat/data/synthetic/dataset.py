@@ -34,6 +34,12 @@ class SyntheticDatasetConfig:
     num_target_views: int = 4  # uniformly random points along the path
     supersample: int = 2  # rays per pixel per axis for the images (anti-aliasing); depth is exact per pixel centre
     with_depth: bool = True  # add "depth" and "normal" to every view
+    # Native high-resolution truth of the targets: 0 = none; s > 1 adds "image_hr" and "K_hr" to the
+    # target views, ray-cast with K scaled by s (one ray per pixel: at s >= 2 a pixel is already finer
+    # than the input's), over a random `highres_crop` x `highres_crop` window of the s-times image
+    # (0: the whole image), so x4 supervision costs what x1 costs.
+    highres_factor: int = 0
+    highres_crop: int = 0
     scene: SyntheticConfig = field(default_factory=SyntheticConfig)  # how rooms and paths are drawn
 
 
@@ -52,6 +58,12 @@ class SyntheticDataset(Dataset):
         h, w = c.image_shape
         if h < 1 or w < 1:
             raise SurfSplatInputError(f"image_shape: expected positive (H, W), got {c.image_shape}")
+        if c.highres_factor < 0 or c.highres_factor == 1:
+            raise SurfSplatInputError(f"highres_factor: expected 0 (off) or an integer >= 2, got {c.highres_factor}")
+        if c.highres_factor and not 0 <= c.highres_crop <= c.highres_factor * min(h, w):
+            raise SurfSplatInputError(
+                f"highres_crop: expected 0 (whole image) up to {c.highres_factor * min(h, w)}, got {c.highres_crop}"
+            )
 
     def __len__(self) -> int:
         return self.config.length
@@ -117,11 +129,36 @@ class SyntheticDataset(Dataset):
                 v["normal"] = out.normal[sl]
             return v
 
-        return {
+        sample = {
             "context": views(slice(0, nc), context),
             "target": views(slice(nc, None), target),
             "scene": f"synthetic-{c.seed}-{index}",
         }
+        if c.highres_factor:
+            sample["target"].update(self._highres(index, scene, target))
+        return sample
+
+    def highres_window(self, index: int, num_views: int) -> tuple[int, int, int, int]:
+        """(x0, y0, width, height) per target view of the high-resolution crop, in s-times pixels;
+        a fixed function of (seed, index), like everything else of a sample."""
+        c = self.config
+        s, (h, w) = c.highres_factor, c.image_shape
+        cw, ch = (c.highres_crop, c.highres_crop) if c.highres_crop else (s * w, s * h)
+        g = torch.Generator().manual_seed(mix_seed(self.scene_seed(index), 3))
+        x0 = torch.randint(0, s * w - cw + 1, (num_views,), generator=g)
+        y0 = torch.randint(0, s * h - ch + 1, (num_views,), generator=g)
+        return x0, y0, cw, ch
+
+    def _highres(self, index: int, scene: SyntheticScene, target: Cameras) -> dict[str, Tensor]:
+        x0, y0, cw, ch = self.highres_window(index, len(target))
+        K = target.scaled(float(self.config.highres_factor)).K.clone()
+        K[:, 0, 2] -= x0.to(K.dtype)  # a crop only moves the principal point
+        K[:, 1, 2] -= y0.to(K.dtype)
+        images = [
+            render_synthetic(scene, Cameras(target.c2w[i : i + 1], K[i : i + 1], validate=False), cw, ch).image[0]
+            for i in range(len(target))
+        ]
+        return {"image_hr": torch.stack(images), "K_hr": K.float()}
 
 
 def write_synthetic_chunks(
