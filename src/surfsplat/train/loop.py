@@ -40,6 +40,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
 
+from ..atomic import write_text
 from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
 from ..export.figures import image_grid
@@ -200,7 +201,7 @@ class _Reporter:
 
         self.out.mkdir(parents=True, exist_ok=True)
         config_json = json.dumps(config.to_dict(), indent=1)
-        (self.out / "config.json").write_text(config_json)
+        write_text(self.out / "config.json", config_json)
         self.writer = SummaryWriter(log_dir=str(self.out / "tensorboard"))
         # Fenced so that TensorBoard's markdown keeps the JSON's layout.
         self.writer.add_text("config", f"```json\n{config_json}\n```", global_step=start_step)
