@@ -35,8 +35,8 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--resolution: expected at least 8 pixels, got {args.resolution}")
     if any(s <= 0 for s in args.scales):
         raise SurfSplatInputError(f"--scales: factors must be positive, got {args.scales}")
-    scene = make_scene(resolution=args.resolution)
     out: Path = check_output_dir(args.out, "--out")
+    scene = make_scene(resolution=args.resolution)
     report = {"surfels": len(scene.gaussians), "renders": []}
     for s in args.scales:
         size = round(args.resolution * s)

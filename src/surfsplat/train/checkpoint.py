@@ -184,19 +184,24 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
     final = root / checkpoint_name(state.step)
     temp = root / f"{_TEMP_PREFIX}{checkpoint_name(state.step)}-{os.getpid()}"
     temp.mkdir()
-    save_model(model, temp / "model", metadata=weights_metadata(state))
-    tensors, document = _flatten_state(state)
-    save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
-    (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
-    files = {}
-    for name in MODEL_FILES + STATE_FILES:
-        path = temp / name
-        _fsync_file(path)
-        files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
-    manifest = temp / MANIFEST
-    manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
-    _fsync_file(manifest)
-    _fsync_dir(temp)
+    try:
+        save_model(model, temp / "model", metadata=weights_metadata(state))
+        tensors, document = _flatten_state(state)
+        save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
+        (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
+        files = {}
+        for name in MODEL_FILES + STATE_FILES:
+            path = temp / name
+            _fsync_file(path)
+            files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+        manifest = temp / MANIFEST
+        manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
+        _fsync_file(manifest)
+        _fsync_dir(temp)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM) or failed (full disk, NaN weights): the unpublished folder goes.
+        shutil.rmtree(temp, ignore_errors=True)
+        raise
     if final.exists():
         # A folder for this step survives from a run that was killed after publishing it and
         # resumed from an earlier step: move it aside first, a rename cannot replace a full folder.
