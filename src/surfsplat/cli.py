@@ -17,7 +17,7 @@ import importlib
 import logging
 import signal
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from . import log
@@ -95,19 +95,25 @@ def main(argv: list[str] | None = None) -> int:
         sys.argv[1:] if argv is None else argv,
     )
     module = importlib.import_module(args._module)
+    return run_command(args.command, lambda: module.run(args))
+
+
+def run_command(command: str, run: Callable[[], int | None]) -> int:
+    """`run()` with the command line's endings: its exit code, or one stderr line and 2 (bad input),
+    1 (an output could not be written, training diverged) or 128 + signal (Ctrl-C, SIGTERM)."""
     try:
         with terminate_as_interrupt():
-            return int(module.run(args) or 0)
+            return int(run() or 0)
     except (SurfSplatInputError, FileNotFoundError) as err:
-        print(f"surfsplat {args.command}: error: {err}", file=sys.stderr)
+        print(f"surfsplat {command}: error: {err}", file=sys.stderr)
         return 2
     except (OutputError, FloatingPointError) as err:
-        print(f"surfsplat {args.command}: error: {_one_line(err)}", file=sys.stderr)
+        print(f"surfsplat {command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
         signum = err.signum if isinstance(err, Terminated) else signal.SIGINT
         print(
-            f"surfsplat {args.command}: interrupted ({signal.Signals(signum).name}); "
+            f"surfsplat {command}: interrupted ({signal.Signals(signum).name}); "
             "files already complete were kept, none is left half-written",
             file=sys.stderr,
         )

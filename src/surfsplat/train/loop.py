@@ -337,8 +337,8 @@ def training_step(
         loss.backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
     grad_norm = nn.utils.get_total_norm(grads)
-    # After DDP's all-reduce every rank holds the same gradients, so every rank takes the same
-    # decision (a NaN loss on one rank makes the reduced gradient NaN everywhere).
+    # Every rank must take the same decision: the gradients are already the same on every rank
+    # (DDP's all-reduce), the losses are shared in _nonfinite_reason.
     nonfinite = _nonfinite_reason(model, loss, grad_norm, fp16_overflow_is_normal=scaler is not None)
     if nonfinite is None:
         nn.utils.clip_grads_with_norm_(grads, grad_clip if grad_clip > 0 else math.inf, grad_norm)
@@ -358,7 +358,13 @@ def _nonfinite_reason(model: nn.Module, loss: Tensor, grad_norm: Tensor, fp16_ov
     """None when the step may be applied; else what is not finite, named (the loss, or the first
     parameter whose gradient holds NaN/inf). Under fp16 loss scaling an inf gradient with a finite
     loss is the scaler's routine overflow, not a fault."""
-    if not bool(torch.isfinite(loss.detach())):
+    loss_ok = bool(torch.isfinite(loss.detach()))
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        flags = torch.tensor([0 if loss_ok else 1], device=loss.device)
+        torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
+        if loss_ok and int(flags[0]):
+            return "loss is not finite on another rank"
+    if not loss_ok:
         return f"loss is {float(loss.detach())}"
     if bool(torch.isfinite(grad_norm)) or fp16_overflow_is_normal:
         return None
