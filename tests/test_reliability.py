@@ -647,6 +647,30 @@ def test_full_disk_while_writing_a_text_file(tmp_path, monkeypatch):
     _no_temporaries(tmp_path)
 
 
+def test_full_disk_while_checkpointing_keeps_the_last_checkpoint(tmp_path, capsys, monkeypatch):
+    from surfsplat.train import checkpoint
+
+    real, calls = checkpoint.save_file, [0]
+
+    def save_file(*args, **kwargs):  # the training state of the second checkpoint meets a full disk
+        calls[0] += 1
+        if calls[0] == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(checkpoint, "save_file", save_file)
+    out = tmp_path / "run"
+    assert main(_train(out, steps=2)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"surfsplat train: error: {out / 'checkpoints' / 'step-00000002'}: cannot write (no space left on the "
+        "device); nothing was written under this name"
+    ]
+    assert [p.name for p in list_checkpoints(out)] == ["step-00000001"]
+    verify_checkpoint(out / "checkpoints" / "step-00000001")
+    _no_temporaries(out)
+
+
 # ------------------------------------------------------------------------------------- NaN in training
 def _quick(out: Path, **changes) -> object:
     base = {

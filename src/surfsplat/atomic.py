@@ -35,14 +35,14 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise _output_error(path, err) from None
+        raise output_error(path, err) from None
     tmp = path.with_name(f".{path.name}{TEMP_MARK}{suffix}")
     try:
         yield tmp
         _fsync(tmp)
         os.replace(tmp, path)
     except OSError as err:
-        raise _output_error(path, err) from None
+        raise output_error(path, err) from None
     finally:
         # Gone after a rename; after any failure (KeyboardInterrupt included) no partial file stays.
         tmp.unlink(missing_ok=True)
@@ -68,7 +68,8 @@ def is_temporary(path: str | os.PathLike) -> bool:
     return name.startswith(".") and TEMP_MARK in name
 
 
-def _output_error(path: Path, err: OSError) -> OSError:
+def output_error(path: str | os.PathLike, err: OSError) -> OutputError:
+    """`err` (raised while writing `path`) as one line naming `path`."""
     if isinstance(err, OutputError):
         return err
     if err.errno == errno.ENOSPC:

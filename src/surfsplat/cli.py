@@ -13,6 +13,7 @@ by Ctrl-C / SIGTERM (one line; files already complete are kept, a file being wri
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import signal
@@ -21,7 +22,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from . import log
-from .atomic import OutputError
+from .atomic import OutputError, output_error
 from .checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
@@ -109,6 +110,12 @@ def run_command(command: str, run: Callable[[], int | None]) -> int:
         return 2
     except (OutputError, FloatingPointError) as err:
         print(f"surfsplat {command}: error: {_one_line(err)}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # A full disk outside the atomic writers (TensorBoard's event log, metrics.jsonl): still one line.
+        print(f"surfsplat {command}: error: {output_error(err.filename or '(unnamed file)', err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
         signum = err.signum if isinstance(err, Terminated) else signal.SIGINT

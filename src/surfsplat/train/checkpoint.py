@@ -34,6 +34,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from ..atomic import output_error
 from ..checks import SurfSplatInputError
 from ..model.checkpoint import save_checkpoint as save_model
 from ..model.checkpoint import training_metadata
@@ -198,9 +199,11 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
         manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
         _fsync_file(manifest)
         _fsync_dir(temp)
-    except BaseException:
+    except BaseException as err:
         # Interrupted (Ctrl-C, SIGTERM) or failed (full disk, NaN weights): the unpublished folder goes.
         shutil.rmtree(temp, ignore_errors=True)
+        if isinstance(err, OSError):
+            raise output_error(final, err) from None
         raise
     if final.exists():
         # A folder for this step survives from a run that was killed after publishing it and
