@@ -12,10 +12,13 @@ error while writing becomes `OutputError`, one line naming the final path.
 from __future__ import annotations
 
 import errno
+import logging
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+logger = logging.getLogger(__name__)
 
 TEMP_MARK = ".tmp"  # temporary names are ".<name>.tmp<suffix>", hidden and recognisable
 
@@ -94,13 +97,16 @@ def _fsync(path: Path) -> None:
 
 
 def _fsync_dir(folder: Path) -> None:
+    # Makes the rename itself durable. Not every platform opens folders and some file systems
+    # refuse fsync on one; the rename is atomic either way, so that is only noted.
     try:
         fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return  # not every platform opens folders; the rename itself is still atomic
+    except OSError as err:
+        logger.debug("%s: folder not synced (%s)", folder, err)
+        return
     try:
         os.fsync(fd)
-    except OSError:
-        pass  # some file systems refuse fsync on a folder; nothing to recover
+    except OSError as err:
+        logger.debug("%s: folder not synced (%s)", folder, err)
     finally:
         os.close(fd)
