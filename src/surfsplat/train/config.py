@@ -114,8 +114,7 @@ class TrainConfig:
     val_every: int = 5000  # steps between validations (0: never; also run at the end when > 0)
     val_factors: tuple[int, ...] = (1, 2, 4)  # render scales of validation: 1 = standard, 2 and 4 = HRRC
     progress: bool = True  # rank 0 shows progress: a bar on a terminal, a log line every few seconds elsewhere
-    max_nonfinite_steps: int = 5  # steps in a row whose loss or gradient is NaN/inf that are skipped (weights
-    # untouched, counted in train/nonfinite_steps) before training stops; 0 stops at the first
+    max_nonfinite_steps: int = 5  # steps in a row skipped for a NaN/inf loss or gradient before training stops
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
