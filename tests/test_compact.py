@@ -286,7 +286,8 @@ def test_export_compact_option(tmp_path, capsys):
     assert {"x", "y", "z", "f_dc_0", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_3"} <= names
     assert vertex.count == compacted
     # A compacted PLY is no longer one surfel per pixel: compacting it again is refused plainly.
-    code = main(["export", str(out / "surfels.ply"), "--cameras", str(tmp_path / "cameras.json"), "--compact"])
+    again = ["--out", str(tmp_path / "again")]
+    code = main(["export", str(out / "surfels.ply"), "--cameras", str(tmp_path / "cameras.json"), "--compact", *again])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "--compact: expected the uncompacted" in err
 

@@ -212,7 +212,7 @@ def test_not_our_ply_or_a_broken_one_is_one_clear_error(output_dir, tmp_path):
     values = PlyData.read(str(output_dir / "surfels.ply"))
     values["vertex"].data["x"][5] = np.nan
     values.write(str(tmp_path / "nan.ply"))
-    with pytest.raises(SurfSplatInputError, match="nan.ply: gaussians.means: contains NaN"):
+    with pytest.raises(SurfSplatInputError, match="nan.ply: vertex property .x. holds NaN"):
         load_viewer_scene(tmp_path / "nan.ply")
     with pytest.raises(SurfSplatInputError, match="no surfels.ply"):
         load_viewer_scene(tmp_path)

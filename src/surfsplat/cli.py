@@ -4,16 +4,25 @@ Each sub-command lives in its own module exposing `add_arguments(parser)` and `r
 modules are imported only when their command runs, so `surfsplat --help` stays fast.
 -q/--quiet and -v/--verbose (see `surfsplat.log`) are accepted before or after the command;
 `surfsplat --version` prints the installed version.
+
+Exit codes: 0 done; 2 bad input (one line naming the file or option, nothing written); 1 an output
+could not be written (full disk, one line naming the file) or training diverged; 130 / 143 stopped
+by Ctrl-C / SIGTERM (one line; files already complete are kept, a file being written is not left).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
+import signal
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from . import log
+from .atomic import OutputError, output_error
 from .checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
@@ -87,11 +96,65 @@ def main(argv: list[str] | None = None) -> int:
         sys.argv[1:] if argv is None else argv,
     )
     module = importlib.import_module(args._module)
+    return run_command(args.command, lambda: module.run(args))
+
+
+def run_command(command: str, run: Callable[[], int | None]) -> int:
+    """`run()` with the command line's endings: its exit code, or one stderr line and 2 (bad input),
+    1 (an output could not be written, training diverged) or 128 + signal (Ctrl-C, SIGTERM)."""
     try:
-        return int(module.run(args) or 0)
+        with terminate_as_interrupt():
+            return int(run() or 0)
     except (SurfSplatInputError, FileNotFoundError) as err:
-        print(f"surfsplat {args.command}: error: {err}", file=sys.stderr)
+        print(f"surfsplat {command}: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"surfsplat {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except (OutputError, FloatingPointError) as err:
+        print(f"surfsplat {command}: error: {_one_line(err)}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # A full disk outside the atomic writers (TensorBoard's event log, metrics.jsonl): still one line.
+        print(f"surfsplat {command}: error: {output_error(err.filename or '(unnamed file)', err)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt as err:
+        signum = err.signum if isinstance(err, Terminated) else signal.SIGINT
+        print(
+            f"surfsplat {command}: interrupted ({signal.Signals(signum).name}); "
+            "files already complete were kept, none is left half-written",
+            file=sys.stderr,
+        )
+        return 128 + signum
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler, `kill`) delivered as an interrupt, so cleanup runs as for Ctrl-C."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """Within: SIGTERM raises `Terminated` in the main thread (Python's default would end the
+    process without running any `finally`, leaving temporary files behind)."""
+
+    def handler(signum: int, frame: object) -> None:
+        raise Terminated(signum)
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (an embedding application): leave its handling alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _one_line(err: BaseException) -> str:
+    """The first line of an error's message: the command's error is always one line."""
+    lines = str(err).strip().splitlines()
+    return lines[0] if lines else type(err).__name__

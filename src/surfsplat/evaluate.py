@@ -556,6 +556,9 @@ def geometry_csv(results: dict[str, EvaluationResult]) -> str:
     return buffer.getvalue()
 
 
+RESULT_FILES = ("per_scene.csv", "table.txt", "geometry_per_scene.csv", "metrics.json")  # what write_results writes
+
+
 def write_results(
     results: dict[str, EvaluationResult], out_dir: str | Path, counts: SampleCounts | None = None
 ) -> dict[str, Path]:
@@ -574,12 +577,13 @@ def write_results(
         }
     # Every text first, then the files: an error (e.g. reports of different factors) writes nothing.
     texts = {
-        "metrics": ("metrics.json", json.dumps(_finite(document), indent=2)),
         "per_scene": ("per_scene.csv", per_scene_csv(results)),
         "table": ("table.txt", format_results(results) + "\n"),
     }
     if any(r.geometry is not None and r.geometry.per_scene for r in results.values()):
         texts["geometry"] = ("geometry_per_scene.csv", geometry_csv(results))
+    # metrics.json last: a folder holding it is a finished evaluation, one without it was interrupted.
+    texts["metrics"] = ("metrics.json", json.dumps(_finite(document), indent=2))
     return {key: write_text(out / name, text) for key, (name, text) in texts.items()}
 
 

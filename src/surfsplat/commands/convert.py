@@ -37,7 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..checks import check_output_dir
     from ..data.convert import convert
+
+    check_output_dir(args.out, "OUT", inputs=[args.src])
 
     report = convert(
         args.format,

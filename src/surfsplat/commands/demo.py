@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from .. import log
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_dir
 from ..geometry.cameras import Cameras
 from ..log import progress
 
@@ -119,8 +119,7 @@ def run(args: argparse.Namespace) -> int:
     if args.train_minutes is not None:
         changes["train_seconds"] = args.train_minutes * 60
     config = replace(config, **changes)
-    if args.out.exists() and not args.out.is_dir():
-        raise SurfSplatInputError(f"--out {args.out}: exists and is not a folder")
+    check_output_dir(args.out, "--out")
     for stale in ("train", "data"):
         if (args.out / stale).exists() and any((args.out / stale).iterdir()):
             raise SurfSplatInputError(

@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_dir
 from .export import add_compact_argument
 
 
@@ -99,6 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..data.eval_index import EvaluationIndex
     from ..evaluate import (
+        RESULT_FILES,
         EvalConfig,
         ModelSpec,
         SampleCounts,
@@ -121,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     for folder in args.data:
         if not folder.is_dir():
             raise FileNotFoundError(f"{folder}: chunk folder not found")
+    check_output_dir(args.out, "--out", inputs=[args.index, *args.data], writes=RESULT_FILES)
     index = EvaluationIndex.load(args.index)
     if args.size is not None and (args.size[0] < 1 or args.size[1] < 1):
         raise SurfSplatInputError(f"--size: expected positive H W, got {args.size}")

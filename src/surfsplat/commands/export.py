@@ -22,7 +22,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_dir
 from ..compaction import DEFAULT_LEVEL, LEVELS
 from ..log import progress
 
@@ -130,12 +130,17 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.ply.is_file():
         raise FileNotFoundError(f"{args.ply}: no such PLY file")
+    out = args.out or args.ply.parent
+    # cameras.json is left out of the clash check: written from the cameras read, it holds what an
+    # input cameras.json in the same place already held.
+    writes = [name for name in output_names(args.formats) if name != "cameras.json"]
+    option = "--out" if args.out is not None else "--out (default: the PLY's folder)"
+    check_output_dir(out, option, inputs=[args.ply, args.cameras], writes=writes)
     cams = load_cameras(args.cameras)
     gaussians = load_ply(args.ply)
     mode = "ewa" if gaussians.explicit_covariances is not None else "surfel"
     options = options_from_args(args, tuple(args.formats), mode)
     gaussians = compact_from_args(args, gaussians, cams.cameras.to(torch.float32), cams.height, cams.width, options)
-    out = args.out or args.ply.parent
     written = export_reconstruction(
         gaussians,
         cams.cameras.to(torch.float32),
@@ -150,6 +155,18 @@ def run(args: argparse.Namespace) -> int:
     )
     print_written(written)
     return 0
+
+
+def output_names(formats) -> list[str]:
+    """The files `export_reconstruction` writes at the top of its folder for `formats`."""
+    names = ["cameras.json"]
+    if "ply" in formats:
+        names += ["surfels.ply", "surfels_3dgs.ply"]
+    if "video" in formats:
+        names += ["path.mp4", "turntable.mp4"]
+    if "mesh" in formats:
+        names.append("mesh.ply")
+    return names
 
 
 def compact_from_args(args: argparse.Namespace, gaussians, cameras, height: int, width: int, options: ExportOptions):

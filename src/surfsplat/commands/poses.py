@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_file
 
 
 def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() != ".json":
         raise SurfSplatInputError(f"--out: expected a .json camera file name, got {args.out}")
+    check_output_file(args.out, "--out", inputs=args.images)
     camera_set, _ = estimate_from_args(args)
     written = save_cameras(
         args.out,

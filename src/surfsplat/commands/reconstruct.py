@@ -24,18 +24,22 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_dir
 from .export import (
     FORMATS,
     add_export_arguments,
     compact_from_args,
     export_reconstruction,
     options_from_args,
+    output_names,
     print_written,
 )
 from .poses import add_pose_arguments, estimate_from_args
 
 logger = logging.getLogger(__name__)
+
+# Written beside the export's files; reconstruction.json last, so it marks a finished run.
+SUMMARY_FILES = ("estimated_cameras.json", "poses.json", "report.html", "reconstruction.json")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,7 +94,10 @@ def run(args: argparse.Namespace) -> int:
     from ..geometry.cameras import Cameras
     from ..model.pretrained import check_resolution
 
-    # ---- validate every input before any heavy work
+    # ---- validate every input and the output folder before any heavy work
+    check_output_dir(
+        args.out, "--out", inputs=[*args.images, args.cameras], writes=[*output_names(args.formats), *SUMMARY_FILES]
+    )
     if len(args.images) < 2:
         raise SurfSplatInputError(
             f"--images: the model matches views, expected at least 2 images, got {len(args.images)}"
@@ -121,6 +128,10 @@ def run(args: argparse.Namespace) -> int:
     device = _device(args.device)
     model, label = load_model(ModelSpec(args.checkpoint, preset=args.preset, trust_pickle=args.trust_pickle), device)
     m = model.cfg.encoder.size_multiple
+    if args.size is None and (height < m or width < m):  # the user gave images, not a size: name them
+        raise SurfSplatInputError(
+            f"--images: {args.images[0]} is {width}x{height} pixels; the network needs at least {m}x{m}"
+        )
     shape = tuple(args.size) if args.size else (height // m * m, width // m * m)
     if shape[0] < m or shape[1] < m or shape[0] % m or shape[1] % m:
         raise SurfSplatInputError(f"--size: expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..checks import SurfSplatInputError, check_output_dir
 from ..log import progress
 
 logger = logging.getLogger(__name__)
@@ -65,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
     bad = [v for v in views if not 0 <= v < len(cams.cameras)]
     if bad:
         raise SurfSplatInputError(f"--views: {bad} out of range for {len(cams.cameras)} cameras")
+    stems = [Path(cams.names[v]).stem for v in views]
+    writes = [f"{s}_{kind}.png" for s in stems for kind in ("color", "depth", "normal")] + ["render.json"]
+    check_output_dir(args.out, "--out", inputs=[args.ply, args.cameras], writes=writes)
     gaussians = load_ply(args.ply)
     mode = args.mode or ("ewa" if gaussians.explicit_covariances is not None else "surfel")
     tau = None if args.alpha_threshold < 0 else args.alpha_threshold
@@ -95,6 +98,6 @@ def run(args: argparse.Namespace) -> int:
         logger.info(f"{cams.names[v]}: {width}x{height} in {seconds:.2f} s, coverage {coverage:.3f}")
     from ..export.figures import write_text
 
-    write_text(args.out / "render.json", json.dumps(report, indent=1) + "\n")
+    write_text(args.out / "render.json", json.dumps(report, indent=1) + "\n")  # last: the folder is complete
     print(f"wrote {args.out}/ ({len(views)} views: *_color.png, *_depth.png, *_normal.png, render.json)")
     return 0

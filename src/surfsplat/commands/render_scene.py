@@ -10,7 +10,8 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..atomic import write_text
+from ..checks import SurfSplatInputError, check_output_dir
 from ..render.types import BACKENDS
 
 logger = logging.getLogger(__name__)
@@ -34,9 +35,8 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--resolution: expected at least 8 pixels, got {args.resolution}")
     if any(s <= 0 for s in args.scales):
         raise SurfSplatInputError(f"--scales: factors must be positive, got {args.scales}")
+    out: Path = check_output_dir(args.out, "--out")
     scene = make_scene(resolution=args.resolution)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
     report = {"surfels": len(scene.gaussians), "renders": []}
     for s in args.scales:
         size = round(args.resolution * s)
@@ -59,6 +59,6 @@ def run(args: argparse.Namespace) -> int:
         report["renders"].append({"scale": s, "size": size, "seconds": seconds, "hole_fraction": holes})
         logger.info(f"x{s:g}: {size}x{size} in {seconds:.2f} s, hole fraction {holes:.4f}")
     save_ply(scene.gaussians, out / "scene.ply")
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+    write_text(out / "report.json", json.dumps(report, indent=2))  # last: a report means a complete folder
     print(f"wrote {out}/ (color_*.png, depth_*.png, normal_*.png, scene.ply, report.json)")
     return 0

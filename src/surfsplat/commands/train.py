@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..checks import SurfSplatInputError, read_json
+from ..checks import SurfSplatInputError, check_output_dir, read_json
 from ..render.types import BACKENDS
 from ..train.checkpoint import latest_checkpoint
 from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, paper_init, train_preset
@@ -179,6 +179,7 @@ def build_config(args: argparse.Namespace) -> tuple[TrainConfig, str | Path | bo
 
 def run(args: argparse.Namespace) -> int:
     config, resume = build_config(args)
+    check_output_dir(config.out_dir, "--out" if args.out is not None else "out_dir")
     result = fit(config, resume=resume)
     if result.rank != 0:
         return 0  # rank 0 reports for the whole run

@@ -15,7 +15,6 @@ a chunk keeps the encoded bytes, and only the views a sample uses are decoded.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..atomic import atomic_path
+from ..atomic import write_text as atomic_write_text
 from ..checks import SurfSplatInputError, read_json
 from ..geometry.cameras import Cameras
 from .formats.re10k_raw import rows_to_cameras
@@ -199,15 +200,12 @@ def scene_to_example(
 
 
 def _atomic_save(obj: object, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _atomic_write_text(text: str, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic_write_text(path, text)
 
 
 def _example_bytes(example: Example) -> int:

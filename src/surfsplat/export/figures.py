@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import atomic
 from ..checks import SurfSplatInputError
 
 # Colours of the chart's series, in order (a colour-blind-safe palette).
@@ -162,15 +163,7 @@ def smooth(values: Sequence[tuple[float, float]], window: int) -> list[tuple[flo
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write a text file (SVG, HTML, CSV, JSON) atomically: a temporary name, then a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic.write_text(path, text)
 
 
 def _ticks(lo: float, hi: float, target: int = 5) -> list[float]:

@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..atomic import atomic_path
+
 
 def to_uint8(image: Tensor) -> np.ndarray:
     """[3, H, W] or [1, H, W] in [0, 1] -> [H, W, 3] uint8."""
@@ -67,8 +69,6 @@ def normal_to_rgb(normal: Tensor) -> Tensor:
 def write_png(path: str | os.PathLike, image: Tensor) -> Path:
     """Write [3|1, H, W] in [0, 1] atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    iio.imwrite(tmp, to_uint8(image))
-    os.replace(tmp, path)
+    with atomic_path(path, suffix=".png") as tmp:  # imageio picks the format from the suffix
+        iio.imwrite(tmp, to_uint8(image))
     return path

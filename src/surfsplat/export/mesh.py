@@ -25,6 +25,7 @@ import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 from torch import Tensor
 
+from ..atomic import atomic_path
 from ..checks import SurfSplatInputError, check_tensor
 from ..geometry.cameras import Cameras
 
@@ -216,13 +217,11 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
     suffix = path.suffix.lower()
     if suffix not in (".ply", ".obj"):
         raise SurfSplatInputError(f"{path}: expected a .ply or .obj file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
     verts = mesh.vertices.detach().cpu().numpy().astype(np.float32)
     normals = mesh.normals.detach().cpu().numpy().astype(np.float32)
     rgb = (mesh.colors.detach().cpu().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     faces = mesh.faces.detach().cpu().numpy().astype(np.int32)
-    try:
+    with atomic_path(path) as tmp:
         if suffix == ".ply":
             vertex = np.empty(
                 len(verts),
@@ -250,9 +249,6 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike) -> Path:
                     f.write(f"vn {nrm[0]:.5f} {nrm[1]:.5f} {nrm[2]:.5f}\n")
                 for a, b, c in faces + 1:
                     f.write(f"f {a}//{a} {b}//{b} {c}//{c}\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 
+from ..atomic import atomic_path
 from ..checks import SurfSplatInputError
 from ..gaussians import Gaussians
 from ..geometry.rotations import matrix_to_quat
@@ -72,10 +73,8 @@ def save_ply(gaussians: Gaussians, path: str | os.PathLike, precision: Precision
     for name, values in columns:
         vertex[name] = values.numpy() if isinstance(values, torch.Tensor) else values
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(tmp))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(tmp))
     return path
 
 
@@ -115,6 +114,14 @@ def load_ply(path: str | os.PathLike, dtype: torch.dtype = torch.float32) -> Gau
 
     def col(name: str) -> torch.Tensor:
         return torch.from_numpy(np.asarray(v[name], dtype=np.float64))
+
+    used = [p.name for p in v.properties if p.name in required or p.name.startswith("f_rest_") or p.name == "scale_2"]
+    for name in used:
+        bad = np.flatnonzero(~np.isfinite(np.asarray(v[name], dtype=np.float64)))
+        if len(bad):
+            raise SurfSplatInputError(
+                f"{path}: vertex property '{name}' holds NaN or inf ({len(bad)} vertices, the first is vertex {bad[0]})"
+            )
 
     n = len(v.data)
     rest_names = sorted((p for p in names if p.startswith("f_rest_")), key=lambda p: int(p.split("_")[-1]))

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..atomic import atomic_path
 from ..checks import SurfSplatInputError, check_tensor
 from .images import to_uint8
 
@@ -52,13 +53,8 @@ def write_video(path: str | os.PathLike, frames: Tensor, fps: float = 24.0, qual
     data = np.stack([to_uint8(f) for f in frames.detach().to("cpu", torch.float32)])  # [T, H, W, 3]
     _, h, w, _ = data.shape
     data = np.pad(data, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.mp4")  # ffmpeg picks the container from the suffix
-    try:
+    with atomic_path(path, suffix=".mp4") as tmp:  # ffmpeg picks the container from the suffix
         iio.imwrite(tmp, data, plugin="FFMPEG", fps=fps, codec="libx264", quality=quality, macro_block_size=1)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -33,6 +33,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from ..atomic import atomic_path
+from ..atomic import write_text as atomic_write_text
 from ..checks import SurfSplatInputError, read_json
 from .encoder.encoder import SurfSplatEncoder
 
@@ -212,6 +214,9 @@ def _load_exact(
         problems.append(f"wrong shape {len(misshaped)}: {_listing(misshaped)}")
     if problems:
         raise SurfSplatInputError(f"{source}: does not match the {what}; " + "; ".join(problems))
+    bad = nonfinite_tensors(tensors)
+    if bad:
+        raise SurfSplatInputError(f"{source}: {len(bad)} tensors hold NaN or inf: {_listing(bad)}")
     with torch.no_grad():
         for key, value in expected.items():
             value.copy_(tensors[key].to(value.dtype))
@@ -363,19 +368,24 @@ def save_checkpoint(model: nn.Module, path: str | Path, metadata: Mapping | None
     if not isinstance(model, SurfSplat):
         raise SurfSplatInputError(f"save_checkpoint expects a SurfSplat model, got {type(model).__name__}")
     weights_path, config_path = _paths(path)
-    weights_path.parent.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    tmp_weights = weights_path.with_suffix(".safetensors.tmp")
-    tmp_config = config_path.with_suffix(".json.tmp")
-    save_file(tensors, str(tmp_weights), metadata={"format": FORMAT_NAME, "version": str(FORMAT_VERSION)})
+    bad = nonfinite_tensors(tensors)
+    if bad:  # a model that diverged is never saved as if it were usable
+        raise FloatingPointError(f"{weights_path}: not written, the weights hold NaN or inf ({_listing(bad)})")
     document = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": model.cfg.to_dict()}
     if metadata:
         document["metadata"] = dict(metadata)
-    tmp_config.write_text(json.dumps(document, indent=2))
-    # rename last, so an interrupted save never leaves a half-written pair under the final names
-    tmp_weights.replace(weights_path)
-    tmp_config.replace(config_path)
+    # The configuration is written last: a weights file without its configuration is not a checkpoint
+    # that `load_checkpoint` opens, so an interrupted save never passes for a complete one.
+    with atomic_path(weights_path) as tmp:
+        save_file(tensors, str(tmp), metadata={"format": FORMAT_NAME, "version": str(FORMAT_VERSION)})
+    atomic_write_text(config_path, json.dumps(document, indent=2))
     return weights_path, config_path
+
+
+def nonfinite_tensors(tensors: Mapping[str, Tensor]) -> list[str]:
+    """Names of the floating-point tensors holding NaN or inf, in the mapping's order."""
+    return [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
 def training_metadata(step: int, config: Mapping) -> dict:

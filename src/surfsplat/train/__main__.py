@@ -4,10 +4,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from .. import log
-from ..checks import SurfSplatInputError
+from ..cli import run_command
 from ..commands import train as command
 
 
@@ -17,11 +16,7 @@ def main(argv: list[str] | None = None) -> int:
     log.add_options(parser)
     args = parser.parse_args(argv)
     log.configure(args.log_level)
-    try:
-        return command.run(args)
-    except (SurfSplatInputError, FileNotFoundError) as err:
-        print(f"surfsplat train: error: {err}", file=sys.stderr)
-        return 2
+    return run_command("train", lambda: command.run(args))
 
 
 raise SystemExit(main())

@@ -34,6 +34,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from ..atomic import output_error
 from ..checks import SurfSplatInputError
 from ..model.checkpoint import save_checkpoint as save_model
 from ..model.checkpoint import training_metadata
@@ -184,19 +185,26 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
     final = root / checkpoint_name(state.step)
     temp = root / f"{_TEMP_PREFIX}{checkpoint_name(state.step)}-{os.getpid()}"
     temp.mkdir()
-    save_model(model, temp / "model", metadata=weights_metadata(state))
-    tensors, document = _flatten_state(state)
-    save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
-    (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
-    files = {}
-    for name in MODEL_FILES + STATE_FILES:
-        path = temp / name
-        _fsync_file(path)
-        files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
-    manifest = temp / MANIFEST
-    manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
-    _fsync_file(manifest)
-    _fsync_dir(temp)
+    try:
+        save_model(model, temp / "model", metadata=weights_metadata(state))
+        tensors, document = _flatten_state(state)
+        save_file(tensors, str(temp / STATE_FILES[0]), metadata={"format": FORMAT_NAME})
+        (temp / STATE_FILES[1]).write_text(json.dumps(document, indent=1))
+        files = {}
+        for name in MODEL_FILES + STATE_FILES:
+            path = temp / name
+            _fsync_file(path)
+            files[name] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+        manifest = temp / MANIFEST
+        manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
+        _fsync_file(manifest)
+        _fsync_dir(temp)
+    except BaseException as err:
+        # Interrupted (Ctrl-C, SIGTERM) or failed (full disk, NaN weights): the unpublished folder goes.
+        shutil.rmtree(temp, ignore_errors=True)
+        if isinstance(err, OSError):
+            raise output_error(final, err) from None
+        raise
     if final.exists():
         # A folder for this step survives from a run that was killed after publishing it and
         # resumed from an earlier step: move it aside first, a rename cannot replace a full folder.

@@ -118,6 +118,7 @@ class TrainConfig:
     val_every: int = 5000  # steps between validations (0: never; also run at the end when > 0)
     val_factors: tuple[int, ...] = (1, 2, 4)  # render scales of validation: 1 = standard, 2 and 4 = HRRC
     progress: bool = True  # rank 0 shows progress: a bar on a terminal, a log line every few seconds elsewhere
+    max_nonfinite_steps: int = 5  # steps in a row skipped for a NaN/inf loss or gradient before training stops
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -177,7 +178,15 @@ def _validate(config: TrainConfig) -> TrainConfig:
         config.precision in ("auto", "fp32", "bf16", "fp16"), "precision", "auto, fp32, bf16 or fp16", config.precision
     )
     need(config.device in ("auto", "cpu", "cuda"), "device", "auto, cpu or cuda", config.device)
-    for name in ("cpu_threads", "checkpoint_every", "keep_checkpoints", "log_every", "image_every", "val_every"):
+    for name in (
+        "cpu_threads",
+        "checkpoint_every",
+        "keep_checkpoints",
+        "log_every",
+        "image_every",
+        "val_every",
+        "max_nonfinite_steps",
+    ):
         value = getattr(config, name)
         need(value >= 0, name, "a count >= 0", value)
     need(config.checkpoint_every > 0, "checkpoint_every", "at least 1", config.checkpoint_every)

@@ -43,6 +43,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
 
+from ..atomic import write_text
 from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
 from ..export.figures import image_grid
@@ -111,6 +112,7 @@ class TrainResult:
     validation: dict[int, dict[str, float]] = field(default_factory=dict)  # step -> metrics
     checkpoint: Path | None = None  # the newest checkpoint of the run (written, or resumed from)
     seconds: float = 0.0  # wall time of the loop
+    nonfinite_steps: list[tuple[int, str]] = field(default_factory=list)  # (step, reason) of skipped updates
 
 
 # ------------------------------------------------------------------------------------------ setup
@@ -232,7 +234,7 @@ class _Reporter:
 
         self.out.mkdir(parents=True, exist_ok=True)
         config_json = json.dumps(config.to_dict(), indent=1)
-        (self.out / "config.json").write_text(config_json)
+        write_text(self.out / "config.json", config_json)
         self.writer = SummaryWriter(log_dir=str(self.out / "tensorboard"))
         # Fenced so that TensorBoard's markdown keeps the JSON's layout.
         self.writer.add_text("config", f"```json\n{config_json}\n```", global_step=start_step)
@@ -285,15 +287,12 @@ def _resume_path(config: TrainConfig, resume: bool | str | Path) -> Path | None:
     return Path(resume)
 
 
-def _stop_if_diverged(losses: Tensor, first_step: int, checkpoint: Path | None) -> None:
-    """Raise at the first non-finite loss: continuing would only spread NaN into the weights."""
-    bad = (~torch.isfinite(losses)).nonzero()
-    if len(bad):
-        step = first_step + int(bad[0])
-        raise FloatingPointError(
-            f"training diverged: loss {float(losses[int(bad[0])])} at step {step}; last good checkpoint: "
-            f"{checkpoint or 'none'} (lower optim.lr or optim.grad_clip, or check the data)"
-        )
+def _first_nonfinite_parameter(model: nn.Module) -> str | None:
+    """The name of the first parameter holding NaN or inf, or None."""
+    for name, param in model.named_parameters():
+        if not bool(torch.isfinite(param.detach()).all()):
+            return name
+    return None
 
 
 def _changed_settings(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
@@ -316,6 +315,7 @@ class StepOutput:
     renders: list[Tensor]  # [B, V, 3, H, W] per render, coarse to final
     geometry: GeometryTerms | None = None  # depth / normal supervision when the loss has it
     highres: HighresTerms | None = None  # close-up supervision when the loss has it
+    nonfinite: str | None = None  # why the update was skipped (a NaN/inf loss or gradient, named), else None
 
 
 def training_step(
@@ -389,14 +389,49 @@ def training_step(
         scaler.unscale_(optimizer)  # clip the true gradients, not the scaled ones
     else:
         loss.backward()
-    grad_norm = nn.utils.clip_grad_norm_(model.parameters(), grad_clip if grad_clip > 0 else math.inf)
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    grad_norm = nn.utils.get_total_norm(grads)
+    # Every rank must take the same decision: the gradients are already the same on every rank
+    # (DDP's all-reduce), the losses are shared in _nonfinite_reason.
+    nonfinite = _nonfinite_reason(model, loss, grad_norm, fp16_overflow_is_normal=scaler is not None)
+    if nonfinite is None:
+        nn.utils.clip_grads_with_norm_(grads, grad_clip if grad_clip > 0 else math.inf, grad_norm)
     if scaler is not None:
+        # GradScaler skips a step with inf/NaN gradients itself (and lowers its scale): fp16 overflow.
         scaler.step(optimizer)
         scaler.update()
-    else:
+    elif nonfinite is None:
         optimizer.step()
     optimizer.zero_grad(set_to_none=True)
-    return StepOutput(loss=loss, terms=terms, grad_norm=grad_norm, renders=renders, geometry=geometry, highres=highres)
+    return StepOutput(
+        loss=loss,
+        terms=terms,
+        grad_norm=grad_norm,
+        renders=renders,
+        geometry=geometry,
+        highres=highres,
+        nonfinite=nonfinite,
+    )
+
+
+def _nonfinite_reason(model: nn.Module, loss: Tensor, grad_norm: Tensor, fp16_overflow_is_normal: bool) -> str | None:
+    """None when the step may be applied; else what is not finite, named (the loss, or the first
+    parameter whose gradient holds NaN/inf). Under fp16 loss scaling an inf gradient with a finite
+    loss is the scaler's routine overflow, not a fault."""
+    loss_ok = bool(torch.isfinite(loss.detach()))
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        flags = torch.tensor([0 if loss_ok else 1], device=loss.device)
+        torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
+        if loss_ok and int(flags[0]):
+            return "loss is not finite on another rank"
+    if not loss_ok:
+        return f"loss is {float(loss.detach())}"
+    if bool(torch.isfinite(grad_norm)) or fp16_overflow_is_normal:
+        return None
+    for name, param in model.named_parameters():
+        if param.grad is not None and not bool(torch.isfinite(param.grad).all()):
+            return f"gradient of {name} holds NaN or inf"
+    return f"gradient norm is {float(grad_norm)}"
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -537,6 +572,8 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step, checkpoint=resume_from
     )
     pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, highres, closure, grad norm] not reduced
+    pending_steps: list[int] = []  # the (0-based) steps of `pending`; skipped steps have no row
+    consecutive = 0  # steps in a row skipped for a non-finite loss or gradient
     started = time.perf_counter()
     window_start, window_steps = started, 0
     try:
@@ -559,34 +596,48 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 cascade=cascade,
             )
             loss, terms, grad_norm, renders = out.loss, out.terms, out.grad_norm, out.renders
-
-            final, geometry, highres = terms[-1], out.geometry, out.highres
-            zero = torch.zeros((), device=device)
-            parts = [final.lpips] + ([geometry.depth, geometry.normal] if geometry is not None else [None, None])
-            parts += [highres.highres, highres.closure] if highres is not None else [None, None]
-            pending.append(
-                torch.stack(
-                    [
-                        loss.detach().float(),
-                        final.mse.detach().float(),
-                        *(zero if t is None else t.detach().float() for t in parts),
-                        grad_norm.detach().float(),
-                    ]
-                )
-            )
             done = step + 1
+            if out.nonfinite is not None:
+                # The weights were not updated: count the step, show it, and stop after too many in a row.
+                result.nonfinite_steps.append((done, out.nonfinite))
+                consecutive += 1
+                reporter.scalars(done, {"train/nonfinite_steps": float(len(result.nonfinite_steps))})
+                if consecutive > config.max_nonfinite_steps:
+                    raise FloatingPointError(
+                        f"training stopped at step {done}: {consecutive} steps in a row not finite "
+                        f"(max_nonfinite_steps {config.max_nonfinite_steps}), the last: {out.nonfinite}; "
+                        f"last good checkpoint: {result.checkpoint or 'none'} (lower optim.lr, or check the data)"
+                    )
+                if ctx.is_main:
+                    logger.warning("step %d: skipped, %s (%d in a row)", done, out.nonfinite, consecutive)
+            else:
+                consecutive = 0
+                final, geometry, highres = terms[-1], out.geometry, out.highres
+                zero = torch.zeros((), device=device)
+                parts = [final.lpips] + ([geometry.depth, geometry.normal] if geometry is not None else [None, None])
+                parts += [highres.highres, highres.closure] if highres is not None else [None, None]
+                pending.append(
+                    torch.stack(
+                        [
+                            loss.detach().float(),
+                            final.mse.detach().float(),
+                            *(zero if t is None else t.detach().float() for t in parts),
+                            grad_norm.detach().float(),
+                        ]
+                    )
+                )
+                pending_steps.append(step)
             window_steps += 1
             is_last = done == config.steps
 
-            if done % config.log_every == 0 or is_last:
-                # One reduction for the whole window: per-step values, averaged over ranks.
+            if (done % config.log_every == 0 or is_last) and pending:
+                # One reduction for the whole window: per-step values, averaged over ranks (every
+                # rank skipped the same steps, so the windows agree).
                 reduced = all_reduce_mean(torch.stack(pending).cpu(), ctx)
-                first = done - len(pending)
-                result.losses += [(first + i, float(r[0])) for i, r in enumerate(reduced)]
+                result.losses += [(s, float(r[0])) for s, r in zip(pending_steps, reduced)]
                 now = time.perf_counter()
                 seconds_per_step = (now - window_start) / window_steps
                 last = reduced[-1]
-                _stop_if_diverged(reduced[:, 0], first, result.checkpoint)
                 values = {
                     "loss/total": float(last[0]),
                     "loss/mse": float(last[1]),
@@ -607,6 +658,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                     rate=f"{config.batch_size / seconds_per_step:.2f} samples/s",
                 )
                 pending.clear()
+                pending_steps.clear()
                 window_start, window_steps = now, 0
             else:
                 reporter.progress()
@@ -638,8 +690,12 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 reporter.message(f"step {done}: validation {shown}")
 
             if done % config.checkpoint_every == 0 or is_last:
-                if pending:  # never publish weights that a non-finite loss has already updated
-                    _stop_if_diverged(torch.stack(pending)[:, 0].cpu(), done - len(pending), result.checkpoint)
+                broken = _first_nonfinite_parameter(model)
+                if broken is not None:  # never publish weights holding NaN/inf; the last good one stays
+                    raise FloatingPointError(
+                        f"training stopped at step {done}: parameter {broken} holds NaN or inf; "
+                        f"last good checkpoint: {result.checkpoint or 'none'}"
+                    )
                 rng = all_gather_objects(capture_rng(), ctx)
                 positions = all_gather_objects(source.state(), ctx)
                 if ctx.is_main:

@@ -17,6 +17,8 @@ Camera convention: viser's cameras are OpenCV-like (x right, y down, z forward; 
 from __future__ import annotations
 
 import io
+import ipaddress
+import logging
 import math
 import socket
 import threading
@@ -30,6 +32,8 @@ import torch
 from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
 from .scene import ViewerScene, scene_bounds, splat_arrays, summary_line
+
+logger = logging.getLogger(__name__)
 
 SCALES = {"x1": 1, "x2": 2, "x4": 4}  # exact-render resolution factors (HRRC's x1/x2/x4)
 Output = Literal["image", "depth", "normal"]
@@ -93,6 +97,15 @@ def check_listen_address(host: str, port: int) -> None:
         raise SurfSplatInputError(f"--host {host}: cannot listen there ({err.strerror or err})") from None
 
 
+def _is_loopback(host: str) -> bool:
+    """Whether `host` names this machine only (127.0.0.0/8, ::1, localhost)."""
+    try:
+        infos = socket.getaddrinfo(host, None)
+    except OSError:
+        return False
+    return all(ipaddress.ip_address(info[4][0].split("%")[0]).is_loopback for info in infos)
+
+
 def _no_share_url(verbose: bool = True) -> None:
     """In place of viser's share-URL request: no tunnel."""
     return None
@@ -114,6 +127,11 @@ class SurfelViewer:
         import viser
 
         check_listen_address(host, port)
+        if not _is_loopback(host):
+            logger.warning(
+                "--host %s: the viewer is reachable from other machines; anyone who can reach this port sees the scene",
+                host,
+            )
         self.host = host
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         # viser can open a public tunnel ("share URL") when any websocket client asks, and a web page
