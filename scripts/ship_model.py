@@ -44,10 +44,23 @@ def main() -> None:
         "command": args.command,
         **({"summary": args.summary} if args.summary else {}),
         **({"steps": args.total_steps, "final_stage_steps": int(state["step"])} if args.total_steps else {}),
+        # The last stage's loss and adapter rules (the closed-surface options among them).
+        "recipe": {
+            "loss": {k: v for k, v in run["loss"].items() if k.endswith("_weight")},
+            "adapter": {
+                k: run["model"]["adapter"][k]
+                for k in ("tangent_clamp", "tangent_clamp_unit", "multiplier_gradient", "scale_multiplier_range")
+                if k in run["model"]["adapter"]
+            },
+            "highres": {k: run["data"][k] for k in ("highres_factor", "highres_crop") if k in run["data"]},
+            "lr": run["optim"]["lr"],
+            "batch_size": run["batch_size"],
+        },
         "heldout_metrics": {
             "scenes": scores.get("geometry", {}).get("num_scenes"),
             "hrrc_psnr": {k: v["psnr"] for k, v in scores["mean"].items()},
             "geometry": scores.get("geometry", {}).get("mean"),
+            **({"closure": scores["closure"]} if "closure" in scores else {}),
         },
     }
     weights, config = save_checkpoint(model, package_file(args.name), metadata=metadata)

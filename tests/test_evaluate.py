@@ -18,6 +18,7 @@ from surfsplat.evaluate import (
     ModelSpec,
     SampleCounts,
     evaluate,
+    format_results,
     iter_index_samples,
     load_model,
     per_scene_csv,
@@ -221,3 +222,23 @@ def test_compact_option_scores_the_compacted_reconstruction(evaluated):
     )
     assert result.compact == 5 and result.surfels_mean == len(want)
     assert result.to_json()["compact_level"] == 5
+
+
+def test_closure_is_measured_on_the_same_renders(evaluated):
+    """The evaluation's closure figures are those of the metric on its own renders and surfels."""
+    from surfsplat.metrics.closure import ClosureAccumulator
+
+    model, samples, result = evaluated
+    acc = ClosureAccumulator()
+    for sample in samples:
+        pred = predict_sample(model, sample, (1, 2, 4))
+        acc.add_alpha({s: r.alpha for s, r in pred.renders.items()})
+        acc.add_surfels(pred.gaussians, *pred.closure_surfels())
+    want = acc.report()
+    got = result.closure
+    assert got.mean_alpha == pytest.approx(want.mean_alpha)
+    assert got.closure == pytest.approx(want.mean_alpha[4] / want.mean_alpha[1])
+    assert got.undersized == pytest.approx(want.undersized)
+    assert got.multiplier_at_low is not None and 0 <= got.multiplier_at_low <= 1
+    assert result.to_json()["closure"]["closure"] == pytest.approx(got.closure)
+    assert "Closure (target views" in format_results({"m": result})

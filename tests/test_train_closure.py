@@ -241,3 +241,39 @@ def test_training_batch_without_window_is_refused():
             build_optimizer(model, config),
             mode=decoder_mode(model.cfg.adapter),
         )
+
+
+def test_chunk_frames_give_the_window_at_s_times_the_training_size(tmp_path: Path):
+    from surfsplat.data import BoundedViewSampler, BoundedViewSamplerConfig, ChunkDataset, ChunkDatasetConfig
+    from surfsplat.data import write_chunks
+    from surfsplat.data.transforms import rescale_and_crop
+    from test_data_chunks import make_example
+
+    example = make_example("wide", 8, seed=0, size=(60, 120))
+    write_chunks([example], tmp_path)
+    sampler = BoundedViewSampler(
+        BoundedViewSamplerConfig(
+            min_distance_between_context_views=2, max_distance_between_context_views=4, warm_up_steps=0
+        )
+    )
+    config = ChunkDatasetConfig(roots=[tmp_path], image_shape=(12, 12), shuffle=False, highres_factor=4, highres_crop=20)
+    (sample,) = list(ChunkDataset(config, sampler))
+    target = sample["target"]
+    assert target["image_hr"].shape == (len(target["index"]), 3, 20, 20)
+    # The window is a crop of the target frames rescaled to 48x48 (4 x 12), and K_hr is that image's K
+    # shifted by the crop: recover the offset from the principal point and compare the pixels.
+    from surfsplat.data.chunks import decode_views, example_cameras
+
+    frames = decode_views(example, target["index"].tolist(), "test")
+    K = example_cameras(example, 120, 60, "test").K[target["index"]]
+    full, K_full, _ = rescale_and_crop(frames, K, (48, 48))
+    for v in range(len(target["index"])):
+        x0 = round(float(K_full[v, 0, 2] - target["K_hr"][v, 0, 2]))
+        y0 = round(float(K_full[v, 1, 2] - target["K_hr"][v, 1, 2]))
+        assert torch.equal(target["image_hr"][v], full[v, :, y0 : y0 + 20, x0 : x0 + 20])
+        assert target["K_hr"][v, 0, 0] == pytest.approx(float(K_full[v, 0, 0]))
+    # Frames smaller than 4 x the training size are never upsampled into "truth": the sample is skipped.
+    small = ChunkDataset(
+        ChunkDatasetConfig(roots=[tmp_path], image_shape=(24, 24), shuffle=False, highres_factor=4), sampler
+    )
+    assert list(small) == [] and "frames too small for x4 truth" in str(small.summary)

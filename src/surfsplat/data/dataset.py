@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import zlib
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -111,6 +112,11 @@ class ChunkDatasetConfig:
     seed: int = 0  # base seed of shuffling and view sampling
     use_index: bool = False  # list chunks from index.json instead of the folder
     with_depth: bool = True  # add "depth" where the chunk stores depths
+    # Truth of the targets at s times image_shape, from frames that large or larger (a sample whose
+    # frames are smaller is skipped and counted): "image_hr" / "K_hr" of a random highres_crop-pixel
+    # window (0: all of it), as the procedural rooms give; 0 = none.
+    highres_factor: int = 0
+    highres_crop: int = 0
 
 
 class ChunkDataset(IterableDataset):
@@ -250,6 +256,11 @@ class ChunkDataset(IterableDataset):
         if depths is not None and depths.shape[2:] != images.shape[2:]:
             depths = torch.nn.functional.interpolate(depths, size=images.shape[2:], mode="nearest-exact")
         K = cameras.K[torch.tensor(views)]
+        highres = None
+        if self.config.highres_factor:
+            highres = self._highres(images, K, views, target, scene, where, summary)
+            if highres is None:
+                return None
         if self.config.image_shape is not None:
             images, K, depths = rescale_and_crop(images, K, self.config.image_shape, self.config.resize_method, depths)
         position = {v: i for i, v in enumerate(views)}
@@ -270,4 +281,37 @@ class ChunkDataset(IterableDataset):
             return out
 
         summary.yielded += 1
-        return {"context": pick(context), "target": pick(target), "scene": scene}
+        sample = {"context": pick(context), "target": pick(target), "scene": scene}
+        if highres is not None:
+            sample["target"].update(highres)
+        return sample
+
+    def _highres(
+        self, images: Tensor, K: Tensor, views: list[int], target: Tensor, scene: str, where: str, summary
+    ) -> dict[str, Tensor] | None:
+        """The targets' frames at s times image_shape (resized down from the frames, never up), and a
+        random window of them with its intrinsics; None (counted) when the frames are smaller."""
+        c, s = self.config, self.config.highres_factor
+        if c.image_shape is None:
+            raise SurfSplatInputError("highres_factor: needs image_shape (the size it multiplies)")
+        h, w = c.image_shape[0] * s, c.image_shape[1] * s
+        H, W = images.shape[-2:]
+        if H < h or W < w:
+            summary.skip(
+                f"frames too small for x{s} truth",
+                f"{where}: frames are {W}x{H}, x{s} truth at {c.image_shape[1]}x{c.image_shape[0]} needs {w}x{h}",
+            )
+            return None
+        rows = torch.tensor([views.index(int(i)) for i in target])
+        frames, K_hr, _ = rescale_and_crop(images[rows], K[rows], (h, w), c.resize_method)
+        cw, ch = (c.highres_crop, c.highres_crop) if c.highres_crop else (w, h)
+        if cw > w or ch > h:
+            raise SurfSplatInputError(f"highres_crop: {c.highres_crop} is larger than the x{s} image {w}x{h}")
+        g = torch.Generator().manual_seed(mix_seed(c.seed, zlib.crc32(scene.encode()), len(views)))
+        x0 = torch.randint(0, w - cw + 1, (len(rows),), generator=g)
+        y0 = torch.randint(0, h - ch + 1, (len(rows),), generator=g)
+        windows = torch.stack([f[:, y : y + ch, x : x + cw] for f, x, y in zip(frames, x0.tolist(), y0.tolist())])
+        K_hr = K_hr.clone()
+        K_hr[:, 0, 2] -= x0.to(K_hr.dtype)  # a crop only moves the principal point
+        K_hr[:, 1, 2] -= y0.to(K_hr.dtype)
+        return {"image_hr": windows, "K_hr": K_hr.float()}

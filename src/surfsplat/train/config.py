@@ -87,8 +87,9 @@ class DataConfig:
     synthetic_length: int = 100_000  # number of distinct synthetic training rooms
     synthetic_seed: int = 0  # seed of the synthetic training rooms (validation uses a disjoint seed)
     synthetic_supersample: int = 2  # rays per pixel per axis for synthetic images (anti-aliasing)
-    # Native truth of the targets at s times the resolution (procedural rooms), for loss.highres_weight:
-    # 0 = none; a random highres_crop-pixel square of the s-times image per target (0 = all of it).
+    # Truth of the targets at s times the resolution, for loss.highres_weight: procedural rooms ray-cast
+    # it; chunks take it from frames at least s times image_shape (samples with smaller ones are skipped
+    # and counted). 0 = none; a random highres_crop-pixel square of the s-times image per target (0: all).
     highres_factor: int = 0
     highres_crop: int = 0
     cache_samples: bool = False  # keep generated samples in memory (small synthetic pools on CPU)
@@ -158,12 +159,6 @@ def _validate(config: TrainConfig) -> TrainConfig:
     need(d.synthetic_supersample >= 1, "data.synthetic_supersample", "at least 1", d.synthetic_supersample)
     need(d.highres_factor == 0 or d.highres_factor >= 2, "data.highres_factor", "0 (off) or >= 2", d.highres_factor)
     need(d.highres_crop >= 0, "data.highres_crop", "0 (whole image) or a size in pixels", d.highres_crop)
-    need(
-        d.highres_factor == 0 or d.dataset == "synthetic",
-        "data.highres_factor",
-        "0 with chunk datasets (native high-resolution truth exists for procedural rooms)",
-        d.highres_factor,
-    )
     need(
         (config.loss.highres_weight > 0 or config.loss.closure_weight > 0) <= (d.highres_factor > 0),
         "loss.highres_weight/closure_weight",

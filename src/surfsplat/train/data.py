@@ -362,7 +362,9 @@ def synthetic_dataset(config: DataConfig, validation: bool = False, with_depth: 
     )
 
 
-def _chunk_config(config: DataConfig, roots: tuple[str, ...], seed: int, shuffle: bool) -> ChunkDatasetConfig:
+def _chunk_config(
+    config: DataConfig, roots: tuple[str, ...], seed: int, shuffle: bool, highres: bool = False
+) -> ChunkDatasetConfig:
     return ChunkDatasetConfig(
         roots=[Path(r) for r in roots],
         image_shape=config.image_shape,
@@ -370,6 +372,8 @@ def _chunk_config(config: DataConfig, roots: tuple[str, ...], seed: int, shuffle
         far=config.far,
         shuffle=shuffle,
         seed=seed,
+        highres_factor=config.highres_factor if highres else 0,
+        highres_crop=config.highres_crop,
     )
 
 
@@ -400,7 +404,7 @@ def build_train_batches(
     counter = StepCounter(start_step)
     sampler = BoundedViewSampler(sampler_config, counter)
     dataset = ChunkDataset(
-        _chunk_config(config, config.roots, seed, shuffle=True), sampler, rank=rank, world_size=world_size
+        _chunk_config(config, config.roots, seed, shuffle=True, highres=True), sampler, rank=rank, world_size=world_size
     )
     return StreamBatches(
         dataset, global_batch // world_size, config.num_workers, counter, rank, stream_state, start_step
