@@ -244,8 +244,13 @@ def test_training_batch_without_window_is_refused():
 
 
 def test_chunk_frames_give_the_window_at_s_times_the_training_size(tmp_path: Path):
-    from surfsplat.data import BoundedViewSampler, BoundedViewSamplerConfig, ChunkDataset, ChunkDatasetConfig
-    from surfsplat.data import write_chunks
+    from surfsplat.data import (
+        BoundedViewSampler,
+        BoundedViewSamplerConfig,
+        ChunkDataset,
+        ChunkDatasetConfig,
+        write_chunks,
+    )
     from surfsplat.data.transforms import rescale_and_crop
     from test_data_chunks import make_example
 
@@ -256,7 +261,9 @@ def test_chunk_frames_give_the_window_at_s_times_the_training_size(tmp_path: Pat
             min_distance_between_context_views=2, max_distance_between_context_views=4, warm_up_steps=0
         )
     )
-    config = ChunkDatasetConfig(roots=[tmp_path], image_shape=(12, 12), shuffle=False, highres_factor=4, highres_crop=20)
+    config = ChunkDatasetConfig(
+        roots=[tmp_path], image_shape=(12, 12), shuffle=False, highres_factor=4, highres_crop=20
+    )
     (sample,) = list(ChunkDataset(config, sampler))
     target = sample["target"]
     assert target["image_hr"].shape == (len(target["index"]), 3, 20, 20)
