@@ -210,3 +210,15 @@ def test_bake_errors():
         bake_for_viewers(g, cams, H, W, mode="splat")
     with pytest.raises(SurfSplatInputError, match="no Gaussians"):
         bake_for_viewers(g.subset(torch.zeros(len(g), dtype=torch.bool)), cams, H, W)
+
+
+def test_bake_of_a_3dgs_layout_file_rendered_with_ewa():
+    # A file read back from the 3DGS layout (explicit covariances) is ours to render with EWA and
+    # forced alpha blending; the bake fits its standard compositing to that picture the same way.
+    g, cams = _plane(_texture())
+    g = thin_gaussians(g)
+    baked, report = bake_for_viewers(g, cams, H, W, mode="ewa", backend="cpu")
+    ours = render(g, cams, W, H, mode="ewa", backend="torch")
+    alpha, psnr = _covered_figures(_standard(baked, cams, 1), ours)
+    assert report.before["context x1"].alpha < 0.75
+    assert alpha >= 0.99 and psnr >= 35, (alpha, psnr)

@@ -284,7 +284,14 @@ def write_viewer_ply(gaussians, cameras, width: int, height: int, out: Path, opt
     if options.bake is None:
         return {"surfels (3DGS PLY, unbaked)": save_ply(thin_gaussians(gaussians), out / "surfels_3dgs.ply")}
     baked, report = bake_for_viewers(
-        gaussians, cameras, height, width, options.bake, mode=options.mode, alpha_threshold=options.alpha_threshold
+        gaussians,
+        cameras,
+        height,
+        width,
+        options.bake,
+        mode=options.mode,
+        alpha_threshold=options.alpha_threshold,
+        show_progress=options.progress,
     )
     logger.info(report.summary())
     return {

@@ -1,8 +1,8 @@
 """Bake surfels for standard 3D Gaussian splatting viewers.
 
 Our picture is the forced-alpha-blended surfel render (paper Sec. 3.4): the composited colour is
-divided by the accumulated alpha, so surfels of opacity 0.14 (the model's median; the adapter caps
-it at 0.6) that cover a pixel to alpha 0.6 still show its full colour. Standard 3DGS viewers
+divided by the accumulated alpha, so faint surfels (the adapter caps opacity at 0.6; the shipped
+model's median on a DTU pair is 0.10) that cover a pixel to alpha 0.6 still show its full colour. Standard 3DGS viewers
 (SuperSplat, gsplat's viewers, ...) composite the same Gaussians without that division, on their
 background: they show a faint, see-through version of the scene. Their compositing is our
 renderer's `mode="ewa"` with `alpha_threshold=None` (SuperSplat matches it to 43.8 dB, see the
@@ -13,8 +13,8 @@ a third axis) whose plain compositing on black reproduces our picture. Positions
 per Gaussian, the opacity logit, three log-scales (tangent u, v and a thin third axis) and the SH
 are fitted by Adam against our renders (colour on black, and accumulated alpha 1 where our render
 covers the pixel, 0 where it does not), from the context views, views interpolated between them and
-slightly jittered copies of the context views, at x1 and x2; the lowest-loss iterate is kept, as
-the compaction refit does. Opacities start saturated: a surfel's opacity o becomes 1 - (1 - o)^m with
+slightly jittered copies of the context views, at x1 and x2, one view per step; as the compaction
+refit does, a better iterate is never left behind (see `bake_for_viewers`). Opacities start saturated: a surfel's opacity o becomes 1 - (1 - o)^m with
 m chosen so that the pixels it covers, whose standard alpha averages A, would reach alpha 0.99
 (1 - (1 - A)^m = 0.99 if every surfel there were raised alike), not bounded by the model's cap.
 The third axis starts at a tenth of the smaller tangent scale: thin enough to keep the surface
@@ -34,6 +34,7 @@ from ..checks import SurfSplatInputError
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
 from ..geometry.sh import SH_C0
+from ..log import progress
 from ..render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
 
 COVERED_ALPHA = 0.05  # pixels our render covers: the fit and its figures look only at these
@@ -190,6 +191,7 @@ def bake_for_viewers(
     mode: RenderMode = "surfel",
     alpha_threshold: float | None = 0.001,
     backend: Backend = "auto",
+    show_progress: bool = False,
 ) -> tuple[Gaussians, BakeReport]:
     """Gaussians whose standard 3DGS compositing (EWA, no normalisation, on black) reproduces our
     render of `gaussians` (see the module docstring).
@@ -197,6 +199,7 @@ def bake_for_viewers(
     gaussians: [N] unbatched, as the model (or a compaction) returns them
     cameras:   the context cameras, K in pixels of height x width
     mode, alpha_threshold: how we render `gaussians` (the picture to reproduce)
+    show_progress: a progress bar (or log lines) over the Adam steps
     Returns the baked Gaussians (explicit covariances: write them with `save_ply`, 3DGS layout) and
     a BakeReport with the figures before and after, from the context cameras at each factor.
     """
@@ -218,7 +221,8 @@ def bake_for_viewers(
     for f in config.factors:
         out = ours_of(cameras.scaled(float(f)), width * f, height * f)
         contexts[f"context x{f}"] = (cameras.scaled(float(f)), width * f, height * f, out.color, out.alpha)
-    depth = _scene_depth(contexts[f"context x{config.factors[0]}"][4], ours_of(cameras, width, height).depth)
+    first = ours_of(cameras, width, height)
+    depth = _scene_depth(first.alpha, first.depth)
     probes = fit_cameras(cameras, config, depth)
     views = []
     for f in config.factors:
@@ -231,7 +235,7 @@ def bake_for_viewers(
     before = {k: viewer_figures(thin, o, a, c, w, h, backend=backend) for k, (c, w, h, o, a) in contexts.items()}
 
     R, scales = _axes(g)
-    logits = _saturated_logits(thin, scales, cameras, width, height, config, backend).requires_grad_(True)
+    logits = _saturated_logits(thin, cameras, width, height, config, backend).requires_grad_(True)
     # Tangent scales start at least at the low-pass size of their pixel footprint (as compaction's
     # floored surfels): the adapter's tangent clamp leaves many smaller than their pixel spacing,
     # which the surfel renderer's screen-space filter hides at x1 and ours normalises away, but a
@@ -277,7 +281,7 @@ def bake_for_viewers(
     order = torch.randperm(len(probes), generator=torch.Generator().manual_seed(config.seed)).tolist()
     initial = current().detach()
     best, best_cycle, best_step, losses, cycle = initial, math.inf, 0, [], []
-    for step in range(config.steps):
+    for step in progress(range(config.steps), desc="bake for 3DGS viewers", unit="step", enabled=show_progress):
         loss = loss_of(current(), order[step % len(order)])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -345,7 +349,7 @@ def _scene_depth(alpha: Tensor, depth: Tensor) -> float:
 
 
 def _saturated_logits(
-    thin: Gaussians, scales: Tensor, cameras: Cameras, width: int, height: int, config: BakeConfig, backend: Backend
+    thin: Gaussians, cameras: Cameras, width: int, height: int, config: BakeConfig, backend: Backend
 ) -> Tensor:
     """[N] opacity logits of the saturated start: o -> 1 - (1 - o)^m with 1 - (1 - A)^m = target,
     A the standard alpha of the pixels the Gaussian covers, averaged with its blending weights.
