@@ -49,9 +49,7 @@ class ExportOptions:
     mode: Literal["surfel", "ewa"] = "surfel"  # rasterization
     alpha_threshold: float | None = 0.001  # forced alpha blending tau (None: plain compositing)
     progress: bool = True  # progress over frames (a bar on a terminal, log lines elsewhere)
-    bake: BakeConfig | None = (
-        BakeConfig()
-    )  # surfels_3dgs.ply baked for standard viewers (None: thin surfels as they are)
+    bake: BakeConfig | None = BakeConfig()  # surfels_3dgs.ply for standard 3DGS viewers (None: unbaked)
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.formats) - set(FORMATS))
