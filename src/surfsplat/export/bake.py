@@ -45,7 +45,7 @@ class BakeConfig:
     """How `bake_for_viewers` fits; every field has the default the export uses."""
 
     steps: int = 60  # Adam steps, one view each (0: only the saturated initialisation)
-    lr: float = 0.01  # Adam rate of SH and log-scales; opacity logits take 4x
+    lr: float = 0.03  # Adam rate of SH and log-scales; opacity logits take 4x (0.01 scored 1-2 dB lower)
     factors: tuple[int, ...] = (1, 2)  # resolutions (times the context views') the fit compares at
     nearby_views: int = 2  # views interpolated between consecutive context views
     jittered_views: int = 1  # jittered copies of each context view
