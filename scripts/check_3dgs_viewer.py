@@ -1,17 +1,19 @@
-"""Open a reconstruction and its compacted version in a standard 3D Gaussian splatting viewer.
+"""Open a reconstruction in a standard 3D Gaussian splatting viewer: raw, baked, compacted and baked.
 
     python scripts/check_3dgs_viewer.py --out docs/viewer_check --level 4
 
-One held-out procedural room is reconstructed by the shipped model and compacted; both are written
-as 3DGS-layout PLY files (the thin-Gaussian form `surfsplat export` writes as surfels_3dgs.ply),
-turned so that our z-up world stands upright in the viewer.
+One held-out procedural room is reconstructed by the shipped model and compacted. Three 3DGS-layout
+PLY files are written, turned so that our z-up world stands upright in the viewer: the thin surfels
+as they are (`surfsplat export --raw-3dgs`), and the reconstruction and its compaction baked for
+standard viewers (`surfsplat.export.bake`, what `surfsplat export` writes as surfels_3dgs.ply).
 PlayCanvas's `splat-transform` (the converter behind SuperSplat; fetched by npx) then reads each
 file, prints its per-column summary and writes it as the SuperSplat viewer's self-contained HTML
 page, whose camera is set behind the middle of the two context views; headless Chromium (software
 WebGL) shows each page and takes a picture. The same viewpoint is rendered by surfsplat's own
-renderer, as it renders and as a 3DGS viewer blends. Written: the PLY files, the pages,
-`viewer_check.png` (ours | ours as 3DGS | SuperSplat, full | SuperSplat, compacted) and
-`viewer_check.json` (counts read back and PSNR between the pictures).
+renderer, as it renders and as a 3DGS viewer blends the baked file. Written: the PLY files, the
+pages, `viewer_check.png` (ours | SuperSplat, raw | ours of the baked file as 3DGS | SuperSplat,
+baked | SuperSplat, compacted and baked) and `viewer_check.json` (counts read back, the bake's
+figures and PSNR between the pictures).
 
 Needs node/npm (for npx) and Chromium (Debian: apt-get install chromium); neither is a dependency
 of the package, so this is a script, not a test.
@@ -35,6 +37,7 @@ import torch
 from surfsplat.compaction import compact_surfels
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
 from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.export.bake import bake_for_viewers, thin_gaussians
 from surfsplat.export.images import to_uint8
 from surfsplat.export.ply import save_ply
 from surfsplat.gaussians import Gaussians
@@ -88,21 +91,34 @@ def main() -> None:
     mode = decoder_mode(model.cfg.adapter)
     small = compact_surfels(full, context, args.size, args.size, args.level, mode=mode, alpha_threshold=tau).gaussians
 
+    baked, bake_report = bake_for_viewers(full, context, args.size, args.size, mode=mode, alpha_threshold=tau)
+    baked_small, small_report = bake_for_viewers(small, context, args.size, args.size, mode=mode, alpha_threshold=tau)
+
     ours = to_uint8(render(full, viewpoint, args.view, args.view, mode=mode, alpha_threshold=tau).color[0])
-    # What a 3DGS viewer draws: the thin Gaussians blended without forced alpha blending.
-    plain = to_uint8(render(full, viewpoint, args.view, args.view, mode="ewa", alpha_threshold=None).color[0])
+    # What a 3DGS viewer draws of the baked file: its Gaussians blended without forced alpha blending.
+    plain = to_uint8(render(baked, viewpoint, args.view, args.view, mode="ewa", alpha_threshold=None).color[0])
     settings_file = args.out / "viewer_settings.json"
     settings_file.write_text(json.dumps(viewer_settings(viewpoint), indent=1))
-    report = {"checkpoint": label, "level": args.level, "seed": args.seed, "viewer": " ".join(tool), "files": {}}
-    pictures = {"surfsplat renderer, full": ours, "surfsplat renderer as 3DGS (EWA, no alpha normalization)": plain}
-    for name, g in (("full", full), ("compact", small)):
+    report = {
+        "checkpoint": label,
+        "level": args.level,
+        "seed": args.seed,
+        "viewer": " ".join(tool),
+        "bake": {
+            name: {k: v for k, v in r.to_dict().items() if k != "losses"}
+            for name, r in (("full", bake_report), ("compact", small_report))
+        },
+        "files": {},
+    }
+    viewer = {}
+    files = (("raw", thin_gaussians(full)), ("baked", baked), ("compact_baked", baked_small))
+    for name, g in files:
         ply = save_ply(turned(g), args.out / f"{name}_3dgs.ply")
         summary = run(tool + [str(ply), "-m", "null"])
         rows = int(re.search(r"Row Count:\*\*\s*(\d+)", summary).group(1))
         page = args.out / f"{name}.html"
         run(tool + ["-w", "-g", "cpu", "-E", str(settings_file), str(ply), str(page)])
-        picture = screenshot(page, args.view)
-        pictures[f"SuperSplat viewer, {name} ({rows:,} splats)"] = picture
+        viewer[name] = (screenshot(page, args.view), rows)
         report["files"][name] = {
             "surfels": len(g),
             "rows_read_by_splat_transform": rows,
@@ -111,10 +127,19 @@ def main() -> None:
         if rows != len(g):
             raise SystemExit(f"splat-transform read {rows} splats from {ply}, expected {len(g)}")
 
+    pictures = {
+        "surfsplat renderer": ours,
+        f"SuperSplat viewer, raw thin surfels ({viewer['raw'][1]:,} splats)": viewer["raw"][0],
+        "surfsplat renderer as 3DGS (EWA, no alpha normalization), baked file": plain,
+        f"SuperSplat viewer, baked ({viewer['baked'][1]:,} splats)": viewer["baked"][0],
+        f"SuperSplat viewer, compacted and baked ({viewer['compact_baked'][1]:,} splats)": viewer["compact_baked"][0],
+    }
     names = list(pictures)
     report["psnr_db"] = {
-        "SuperSplat full vs surfsplat as 3DGS": picture_psnr(pictures[names[2]], pictures[names[1]]),
-        "SuperSplat compact vs SuperSplat full": picture_psnr(pictures[names[3]], pictures[names[2]]),
+        "SuperSplat baked vs surfsplat as 3DGS of the baked file": picture_psnr(viewer["baked"][0], plain),
+        "SuperSplat baked vs surfsplat renderer": picture_psnr(viewer["baked"][0], ours),
+        "SuperSplat raw vs surfsplat renderer": picture_psnr(viewer["raw"][0], ours),
+        "SuperSplat compacted and baked vs surfsplat renderer": picture_psnr(viewer["compact_baked"][0], ours),
     }
     iio.imwrite(args.out / "viewer_check.png", np.concatenate(list(pictures.values()), axis=1))
     (args.out / "viewer_check.json").write_text(json.dumps(report, indent=1) + "\n")

@@ -71,6 +71,11 @@ def test_demo_writes_report_metrics_ply_videos_mesh(demo):
     assert any(s.endswith("_grid.png") for s in sources) and any(s.endswith(".mp4") for s in sources)
     assert any(s.endswith("training_curve.svg") for s in sources)
     assert any(s.endswith("novel_view_grid.png") for s in sources)
+    # The exported 3DGS PLY as standard viewers composite it, baked to our picture.
+    assert any(s.endswith("viewer_export_grid.png") for s in sources)
+    bake = json.loads((demo / "scene" / "surfels_3dgs.json").read_text())
+    assert bake["after"]["context x1"]["alpha"] > max(0.95, bake["before"]["context x1"]["alpha"])
+    assert f"{bake['after']['context x1']['psnr']:.1f} dB" in html
     assert any(s.endswith("_depth_error.png") for s in sources) and any(
         s.endswith("_normal_error.png") for s in sources
     )

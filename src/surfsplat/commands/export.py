@@ -5,7 +5,8 @@
 `export_reconstruction` is also what `reconstruct` and `demo` call, so every command writes the
 same files:
     surfels.ply            the surfels (2DGS layout: two scales per surfel)
-    surfels_3dgs.ply       the same surfels as thin 3D Gaussians (3DGS layout, for 3DGS-only viewers)
+    surfels_3dgs.ply       the surfels baked for standard 3DGS viewers (3DGS layout; `--raw-3dgs`: unbaked)
+    surfels_3dgs.json      the bake's figures: standard viewers' alpha and colour PSNR against our render
     cameras.json           the context cameras (JSON camera file)
     renders/               colour, depth and normal PNGs of every context view
     path/                  frames of the interpolated camera path; path.mp4, turntable.mp4
@@ -15,6 +16,8 @@ same files:
 from __future__ import annotations
 
 import argparse
+import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -24,7 +27,10 @@ from torch import Tensor
 
 from ..checks import SurfSplatInputError, check_output_dir
 from ..compaction import DEFAULT_LEVEL, LEVELS
+from ..export.bake import BakeConfig
 from ..log import progress
+
+logger = logging.getLogger(__name__)
 
 FORMATS = ("ply", "renders", "video", "mesh")
 
@@ -43,6 +49,7 @@ class ExportOptions:
     mode: Literal["surfel", "ewa"] = "surfel"  # rasterization
     alpha_threshold: float | None = 0.001  # forced alpha blending tau (None: plain compositing)
     progress: bool = True  # progress over frames (a bar on a terminal, log lines elsewhere)
+    bake: BakeConfig | None = BakeConfig()  # surfels_3dgs.ply for standard 3DGS viewers (None: unbaked)
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.formats) - set(FORMATS))
@@ -87,6 +94,12 @@ def add_export_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.001,
         help="forced alpha blending tau (paper Sec. 3.4; reconstruct uses the model's); negative turns it off",
     )
+    group.add_argument(
+        "--raw-3dgs",
+        action="store_true",
+        help="write surfels_3dgs.ply as the thin surfels are, without baking it for standard 3DGS viewers "
+        "(which then show it faint: they do not apply forced alpha blending)",
+    )
     add_compact_argument(
         group,
         f"fewer surfels for the same picture (surfsplat.compact): level 1 (gentle) to 5 (strong); "
@@ -121,6 +134,7 @@ def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: 
         mode=args.mode or mode,
         progress=not args.no_progress,
         alpha_threshold=None if args.alpha_threshold < 0 else args.alpha_threshold,
+        bake=None if args.raw_3dgs else BakeConfig(),
     )
 
 
@@ -227,8 +241,7 @@ def export_reconstruction(
             raise SurfSplatInputError(f"--formats video: {reason}")
     if write_surfels and "ply" in options.formats:
         written["surfels (2DGS PLY)"] = save_ply(gaussians, out / "surfels.ply")
-        thin = gaussians.with_explicit_covariances(gaussians.covariances)
-        written["surfels (3DGS PLY)"] = save_ply(thin, out / "surfels_3dgs.ply")
+        written.update(write_viewer_ply(gaussians, cameras, width, height, out, options))
     written["cameras"] = save_cameras(out / "cameras.json", cameras, width, height, names, near, far)
 
     s = options.scale
@@ -274,6 +287,32 @@ def export_reconstruction(
         )
         written["mesh (TSDF fusion)"] = save_mesh(mesh, out / "mesh.ply")
     return written
+
+
+def write_viewer_ply(gaussians, cameras, width: int, height: int, out: Path, options: ExportOptions) -> dict[str, Path]:
+    """surfels_3dgs.ply: baked for standard 3DGS viewers (`surfsplat.export.bake`), with its figures in
+    surfels_3dgs.json; with `options.bake` None, the thin surfels as they are."""
+    from ..export.bake import bake_for_viewers, thin_gaussians
+    from ..export.figures import write_text
+    from ..export.ply import save_ply
+
+    if options.bake is None:
+        return {"surfels (3DGS PLY, unbaked)": save_ply(thin_gaussians(gaussians), out / "surfels_3dgs.ply")}
+    baked, report = bake_for_viewers(
+        gaussians,
+        cameras,
+        height,
+        width,
+        options.bake,
+        mode=options.mode,
+        alpha_threshold=options.alpha_threshold,
+        show_progress=options.progress,
+    )
+    logger.info(report.summary())
+    return {
+        "surfels (3DGS PLY, baked for viewers)": save_ply(baked, out / "surfels_3dgs.ply"),
+        "viewer bake figures": write_text(out / "surfels_3dgs.json", json.dumps(report.to_dict(), indent=1) + "\n"),
+    }
 
 
 @dataclass
