@@ -225,3 +225,24 @@ def test_bf16_outputs_match_the_release(bf16_run, golden_dir, golden_subset, wha
     assert torch.equal(case["context.image"], golden_subset.tensors["context.image"])
     err = rel(output(bf16_run, what), case[f"outputs.{what}"])
     assert err <= bound, f"{what} in bf16: relative L2 error {err:.3e} > {bound:.0e}"
+
+
+# ------------------------------------------------------------------ the commands' --precision
+@pytest.mark.parametrize("command", ["reconstruct", "eval", "train", "demo"])
+def test_every_command_takes_precision(command, capsys):
+    from surfsplat.cli import build_parser
+
+    parser = build_parser()
+    required = {
+        "reconstruct": ["--checkpoint", "m.ckpt", "--images", "a.png", "b.png"],
+        "eval": ["--data", "chunks", "--index", "index.json"],
+        "train": [],
+        "demo": [],
+    }[command]
+    for value in ("auto", "fp32", "bf16"):
+        assert parser.parse_args([command, *required, "--precision", value]).precision == value
+    if command != "train":  # train keeps its configuration's value unless the option is given
+        assert parser.parse_args([command, *required]).precision == "auto"
+    with pytest.raises(SystemExit):
+        parser.parse_args([command, *required, "--precision", "int8"])
+    assert "--precision" in capsys.readouterr().err
