@@ -4,12 +4,14 @@
     python benchmarks/encoder.py --device cuda        # on a GPU
     python benchmarks/encoder.py --presets small --views 4 --size 512
     python benchmarks/encoder.py --presets small --min-idle 0.9   # on a shared machine
+    python benchmarks/encoder.py --presets small --precisions fp32 bf16   # bf16 autocast beside fp32
 
 On a shared machine, `--min-idle` waits before every timed call until the CPUs were at least that
 idle over the last second (Linux /proc/stat); each sample records the idle fraction it started at.
 
-Each preset runs in a fresh subprocess so that its peak resident memory (CPU) or peak allocated
-memory (CUDA) is its own. The timed call is one full `SurfSplat` forward (encoder + official
+Each preset and precision runs in a fresh subprocess so that its peak resident memory (CPU) or
+peak allocated memory (CUDA) is its own. bf16 is `torch.autocast(device, dtype=torch.bfloat16)`
+around the call (surfsplat.precision); the table gives its time as a fraction of fp32's. The timed call is one full `SurfSplat` forward (encoder + official
 adapter, as the release's encoder call) under `no_grad` in eval mode, after one warm-up call; the
 encoder alone is timed as well. Results go to benchmarks/results/encoder_<device>.json and a table
 is printed.
@@ -57,13 +59,22 @@ def wait_for_idle(min_idle: float, timeout: float) -> float | None:
 
 
 def run_one(
-    preset: str, views: int, size: int, device: str, repeats: int, threads: int, min_idle: float, idle_timeout: float
+    preset: str,
+    views: int,
+    size: int,
+    device: str,
+    repeats: int,
+    threads: int,
+    min_idle: float,
+    idle_timeout: float,
+    precision: str = "fp32",
 ) -> dict:
     import torch
 
     from surfsplat import Cameras
     from surfsplat.evaluate import peak_memory
     from surfsplat.model import SurfSplat
+    from surfsplat.precision import autocast
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
@@ -82,7 +93,7 @@ def run_one(
             torch.cuda.synchronize()
 
     full, encoder_only, idle = [], [], []
-    with torch.no_grad():
+    with torch.no_grad(), autocast(precision, device) as ran:
         model(images, cameras, near, far)  # warm-up: allocator, kernel selection
         sync()
         if device.startswith("cuda"):
@@ -104,6 +115,7 @@ def run_one(
         "views": views,
         "size": size,
         "threads": threads,
+        "precision": ran,
         "parameters": sum(p.numel() for p in model.parameters()),
         "forward_s": full,
         "forward_median_s": statistics.median(full),
@@ -121,6 +133,7 @@ def main() -> int:
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--precisions", nargs="+", choices=("fp32", "bf16", "auto"), default=["fp32", "bf16"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--min-idle", type=float, default=0.0, help="wait for this idle CPU share before each call")
@@ -138,20 +151,26 @@ def main() -> int:
             args.threads,
             args.min_idle,
             args.idle_timeout,
+            args.precisions[0],
         )
         print(json.dumps(result))
         return 0
 
     rows = []
     for preset in args.presets:
-        cmd = [sys.executable, __file__, "--single", preset, "--views", str(args.views), "--size", str(args.size)]
-        cmd += ["--device", args.device, "--repeats", str(args.repeats), "--threads", str(args.threads)]
-        cmd += ["--min-idle", str(args.min_idle), "--idle-timeout", str(args.idle_timeout)]
-        done = subprocess.run(cmd, capture_output=True, text=True)
-        if done.returncode != 0:
-            print(f"{preset}: failed\n{done.stderr.strip()}", file=sys.stderr)
-            return 1
-        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        for precision in args.precisions:
+            cmd = [sys.executable, __file__, "--single", preset, "--views", str(args.views), "--size", str(args.size)]
+            cmd += ["--device", args.device, "--repeats", str(args.repeats), "--threads", str(args.threads)]
+            cmd += ["--min-idle", str(args.min_idle), "--idle-timeout", str(args.idle_timeout)]
+            cmd += ["--precisions", precision]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                print(f"{preset} {precision}: failed\n{done.stderr.strip()}", file=sys.stderr)
+                return 1
+            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    fp32 = {r["preset"]: r["forward_median_s"] for r in rows if r["precision"] == "fp32"}
+    for r in rows:
+        r["forward_vs_fp32"] = r["forward_median_s"] / fp32[r["preset"]] if r["preset"] in fp32 else None
 
     import torch
 
@@ -172,15 +191,16 @@ def main() -> int:
     out.write_text(json.dumps(report, indent=2))
 
     print(
-        f"{'preset':<7} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
-        f"{'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
+        f"{'preset':<7} {'precision':>9} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
+        f"{'x fp32':>7} {'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
     )
     for r in rows:
         idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
         timing = f"{r['forward_median_s']:.3f}, {min(r['forward_s']):.3f}"
+        ratio = "-" if r["forward_vs_fp32"] is None else f"{r['forward_vs_fp32']:.2f}"
         print(
-            f"{r['preset']:<7} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
-            f"{r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}"
+            f"{r['preset']:<7} {r['precision']:>9} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
+            f"{ratio:>7} {r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}"
         )
     print(f"({rows[0]['peak_kind']}; load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
     return 0

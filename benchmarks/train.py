@@ -10,12 +10,16 @@ memory on a GPU. Defaults follow the issue: batch 1, 2 context views, 256x256, 4
     python benchmarks/train.py                                  # tiny small base large, CPU
     python benchmarks/train.py --presets tiny --size 64 --targets 2
     python benchmarks/train.py --presets tiny --render-backends torch cpu   # the compiled renderer's gain
-    python benchmarks/train.py --device cuda --precision bf16
+    python benchmarks/train.py --device cuda --precisions bf16
+    python benchmarks/train.py --presets tiny small --precisions fp32 bf16   # side by side (the default)
+
+bf16 is autocast with float32 master weights and AdamW state (TrainConfig.precision).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -137,7 +141,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3, help="timed steps after one warm-up step")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    parser.add_argument("--precision", choices=("auto", "fp32", "bf16", "fp16"), default="auto")
+    parser.add_argument("--precisions", nargs="+", choices=("auto", "fp32", "bf16", "fp16"), default=["fp32", "bf16"])
     parser.add_argument(
         "--render-backends",
         nargs="+",
@@ -157,62 +161,60 @@ def main() -> None:
     if args.child:  # one preset and renderer, measured in this fresh process
         from surfsplat.train.loop import cpu_threads
 
-        (preset,), (backend,) = args.presets, args.render_backends
+        (preset,), (backend,), (precision,) = args.presets, args.render_backends, args.precisions
         with cpu_threads(args.threads or 0):  # torch's and the compiled renderer's; 0 keeps their defaults
-            row = measure(
-                preset, args.size, args.targets, args.batch, args.repeats, args.device, args.precision, backend
-            )
+            row = measure(preset, args.size, args.targets, args.batch, args.repeats, args.device, precision, backend)
         print(json.dumps(row))
         return
 
     rows = []
-    for preset in args.presets:
-        for backend in args.render_backends:
-            cmd = [
-                sys.executable,
-                __file__,
-                "--child",
-                "--presets",
-                preset,
-                "--render-backends",
-                backend,
-                "--size",
-                str(args.size),
-                "--targets",
-                str(args.targets),
-                "--batch",
-                str(args.batch),
-                "--repeats",
-                str(args.repeats),
-                "--device",
-                args.device,
-                "--precision",
-                args.precision,
-            ]
-            if args.threads:
-                cmd += ["--threads", str(args.threads)]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                lines = proc.stderr.strip().splitlines()
-                rows.append(
-                    {
-                        "preset": preset,
-                        "render_backend": backend,
-                        "error": lines[-1] if lines else f"exit {proc.returncode}",
-                    }
-                )
-            else:
-                rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-            r = rows[-1]
-            if "error" in r:
-                print(f"{preset:6s} {backend:>6s}  failed: {r['error']}", flush=True)
-            else:
-                print(
-                    f"{preset:6s} {r['render_backend']:>6s}  {r['parameters'] / 1e6:7.1f} M params  "
-                    f"step {r['step_seconds_median']:8.3f} s (min {r['step_seconds_min']:.3f})  "
-                    f"peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}  load {r['load_average_1min']:.1f}",
-                    flush=True,
-                )
+    for preset, backend, precision in itertools.product(args.presets, args.render_backends, args.precisions):
+        cmd = [
+            sys.executable,
+            __file__,
+            "--child",
+            "--presets",
+            preset,
+            "--render-backends",
+            backend,
+            "--size",
+            str(args.size),
+            "--targets",
+            str(args.targets),
+            "--batch",
+            str(args.batch),
+            "--repeats",
+            str(args.repeats),
+            "--device",
+            args.device,
+            "--precisions",
+            precision,
+        ]
+        if args.threads:
+            cmd += ["--threads", str(args.threads)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            lines = proc.stderr.strip().splitlines()
+            rows.append(
+                {
+                    "preset": preset,
+                    "render_backend": backend,
+                    "precision": precision,
+                    "error": lines[-1] if lines else f"exit {proc.returncode}",
+                }
+            )
+        else:
+            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        r = rows[-1]
+        if "error" in r:
+            print(f"{preset:6s} {backend:>6s}  failed: {r['error']}", flush=True)
+        else:
+            print(
+                f"{preset:6s} {r['render_backend']:>6s}  {r['parameters'] / 1e6:7.1f} M params  "
+                f"step {r['step_seconds_median']:8.3f} s (min {r['step_seconds_min']:.3f})  "
+                f"peak {r['peak_memory_mb']:9.0f} MB  {r['precision']}  load {r['load_average_1min']:.1f}",
+                flush=True,
+            )
 
     out = Path(args.out) if args.out else RESULTS / f"train_{args.device}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -22,7 +23,7 @@ from surfsplat.train.checkpoint import latest_checkpoint, verify_checkpoint
 from surfsplat.train.config import override
 from surfsplat.train.data import build_validation_samples
 from surfsplat.train.distributed import DistributedContext
-from surfsplat.train.loop import keep_adapter_in_float32, resolve_precision
+from surfsplat.train.loop import resolve_precision
 from surfsplat.train.validation import validate
 
 
@@ -117,6 +118,34 @@ def test_geometry_terms_join_the_loss_where_the_data_has_depth(tmp_path: Path) -
         )
 
 
+def test_bf16_resume_is_exact(tmp_path: Path) -> None:
+    """bf16 autocast keeps float32 master weights and AdamW state, so a run resumed from its step-2
+    checkpoint reaches step 4 bit for bit as the run that never stopped."""
+    from safetensors.torch import load_file
+
+    def tensors(checkpoint: Path) -> dict[str, torch.Tensor]:
+        return {
+            **load_file(str(checkpoint / "model.safetensors")),
+            **load_file(str(checkpoint / "train_state.safetensors")),
+        }
+
+    settings = {"steps": 4, "checkpoint_every": 2, "val_every": 0, "image_every": 0, "precision": "bf16"}
+    straight = fit(_quick(tmp_path / "straight", **settings))
+    assert straight.precision == "bf16"
+    model_dtypes = {t.dtype for t in load_file(str(straight.checkpoint / "model.safetensors")).values()}
+    assert model_dtypes == {torch.float32}  # master weights stay float32
+    resumed_dir = tmp_path / "resumed" / "checkpoints"
+    resumed_dir.mkdir(parents=True)
+    shutil.copytree(tmp_path / "straight" / "checkpoints" / "step-00000002", resumed_dir / "step-00000002")
+    resumed = fit(_quick(tmp_path / "resumed", **settings), resume=True)
+    assert (resumed.start_step, resumed.step, resumed.precision) == (2, 4, "bf16")
+    a, b = tensors(straight.checkpoint), tensors(resumed.checkpoint)
+    assert a.keys() == b.keys()
+    for key in a:  # weights, AdamW moments and step counts, RNG states
+        assert torch.equal(a[key], b[key]), key
+    assert [loss for s, loss in straight.losses if s >= 2] == [loss for _, loss in resumed.losses]
+
+
 def test_resume_needs_a_checkpoint(tmp_path: Path) -> None:
     with pytest.raises(SurfSplatInputError, match="resume: no checkpoint"):
         fit(_quick(tmp_path / "empty"), resume=True)
@@ -176,16 +205,22 @@ def test_geometry_supervision_gives_better_depth_on_held_out_rooms(tmp_path: Pat
     assert geometry["x1/psnr"] > image["x1/psnr"] - 0.3, results
 
 
-def test_precision_rules_and_float32_adapter_under_autocast() -> None:
+def test_precision_rules_and_float32_adapter_under_autocast(monkeypatch) -> None:
+    import surfsplat.precision
+
     cpu = torch.device("cpu")
-    assert resolve_precision(train_preset("tiny"), cpu) is None  # auto: full precision on CPU
-    with pytest.raises(SurfSplatInputError, match="mixed precision needs a CUDA device"):
-        resolve_precision(train_preset("tiny", precision="bf16"), cpu)
+    monkeypatch.setattr(surfsplat.precision, "cpu_bf16_flags", lambda: frozenset())
+    assert resolve_precision(train_preset("tiny"), cpu) is None  # auto: float32 on a CPU without native bf16
+    monkeypatch.setattr(surfsplat.precision, "cpu_bf16_flags", lambda: frozenset({"amx_bf16"}))
+    assert resolve_precision(train_preset("tiny"), cpu) == torch.bfloat16  # auto: bf16 on an AMX CPU
+    assert resolve_precision(train_preset("tiny", precision="fp32"), cpu) is None
+    assert resolve_precision(train_preset("tiny", precision="bf16"), cpu) == torch.bfloat16
+    with pytest.raises(SurfSplatInputError, match="'fp16' mixed precision needs a CUDA device"):
+        resolve_precision(train_preset("tiny", precision="fp16"), cpu)
 
     torch.manual_seed(0)
     model = SurfSplat.from_preset("tiny")
     seen: list[tuple[bool, torch.dtype]] = []
-    keep_adapter_in_float32(model, "cpu")
     model.adapter.register_forward_pre_hook(
         lambda m, args: seen.append((torch.is_autocast_enabled("cpu"), args[0].dtype))
     )
@@ -196,7 +231,7 @@ def test_precision_rules_and_float32_adapter_under_autocast() -> None:
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
         prediction = model(images, cams, 0.5, 20.0)
         assert torch.is_autocast_enabled("cpu")  # restored after the adapter
-    # The geometry ran in float32 with autocast off, on the bf16 encoder's depths cast up.
+    # The model runs its geometry in float32 with autocast off, on the encoder's depths.
     assert seen == [(False, torch.float32)]
     assert prediction.gaussians.means.dtype == torch.float32
 
@@ -252,7 +287,6 @@ def _first_step(sample, amp_dtype, scaler=None, backend: str = "auto"):
     torch.manual_seed(0)
     model = build_model(config).train()
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    hooks = keep_adapter_in_float32(model, "cpu") if amp_dtype is not None else []
     out = training_step(
         model,
         model,
@@ -264,8 +298,6 @@ def _first_step(sample, amp_dtype, scaler=None, backend: str = "auto"):
         amp_dtype=amp_dtype,
         scaler=scaler,
     )
-    for h in hooks:
-        h.remove()
     moved = sum(not torch.equal(before[k], v) for k, v in model.state_dict().items())
     return out, moved
 

@@ -50,6 +50,7 @@ from .model.decoder import decoder_mode
 from .model.pretrained import check_resolution, load_pretrained, with_adapter
 from .model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
 from .model.surfsplat import SurfSplat
+from .precision import Precision, Resolved, autocast, parse_precision, resolve_precision
 from .render import RenderOutput, render
 
 DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
@@ -267,6 +268,7 @@ class ScenePrediction:
     alpha_threshold: float | None = None  # tau the renders were normalised with (None: plain compositing)
     render_mode: str = "surfel"  # rasterization the renders used ("surfel" or "ewa")
     surfels: int = 0  # surfels rendered (after compaction when asked for)
+    precision: Resolved = "fp32"  # what the forward pass ran in (rendering is always float32)
     scale_multipliers: Tensor | None = None  # [N, 2] the adapter's Eq. 9 multipliers (None once compacted)
     multiplier_range: float | None = None  # the clamp's r of those multipliers
 
@@ -291,16 +293,19 @@ def predict_sample(
     mode: Literal["auto", "surfel", "ewa"] = "auto",
     alpha_threshold: float | None | Literal["model"] = "model",
     compact: int | None = None,
+    precision: Precision = "fp32",
 ) -> ScenePrediction:
     """Reconstruct a sample's scene from its context views and render its targets at every factor
-    (compacted first at level `compact`, see `surfsplat.compact`, when given)."""
+    (compacted first at level `compact`, see `surfsplat.compact`, when given). `precision` is the
+    forward pass's (auto, fp32, bf16; `surfsplat.precision`)."""
     device = next(model.parameters()).device
     h, w = sample.target_images.shape[-2:]
     images = sample.context_images[None].to(device)
     cams = sample.context_cameras.to(device=device, dtype=torch.float32)
     _sync(device)
     start = time.perf_counter()
-    prediction = model(images, cams, sample.near, sample.far)
+    with autocast(precision, device) as ran:
+        prediction = model(images, cams, sample.near, sample.far)
     _sync(device)
     forward = time.perf_counter() - start
     gaussians = prediction.gaussians.select(0).to(torch.float32)
@@ -333,6 +338,7 @@ def predict_sample(
         len(gaussians),
         scale_multipliers=None if fixed else multipliers,
         multiplier_range=None if fixed or multipliers is None else model.cfg.adapter.scale_multiplier_range,
+        precision=ran,
     )
 
 
@@ -353,8 +359,10 @@ class EvalConfig:
     progress: bool = True  # progress over the entries (a bar on a terminal, log lines elsewhere)
     geometry: GeometryConfig | None = None  # also score geometry against exact truth (procedural scenes)
     compact: int | None = None  # score the reconstruction compacted at this level (surfsplat.compact)
+    precision: Precision = "fp32"  # forward pass: auto, fp32 or bf16 (surfsplat.precision)
 
     def __post_init__(self) -> None:
+        parse_precision(self.precision, "precision")
         if self.upsample not in UPSAMPLE_MODES:
             raise SurfSplatInputError(f"upsample: expected one of {UPSAMPLE_MODES}, got {self.upsample!r}")
         if not self.factors or any(not isinstance(s, int) or s < 1 for s in self.factors):
@@ -379,6 +387,7 @@ class EvaluationResult:
     surfels_mean: float = 0.0  # surfels rendered per entry (after compaction when asked for)
     compact: int | None = None  # the compaction level, None: as predicted
     closure: ClosureMetrics | None = None  # does the surface stay closed at every factor (target views)
+    precision: Resolved = "fp32"  # what the forward passes ran in
 
     def to_json(self) -> dict:
         return {
@@ -397,6 +406,7 @@ class EvaluationResult:
             "surfels_mean": self.surfels_mean,
             "compact_level": self.compact,
             **({"closure": self.closure.to_json()} if self.closure is not None else {}),
+            "precision": self.precision,
         }
 
 
@@ -425,7 +435,9 @@ def evaluate(
     for sample in bar:
         if not warned:
             warned = check_resolution(model, *sample.context_images.shape[-2:]) is not None
-        pred = predict_sample(model, sample, config.factors, config.mode, compact=config.compact)
+        pred = predict_sample(
+            model, sample, config.factors, config.mode, compact=config.compact, precision=config.precision
+        )
         surfels.append(pred.surfels)
         closure.add_alpha({s: r.alpha for s, r in pred.renders.items()})
         closure.add_surfels(pred.gaussians, *pred.closure_surfels())
@@ -464,6 +476,7 @@ def evaluate(
         surfels_mean=sum(surfels) / n,
         compact=config.compact,
         closure=closure.report(),
+        precision=resolve_precision(config.precision, device),
     )
 
 

@@ -36,6 +36,7 @@ from .. import log
 from ..checks import SurfSplatInputError, check_output_dir
 from ..geometry.cameras import Cameras
 from ..log import progress
+from ..precision import PRECISIONS, Precision, parse_precision
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +68,7 @@ class DemoConfig:
     video_frames: int = 36  # frames of each video
     mesh_resolution: int = 96  # TSDF voxels along the longest side
     seed: int = 111123  # training seed (the preset's)
+    precision: Precision = "fp32"  # training and evaluation forward passes: auto, fp32, bf16 (surfsplat.precision)
 
     @staticmethod
     def quick() -> DemoConfig:
@@ -91,6 +93,7 @@ class DemoConfig:
             raise SurfSplatInputError("eval_frames >= 3 and 1 <= eval_targets <= eval_frames - 2 expected")
         if self.eval_scenes < 1 or self.train_scenes < 1:
             raise SurfSplatInputError("--eval-scenes and train_scenes: expected at least 1")
+        parse_precision(self.precision)
         if self.train_seconds <= 0:
             raise SurfSplatInputError(f"--train-minutes: expected a positive limit, got {self.train_seconds / 60}")
 
@@ -107,6 +110,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--image-size", type=int, default=None, help="square image size, a multiple of 16 (default 64)")
     parser.add_argument("--eval-scenes", type=int, default=None, help="held-out rooms (default 3)")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="training and evaluation precision (auto: bf16 where the device has fast bf16, else fp32)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -116,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
         for k, v in (("steps", args.steps), ("image_size", args.image_size), ("eval_scenes", args.eval_scenes))
         if v is not None
     }
+    changes["precision"] = args.precision
     if args.train_minutes is not None:
         changes["train_seconds"] = args.train_minutes * 60
     config = replace(config, **changes)
@@ -270,6 +280,7 @@ def train_tiny(config: DemoConfig, folder: Path) -> dict:
         val_every=0,
         image_every=0,
         steps=config.steps,
+        precision=config.precision,
         log_every=1,
         keep_checkpoints=2,
         checkpoint_every=max(1, min(CHECKPOINT_EVERY, config.steps)),
@@ -415,7 +426,7 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
         coverage = {s: [] for s in factors}
         closure = ClosureAccumulator()
         for k, sample in enumerate(progress(samples, desc=f"score {name}", unit="room", leave=False)):
-            pred = predict_sample(model, sample, factors)
+            pred = predict_sample(model, sample, factors, precision=config.precision)
             closure.add_alpha({s: r.alpha for s, r in pred.renders.items()})
             closure.add_surfels(pred.gaussians, *pred.closure_surfels())
             shapes.add(sample, pred)
@@ -434,6 +445,7 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
             "vs_native_truth": {f"x{s}": natives[s].report().mean[1] for s in factors},
             "coverage": {f"x{s}": sum(v) / len(v) for s, v in coverage.items()},
             "closure": closure.report().to_json(),
+            "precision": pred.precision,
         }
     figures = write_figures(config, samples, keep, native, out / "figures")
     table = format_hrrc_table(tables)

@@ -21,6 +21,7 @@ import argparse
 from pathlib import Path
 
 from ..checks import SurfSplatInputError, check_output_dir
+from ..precision import PRECISIONS
 from .export import add_compact_argument
 
 
@@ -93,6 +94,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", type=Path, default=Path("outputs/eval"), help="folder for metrics.json, per_scene.csv, table.txt"
     )
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="forward-pass precision (auto: bf16 where the device has fast bf16, else fp32); rendering is fp32",
+    )
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -143,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         max_entries=args.max_entries,
         progress=not args.no_progress,
         compact=args.compact,
+        precision=args.precision,
     )
     device = _device(args.device)
     models = [load_model(spec, device) for spec in specs]  # every checkpoint is read before the first scene runs

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 
 from ..checks import SurfSplatInputError, check_output_dir
+from ..precision import PRECISIONS, autocast
 from .export import (
     FORMATS,
     add_export_arguments,
@@ -81,6 +82,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
     )
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="forward-pass precision (auto: bf16 where the device has fast bf16, else fp32); rendering is fp32",
+    )
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
     add_pose_arguments(parser)
@@ -141,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
 
     # ---- reconstruct
     start = time.perf_counter()
-    with torch.no_grad():
+    with torch.no_grad(), autocast(args.precision, device) as precision:
         prediction = model(stack[None].clamp(0, 1).to(device), cameras.to(device), near, far)
     seconds = time.perf_counter() - start
     gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
@@ -184,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
         "surfels": len(gaussians),
         "compact_level": args.compact,
         "seconds_forward": seconds,
+        "precision": precision,
         "render_mode": mode,
         "alpha_threshold": prediction.alpha_threshold,
         "files": {k: str(v) for k, v in written.items()},

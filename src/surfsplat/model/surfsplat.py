@@ -23,6 +23,7 @@ from ..checks import SurfSplatInputError, check_tensor
 from ..configio import dataclass_from_dict
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..precision import without_autocast
 from .adapter import AdapterConfig, AdapterOutput, GaussianAdapter
 from .encoder.encoder import EncoderConfig, SurfSplatEncoder
 from .encoder.vit import VIT_CONFIGS, ViTConfig
@@ -133,7 +134,10 @@ class SurfSplat(nn.Module):
         K = cameras.K.to(images).reshape(b, v, 3, 3)
         c2w = cameras.c2w.to(images).reshape(b, v, 4, 4)
         enc = self.encoder(images, K, c2w, near_t, far_t, return_intermediates=return_intermediates)
-        out = self.adapter(enc.depths, enc.raw, images, K, c2w)
+        # The adapter's geometry (unprojection, Sobel tangents, rotations) runs in float32 under
+        # autocast too: bf16 matrix products there would move surfels by ~0.4% of their depth.
+        with without_autocast(images.device.type):
+            out = self.adapter(enc.depths.float(), enc.raw.float(), images.float(), K.float(), c2w.float())
         return SurfSplatPrediction(
             gaussians=out.gaussians,
             depths=enc.depths,

@@ -59,6 +59,8 @@ from ..model.checkpoint import (
 from ..model.decoder import decoder_mode, render_views
 from ..model.pretrained import resolve, resolve_checkpoint, with_adapter
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
+from ..precision import autocast_dtype
+from ..precision import resolve_precision as resolve_device_precision
 from ..render.types import Backend, RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
 from .checkpoint import (
@@ -113,6 +115,7 @@ class TrainResult:
     checkpoint: Path | None = None  # the newest checkpoint of the run (written, or resumed from)
     seconds: float = 0.0  # wall time of the loop
     nonfinite_steps: list[tuple[int, str]] = field(default_factory=list)  # (step, reason) of skipped updates
+    precision: str = "fp32"  # what the forward passes ran in: fp32, or autocast bf16 / fp16 (float32 weights)
 
 
 # ------------------------------------------------------------------------------------------ setup
@@ -186,36 +189,14 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, step: int, config: Train
 
 
 def resolve_precision(config: TrainConfig, device: torch.device) -> torch.dtype | None:
-    """The autocast dtype (None: full float32). Mixed precision needs a GPU."""
-    if config.precision == "fp32":
-        return None
-    if device.type != "cuda":
-        if config.precision == "auto":
-            return None
-        raise SurfSplatInputError(
-            f"precision: {config.precision!r} mixed precision needs a CUDA device (use fp32 on CPU)"
-        )
+    """The autocast dtype (None: full float32). `auto` and `bf16` follow `surfsplat.precision`
+    (auto: bf16 where the device computes it natively, AMX / AVX512-BF16 CPUs included); fp16
+    (with loss scaling) needs a GPU. Weights and optimizer state stay float32 in every case."""
     if config.precision == "fp16":
+        if device.type != "cuda":
+            raise SurfSplatInputError("precision: 'fp16' mixed precision needs a CUDA device (use bf16 or fp32 on CPU)")
         return torch.float16
-    if config.precision == "bf16" or torch.cuda.is_bf16_supported():
-        return torch.bfloat16
-    return torch.float16
-
-
-def keep_adapter_in_float32(model: SurfSplat, device_type: str) -> list[Any]:
-    """Hooks that run the adapter (geometry: unprojection, Sobel tangents, Rodrigues) outside
-    autocast on float32 inputs: bf16 matmuls there would move surfels by ~0.4% of their depth."""
-    state: dict[str, bool] = {}
-
-    def before(module: nn.Module, args: tuple[Any, ...]) -> tuple[Any, ...]:
-        state["enabled"] = torch.is_autocast_enabled(device_type)
-        torch.set_autocast_enabled(device_type, False)
-        return tuple(a.float() if isinstance(a, Tensor) and a.is_floating_point() else a for a in args)
-
-    def after(module: nn.Module, args: tuple[Any, ...], output: Any) -> None:
-        torch.set_autocast_enabled(device_type, state.pop("enabled"))
-
-    return [model.adapter.register_forward_pre_hook(before), model.adapter.register_forward_hook(after)]
+    return autocast_dtype(resolve_device_precision(config.precision, device))
 
 
 class _Reporter:
@@ -482,8 +463,6 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     optimizer = build_optimizer(model, config)
     amp_dtype = resolve_precision(config, device)
     scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
-    if amp_dtype is not None:
-        keep_adapter_in_float32(model, device.type)
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     cascade = num_intermediate_depths(model) > 0
     if ctx.is_main:
@@ -569,7 +548,12 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         # Last thing before the loop: whatever start-up drew from the generators is overwritten.
         restore_rng(rng_state)
     result = TrainResult(
-        out_dir=Path(config.out_dir), rank=ctx.rank, start_step=start_step, step=start_step, checkpoint=resume_from
+        out_dir=Path(config.out_dir),
+        rank=ctx.rank,
+        start_step=start_step,
+        step=start_step,
+        checkpoint=resume_from,
+        precision={None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[amp_dtype],
     )
     pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, highres, closure, grad norm] not reduced
     pending_steps: list[int] = []  # the (0-based) steps of `pending`; skipped steps have no row

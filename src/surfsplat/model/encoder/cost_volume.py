@@ -19,6 +19,11 @@ from torch import Tensor
 
 # Bytes of warped features held at once; the correlation is identical for any chunking.
 WARP_CHUNK_BYTES = 16 * 2**20
+# Bytes of pixel-pair correlations `gathered_cost_volume` holds at once (any blocking is exact).
+CORRELATION_CHUNK_BYTES = 64 * 2**20
+# Pixels per depth candidate below which the gathered formulation is faster than warping (measured
+# with benchmarks/cost_volume.py on an AVX-512 CPU; see `prefers_gathered_cost_volume`).
+GATHER_BREAK_EVEN = 64
 
 
 def linear_inverse_depth_candidates(inv_min: Tensor, inv_max: Tensor, count: int) -> Tensor:
@@ -42,8 +47,8 @@ def local_inverse_depth_candidates(
     return low + t * (high - low)
 
 
-def _sampling_grid(K: Tensor, ref_to_src: Tensor, depth: Tensor, height: int, width: int) -> Tensor:
-    """[N, D, H, W, 2] normalised sampling positions in the source view.
+def _source_pixels(K: Tensor, ref_to_src: Tensor, depth: Tensor, height: int, width: int) -> Tensor:
+    """[N, 2, D, H*W] pixel positions (x, y) in the source view of every reference pixel and depth.
 
     K [N, 3, 3] reference intrinsics at feature resolution; ref_to_src [N, 4, 4];
     depth [N, D, H*W] (broadcast over pixels when the last dim is 1).
@@ -58,7 +63,13 @@ def _sampling_grid(K: Tensor, ref_to_src: Tensor, depth: Tensor, height: int, wi
     rays = ref_to_src[:, :3, :3] @ (torch.linalg.inv(K) @ pixels)  # [N, 3, H*W]
     points = rays[:, :, None, :] * depth[:, None] + ref_to_src[:, :3, 3, None, None]  # [N, 3, D, H*W]
     proj = (K @ points.flatten(2)).view(n, 3, -1, height * width)
-    xy = proj[:, :2] / proj[:, 2:].clamp(min=1e-3)
+    return proj[:, :2] / proj[:, 2:].clamp(min=1e-3)
+
+
+def _sampling_grid(K: Tensor, ref_to_src: Tensor, depth: Tensor, height: int, width: int) -> Tensor:
+    """[N, D, H, W, 2] positions of `_source_pixels` normalised for grid_sample (align_corners=True)."""
+    n = K.shape[0]
+    xy = _source_pixels(K, ref_to_src, depth, height, width)
     gx = 2 * xy[:, 0] / (width - 1) - 1
     gy = 2 * xy[:, 1] / (height - 1) - 1
     return torch.stack((gx, gy), dim=-1).view(n, -1, height, width, 2)
@@ -102,3 +113,60 @@ def plane_sweep_cost_volume(
             costs.append(warped.mul_(ref_rep).sum(1))
     cost = torch.cat(costs, dim=1)
     return (cost / c**0.5).view(n, m, d, h, w).mean(1)
+
+
+def gathered_cost_volume(
+    ref: Tensor, src: Tensor, K: Tensor, ref_c2w: Tensor, src_c2w: Tensor, inv_depth: Tensor
+) -> Tensor:
+    """`plane_sweep_cost_volume` computed without warping feature maps (same arguments, same result
+    up to float summation order).
+
+    Bilinear sampling is linear in the sampled map, so the correlation of F^i(p) with F^j sampled
+    at q is the bilinear interpolation, at q, of F^i(p)'s correlations with F^j's pixels:
+
+        < F^i(p), sum_k w_k F^j(q_k) > = sum_k w_k < F^i(p), F^j(q_k) >     (k: the 4 corners of q)
+
+    One matrix product gives every pixel pair's correlation ([H*W, H*W] per view pair, computed in
+    blocks of reference pixels), and each sample gathers its four corners from it, with zero weight
+    for corners outside the map (grid_sample's zero padding). It replaces C*D*H*W bilinear taps by
+    C*(H*W)^2 multiply-adds in a matrix product, which is cheaper on small maps (see
+    `prefers_gathered_cost_volume`).
+    """
+    n, m, c, h, w = src.shape
+    d = inv_depth.shape[1]
+    with torch.no_grad():
+        ref_to_src = torch.linalg.inv(src_c2w) @ ref_c2w[:, None]  # [N, M, 4, 4]
+        depth = 1.0 / inv_depth.reshape(n, d, -1)
+        xy = _source_pixels(
+            K.repeat_interleave(m, 0), ref_to_src.flatten(0, 1), depth.repeat_interleave(m, 0), h, w
+        )  # [N*M, 2, D, H*W]
+        # positions far outside the map only need to stay outside it: bounded before flooring
+        x = xy[:, 0].clamp(-2, w + 1).transpose(1, 2)  # [N*M, H*W, D]
+        y = xy[:, 1].clamp(-2, h + 1).transpose(1, 2)
+        x0, y0 = x.floor(), y.floor()
+        fx, fy = x - x0, y - y0
+        # bilinear weights of the left/right columns and top/bottom rows, zero outside the map
+        wx = torch.stack(((1 - fx) * ((x0 >= 0) & (x0 <= w - 1)), fx * ((x0 >= -1) & (x0 <= w - 2))), -1)
+        wy = torch.stack(((1 - fy) * ((y0 >= 0) & (y0 <= h - 1)), fy * ((y0 >= -1) & (y0 <= h - 2))), -1)
+        weight = (wy[..., :, None] * wx[..., None, :]).flatten(-2)  # [N*M, H*W, D, 4]
+        # corners (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1) as flat pixel indices;
+        # those outside the map have zero weight, so any index in range serves them
+        offsets = torch.tensor([0, 1, w, w + 1], device=x.device)
+        index = ((y0 * w + x0).long()[..., None] + offsets).clamp(0, h * w - 1).flatten(-2)  # [N*M, H*W, 4 D]
+    ref_pixels = ref.repeat_interleave(m, 0).flatten(2).transpose(1, 2)  # [N*M, H*W, C]
+    src_pixels = src.flatten(0, 1).flatten(2)  # [N*M, C, H*W]
+    block = max(1, CORRELATION_CHUNK_BYTES // max(n * m * h * w * src.element_size(), 1))
+    costs = []
+    for start in range(0, h * w, block):
+        corr = torch.bmm(ref_pixels[:, start : start + block], src_pixels)  # [N*M, P, H*W]
+        taps = torch.gather(corr, 2, index[:, start : start + block]).view(n * m, -1, d, 4)
+        costs.append((taps * weight[:, start : start + block]).sum(-1))  # [N*M, P, D]
+    cost = torch.cat(costs, dim=1).transpose(1, 2)  # [N*M, D, H*W]
+    return (cost / c**0.5).reshape(n, m, d, h, w).mean(1)
+
+
+def prefers_gathered_cost_volume(height: int, width: int, candidates: int) -> bool:
+    """Whether `gathered_cost_volume` is the cheaper formulation for an H x W map and D candidates:
+    its matrix product costs H*W multiply-adds per reference pixel and channel, the warp about
+    GATHER_BREAK_EVEN * D (bilinear taps run far below a matrix product's rate)."""
+    return height * width <= GATHER_BREAK_EVEN * candidates

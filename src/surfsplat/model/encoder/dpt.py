@@ -14,9 +14,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from ... import precision
+from .conv import ReplicateConv2d
 
 
 @dataclass(frozen=True)
@@ -95,9 +97,9 @@ class DPTHead(nn.Module):
         self.scratch.refinenet4 = FeatureFusionBlock(f, with_skip=False)  # the coarsest has no skip input
         if predict_depth:
             self.scratch.output_conv = nn.Sequential(
-                nn.Conv2d(f, f // 2, 3, padding=1, padding_mode="replicate"),
+                ReplicateConv2d(f, f // 2, 3, padding=1),
                 nn.GELU(),
-                nn.Conv2d(f // 2, 16, 3, padding=1, padding_mode="replicate"),
+                ReplicateConv2d(f // 2, 16, 3, padding=1),
                 nn.GELU(),
                 nn.Conv2d(16, 1, 1),
             )
@@ -132,7 +134,7 @@ class DPTHead(nn.Module):
                 (layers[2],),
             ]
         for i, parts in enumerate(concat):
-            layers[i] = self.concat_projects[i](torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
+            layers[i] = self.concat_projects[i](precision.cat(parts, dim=1) if len(parts) > 1 else parts[0])
         s = self.scratch
         l1, l2, l3, l4 = (
             s.layer1_rn(layers[0]),

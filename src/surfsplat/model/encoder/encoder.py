@@ -14,17 +14,27 @@ The module computes exactly the release's function, so released weights load thr
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
+from ... import precision
 from ...checks import SurfSplatInputError
 from .chunking import items_per_block
 from .cnn import CNNEncoder
-from .cost_volume import linear_inverse_depth_candidates, local_inverse_depth_candidates, plane_sweep_cost_volume
+from .conv import ReplicateConv2d
+from .cost_volume import (
+    gathered_cost_volume,
+    linear_inverse_depth_candidates,
+    local_inverse_depth_candidates,
+    plane_sweep_cost_volume,
+    prefers_gathered_cost_volume,
+)
 from .dpt import DPTHead, DPTLayout, FeaturePyramid
 from .gaussian_head import GaussianHead
 from .mv_transformer import MultiViewTransformer, select_neighbours
@@ -34,6 +44,15 @@ from .vit import VisionTransformer, ViTConfig, vit_patch_grid
 # ImageNet statistics: both the ViT and the CNN were pretrained on images normalised with them.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+
+# The encoder's parts, each of which can run in float32 under bf16 autocast (`float32_parts`).
+PARTS = ("vit", "cnn", "transformer", "depth_regressor", "depth_upsampler", "feature_upsampler", "gaussian_head")
+# Those that do by default, measured on the golden case (benchmarks/precision.py): a bf16 CNN
+# perturbs the features the cost volume correlates (relative L2 2e-2) and a bf16 depth regressor its
+# logits; with everything else in bf16 depths move by 1.7e-2 in relative L2, with these two in
+# float32 by 3.1e-3 (adding the transformer: 2.0e-4). The ViT, the multi-view transformer, the DPT
+# heads and the Gaussian head run in bf16.
+DEFAULT_FLOAT32_PARTS = ("cnn", "depth_regressor")
 
 # Stride of the cost volume and of the multi-view features (the release's lowest_feature_resolution).
 MATCHING_STRIDE = 4
@@ -95,13 +114,14 @@ class DepthScale(nn.Module):
         )
         self.residual = nn.Conv2d(in_channels, channels, 1)
         self.depth_head = nn.Sequential(
-            nn.Conv2d(channels, 2 * channels, 3, padding=1, padding_mode="replicate"),
+            ReplicateConv2d(channels, 2 * channels, 3, padding=1),
             nn.GELU(),
-            nn.Conv2d(2 * channels, candidates, 3, padding=1, padding_mode="replicate"),
+            ReplicateConv2d(2 * channels, candidates, 3, padding=1),
         )
 
-    def forward(self, x: Tensor, num_views: int) -> Tensor:
-        """x [(B V), C_in, h, w] -> depth-candidate logits [(B V), D, h, w]."""
+    def forward(self, parts: Sequence[Tensor], num_views: int) -> Tensor:
+        """parts: [(B V), C_i, h, w] maps with sum(C_i) = C_in -> depth-candidate logits [(B V), D, h, w]."""
+        x = precision.cat(parts, dim=1)
         conv_in, norm, act, unet, conv_out = self.regressor
         hidden = conv_out(unet(act(norm(conv_in(x))), num_views)) + self.residual(x)
         return self.depth_head(hidden)
@@ -150,8 +170,25 @@ class SurfSplatEncoder(nn.Module):
         self.depth_upsampler = DPTHead(DPTLayout(features=cfg.depth_dpt_features, **layout), predict_depth=True)
         self.feature_upsampler = DPTHead(DPTLayout(features=cfg.feature_dpt_features, **layout), predict_depth=False)
         self.gaussian_head = GaussianHead(cfg.feature_dpt_features, cfg.gaussian_hidden, num_raw_channels)
+        self.float32_parts: frozenset[str] = frozenset(DEFAULT_FLOAT32_PARTS)
         self.register_buffer("image_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
         self.register_buffer("image_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
+
+    def keep_float32(self, parts: tuple[str, ...] | list[str] | frozenset[str]) -> None:
+        """Run `parts` (names from PARTS) in float32 under bf16 autocast; the rest runs in bf16."""
+        unknown = sorted(set(parts) - set(PARTS))
+        if unknown:
+            raise SurfSplatInputError(f"float32 parts: expected names from {', '.join(PARTS)}, got {unknown}")
+        self.float32_parts = frozenset(parts)
+
+    def _run(self, part: str, fn: Callable[..., Any], *args: Any) -> Any:
+        """fn(*args), in float32 (autocast off, float tensors and lists of them cast up) where
+        autocast is on and `part` is one of `float32_parts`; as it is otherwise."""
+        device_type = self.image_mean.device.type
+        if part not in self.float32_parts or precision.reduced_precision(device_type) is None:
+            return fn(*args)
+        with precision.without_autocast(device_type):
+            return fn(*[precision.float32(a) for a in args])
 
     def forward(
         self,
@@ -170,15 +207,20 @@ class SurfSplatEncoder(nn.Module):
         if v < 2:
             raise SurfSplatInputError(f"images: the encoder matches views, expected at least 2 views, got {v}")
         inter: dict[str, Tensor] | None = {} if return_intermediates else None
+        device_type = images.device.type
+        # Under bf16 autocast the parts whose precision decides the depth (cost-volume correlation,
+        # the softmax over candidates, regression, upsampling and clamping of inverse depth) run in
+        # float32 (`precision.without_autocast` on `.float()` tensors, no-ops in float32 runs).
+        amp = precision.reduced_precision(device_type)
         flat = ((images - self.image_mean) / self.image_std).flatten(0, 1)  # [(B V), 3, H, W]
         inv_min = (1.0 / far).reshape(-1)  # the far plane is the smallest inverse depth
         inv_max = (1.0 / near).reshape(-1)
 
         # ---- multi-view branch: CNN, then windowed self/cross attention between views
-        cnn = self.cnn(flat)  # [1/2 (dims[0]), 1/2 (dims[1]), 1/4 (feature_channels)]
+        cnn = self._run("cnn", self.cnn, flat)  # [1/2 (dims[0]), 1/2 (dims[1]), 1/4 (feature_channels)]
         neighbours = select_neighbours(c2w[..., :3, 3], cfg.max_neighbours)  # [B, V, M]
         features = rearrange(cnn[-1], "(b v) c h w -> b v c h w", b=b)
-        mv = self.transformer(features, neighbours).flatten(0, 1)  # [(B V), C, H/4, W/4]
+        mv = self._run("transformer", self.transformer, features, neighbours).flatten(0, 1)  # [(B V), C, H/4, W/4]
         mv_scales = self.mv_pyramid(mv) if cfg.num_scales == 2 else [mv]  # coarse to fine
         cnn_scales = [cnn[2], cnn[1]][: cfg.num_scales]
 
@@ -186,7 +228,7 @@ class SurfSplatEncoder(nn.Module):
         vit_h, vit_w = vit_patch_grid(height, width, cfg.vit.patch_size)
         vit_in = F.interpolate(flat, (vit_h, vit_w), mode="bilinear", align_corners=True)
         grid = (vit_h // cfg.vit.patch_size, vit_w // cfg.vit.patch_size)
-        taps = self.vit(vit_in)
+        taps = self._run("vit", self.vit, vit_in)
         mono_taps = [
             F.interpolate(
                 rearrange(t, "n (h w) c -> n c h w", h=grid[0], w=grid[1]),
@@ -220,13 +262,20 @@ class SurfSplatEncoder(nn.Module):
                 coarse = F.interpolate(inv_depth, scale_factor=2, mode="bilinear", align_corners=True).detach()
                 interval = (inv_max - inv_min) / (cfg.num_depth_candidates - 1) / 2**i
                 candidates = local_inverse_depth_candidates(coarse, inv_min, inv_max, count, interval)
-            cost = plane_sweep_cost_volume(
-                feats, feats[neighbour_index], K_scale, c2w_flat, c2w_flat[neighbour_index], candidates
-            )
-            logits = scale(torch.cat((cost, cnn_scales[i], feats, mono_scales[i]), dim=1), v)
-            prob = torch.softmax(logits, dim=1)
-            weights = candidates if candidates.dim() == 4 else candidates[:, :, None, None]
-            inv_depth = (prob * weights).sum(dim=1, keepdim=True)  # [(B V), 1, h, w]
+            correlate = plane_sweep_cost_volume  # the float32 path stays the release's computation
+            if amp is not None and prefers_gathered_cost_volume(*feats.shape[-2:], count):
+                correlate = gathered_cost_volume
+            with precision.without_autocast(device_type):
+                feats32 = feats.float()
+                cost = correlate(
+                    feats32, feats32[neighbour_index], K_scale, c2w_flat, c2w_flat[neighbour_index], candidates
+                )
+            parts = (cost, cnn_scales[i], feats, mono_scales[i])
+            logits = self._run("depth_regressor", scale, parts, v)
+            with precision.without_autocast(device_type):
+                prob = torch.softmax(logits.float(), dim=1)
+                weights = candidates if candidates.dim() == 4 else candidates[:, :, None, None]
+                inv_depth = (prob * weights).sum(dim=1, keepdim=True)  # [(B V), 1, h, w]
             if inter is not None:
                 suffix = "" if i == 0 else f".{i}"
                 inter[f"cost_volume{suffix}"] = cost
@@ -234,10 +283,12 @@ class SurfSplatEncoder(nn.Module):
 
         # ---- full resolution: bilinear upsampling plus a learned DPT residual (inverse depth)
         mv_fine_first = mv_scales[::-1]
-        residual = self.depth_upsampler(mono_taps, cnn, mv_fine_first, inv_depth)
-        upsampled = F.interpolate(inv_depth, scale_factor=cfg.upsample_factor, mode="bilinear", align_corners=True)
-        inv_full = (upsampled + residual).clamp(min=inv_min.view(-1, 1, 1, 1), max=inv_max.view(-1, 1, 1, 1))
-        depth = 1.0 / inv_full  # [(B V), 1, H, W]
+        residual = self._run("depth_upsampler", self.depth_upsampler, mono_taps, cnn, mv_fine_first, inv_depth)
+        with precision.without_autocast(device_type):
+            residual = residual.float()
+            upsampled = F.interpolate(inv_depth, scale_factor=cfg.upsample_factor, mode="bilinear", align_corners=True)
+            inv_full = (upsampled + residual).clamp(min=inv_min.view(-1, 1, 1, 1), max=inv_max.view(-1, 1, 1, 1))
+            depth = 1.0 / inv_full  # [(B V), 1, H, W]
 
         # ---- per-pixel Gaussian parameters
         confidence = F.interpolate(prob.max(dim=1, keepdim=True).values, size=(height, width), mode="nearest")
@@ -247,11 +298,15 @@ class SurfSplatEncoder(nn.Module):
         step = items_per_block(b * v, head_in * height * width * images.element_size(), images.device)
         raw = torch.cat(
             [
-                self.gaussian_head(
+                self._run(
+                    "gaussian_head",
+                    self.gaussian_head,
                     images_flat[i : i + step],
                     depth[i : i + step],
                     confidence[i : i + step],
-                    self.feature_upsampler(
+                    self._run(
+                        "feature_upsampler",
+                        self.feature_upsampler,
                         [t[i : i + step] for t in mono_taps],
                         [t[i : i + step] for t in cnn],
                         [t[i : i + step] for t in mv_fine_first],
@@ -260,6 +315,7 @@ class SurfSplatEncoder(nn.Module):
                 for i in range(0, b * v, step)
             ]
         )
+        raw = raw.float()  # the adapter's input; a no-op in float32 runs
         if inter is not None:
             inter["mv_upsampler_coarse_invdepth"] = inv_depth
             inter["mv_upsampler_residual_invdepth"] = residual

@@ -8,8 +8,10 @@ channels the Gaussian adapter turns into opacity, sub-pixel offset, scale multip
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
+
+from ... import precision
+from .conv import ReplicateConv2d
 
 
 class GaussianHead(nn.Module):
@@ -23,9 +25,9 @@ class GaussianHead(nn.Module):
         )
         # head input: regressor output + image (3) + features + match confidence (1)
         self.head = nn.Sequential(
-            nn.Conv2d(hidden + 3 + feature_channels + 1, out_channels, 3, padding=1, padding_mode="replicate"),
+            ReplicateConv2d(hidden + 3 + feature_channels + 1, out_channels, 3, padding=1),
             nn.GELU(),
-            nn.Conv2d(out_channels, out_channels, 3, padding=1, padding_mode="replicate"),
+            ReplicateConv2d(out_channels, out_channels, 3, padding=1),
         )
         # Start from the image colours (SH) and constant scale multipliers; opacity and offsets stay
         # random. (The release zeroes rows [3:6] and [10:], a DepthSplat channel layout left over.)
@@ -35,5 +37,5 @@ class GaussianHead(nn.Module):
     def forward(self, images: Tensor, depth: Tensor, confidence: Tensor, features: Tensor) -> Tensor:
         """images [N, 3, H, W] in [0, 1]; depth, confidence [N, 1, H, W]; features [N, F, H, W]
         -> raw [N, out_channels, H, W]."""
-        hidden = self.regressor(torch.cat((images, depth, confidence, features), dim=1))
-        return self.head(torch.cat((hidden, images, features, confidence), dim=1))
+        hidden = self.regressor(precision.cat((images, depth, confidence, features), dim=1))
+        return self.head(precision.cat((hidden, images, features, confidence), dim=1))
