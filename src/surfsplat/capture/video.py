@@ -152,7 +152,7 @@ def select_video_frames(path: str | os.PathLike, config: FrameConfig | None = No
             "or blurred): the camera did not move; film while moving around the scene"
         )
     wanted = set(kept)
-    frames = [f for i, f in enumerate(_decode(path, _fit(width, height, cfg.max_size))) if i in wanted]
+    frames = [f.copy() for i, f in enumerate(_decode(path, _fit(width, height, cfg.max_size))) if i in wanted]
     if len(frames) != len(kept):
         raise SurfSplatInputError(f"{path}: the second decoding gave {len(frames)} of the {len(kept)} chosen frames")
     return VideoFrames(path, fps, width, height, frames, kept, records, cfg)
@@ -222,14 +222,12 @@ def _decode(path: Path, size: tuple[int, int]):
     import imageio_ffmpeg
 
     w, h = size
-    reader = imageio_ffmpeg.read_frames(
-        str(path), output_params=["-vf", f"scale={w}:{h}:flags=area", "-vsync", "passthrough"]
-    )
+    reader = imageio_ffmpeg.read_frames(str(path), output_params=["-vf", f"scale={w}:{h}:flags=area"])
     try:
         next(reader)  # the metadata
         for data in reader:
             yield np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3)
-    except RuntimeError as err:
+    except (RuntimeError, OSError) as err:
         raise SurfSplatInputError(f"{path}: decoding failed ({str(err).strip().splitlines()[-1]})") from None
     finally:
         reader.close()

@@ -75,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_export_arguments(parser)
     add_pose_arguments(parser)
     group = parser.add_argument_group("many views and videos")
-    group.add_argument("--views-per-pass", type=int, default=2, help="context views of one forward pass (default 2)")
+    group.add_argument("--views-per-pass", type=int, default=3, help="context views of one forward pass (default 3)")
     group.add_argument(
         "--holdout-every",
         type=int,
