@@ -75,8 +75,9 @@ def reconstruct(
     checkpoint: a weights name (default "tiny-synthetic"), hf://owner/repo/file, a checkpoint path,
                 or a loaded SurfSplat model
     cameras:    None (estimated from the images), a JSON camera file / COLMAP model / scene folder
-                (views matched by name; video frames are named frame_000012, ...), a CameraSet, or
-                Cameras with K in pixels of the images (one per view, in order)
+                (views matched by name; video frames are named frame_000012, ...), a CameraSet
+                (matched by name; arrays take its names in order), or Cameras with K in pixels of
+                the images (one per view, in order)
     device:     "auto" (CUDA when available), "cpu", "cuda" or a torch.device
     size:       network input (height, width), multiples of the model's (default: the largest crop)
     near, far:  depth range (default: from the cameras, else 0.5 and 100)
@@ -270,6 +271,9 @@ def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
     if isinstance(cameras, (str, os.PathLike)):
         return load_cameras(cameras, images=images_folder).select(views.names, str(cameras)), str(cameras)
     if isinstance(cameras, CameraSet):
+        unnamed = views.video is None and all(p is None for p in views.paths)
+        if unnamed and len(cameras.names) == len(views) and not set(views.names) <= set(cameras.names):
+            views.names = list(cameras.names)  # arrays have no names of their own: the cameras' in order
         return cameras.select(views.names, "cameras"), "given (CameraSet)"
     if isinstance(cameras, Cameras):
         if len(cameras) != len(views):
