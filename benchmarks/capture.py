@@ -271,6 +271,7 @@ def main() -> None:
     parser.add_argument("--path-length", type=float, default=1.5)
     parser.add_argument("--frames", nargs="+", type=int, default=[10, 50], help="video lengths (300: the long one)")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--out", type=Path, default=RESULTS / "capture.json", help="results JSON (parts are merged in)")
     parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
     args = parser.parse_args()
     if args.one_video is not None:
@@ -279,8 +280,8 @@ def main() -> None:
 
     from surfsplat.evaluate import ModelSpec, load_model
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out_path = RESULTS / "capture.json"
+    out_path = args.out
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     results = json.loads(out_path.read_text()) if out_path.is_file() else {}
     results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()}
     model, _ = load_model(ModelSpec("tiny-synthetic"))

@@ -13,6 +13,7 @@ from scipy.ndimage import gaussian_filter
 
 import surfsplat
 from surfsplat.capture import FrameConfig, FusionConfig, SurfelFusion, context_sets, frame_name, select_video_frames
+from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
 from surfsplat.export.images import write_png
@@ -262,7 +263,7 @@ def test_bad_captures_get_one_line(tmp_path, room_video, tiny_checkpoint, capsys
     path = room_video[0]
     _fails([*base, "--video", str(path), "--views-per-pass", "1"], capsys, "--views-per-pass", "at least 2")
     assert not (tmp_path / "o").exists()
-    with pytest.raises(surfsplat.reconstruction.inputs.SurfSplatInputError, match="at least 2 images"):
+    with pytest.raises(SurfSplatInputError, match="at least 2 images"):
         surfsplat.reconstruct([np.zeros((32, 32, 3), np.uint8)])
 
 
