@@ -227,6 +227,11 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
         summary.pop("files"), summary.pop("seconds_forward"), summary["capture"].pop("seconds")
     assert cli == api
     assert cli["surfels"] == len(scene.gaussians) < 3 * 32 * 32
+    # the viewer shows the fused surfels and every context camera
+    from surfsplat.viewer import load_viewer_scene
+
+    shown = load_viewer_scene(tmp_path / "cli")
+    assert len(shown.gaussians) == len(scene.gaussians) and shown.names == scene.names
 
 
 def test_two_views_stay_one_pass_of_one_surfel_per_pixel(five_views, tiny_checkpoint):
