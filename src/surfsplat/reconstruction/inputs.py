@@ -39,7 +39,9 @@ class CaptureInput:
         return len(self.names)
 
     def subset(self, keep: list[int]) -> CaptureInput:
-        pick = lambda items: [items[i] for i in keep]  # noqa: E731
+        def pick(items: list) -> list:
+            return [items[i] for i in keep]
+
         return CaptureInput(
             pick(self.names),
             pick(self.paths),

@@ -52,7 +52,7 @@ class CaptureOptions:
 
 def reconstruct(
     images: ImageSource | Sequence[ImageSource],
-    checkpoint=None,
+    checkpoint="tiny-synthetic",
     cameras=None,
     device: str | torch.device = "auto",
     *,
