@@ -275,3 +275,16 @@ def test_bad_captures_get_one_line(tmp_path, room_video, tiny_checkpoint, capsys
 def _room_camera() -> surfsplat.Cameras:
     scene = make_scene(1)
     return make_trajectory(scene, torch.Generator().manual_seed(0)).cameras(torch.tensor([0.0]), 64, 64)
+
+
+def test_each_pass_is_compacted_before_fusion(five_views, tiny_checkpoint):
+    paths, cameras = five_views
+    options = surfsplat.CaptureOptions(views_per_pass=2)
+    plain = surfsplat.reconstruct(paths[:3], tiny_checkpoint, cameras=cameras, capture=options, progress=False)
+    scene = surfsplat.reconstruct(
+        paths[:3], tiny_checkpoint, cameras=cameras, capture=options, compact=1, progress=False
+    )
+    stats = scene.compact_stats
+    assert stats["input"] == 2 * 2 * 32 * 32 and stats["output"] < stats["input"]  # two passes of two views
+    assert scene.fusion_stats["predicted"] == stats["output"]  # fusion saw the compacted surfels
+    assert len(scene.gaussians) == stats["output"] - scene.fusion_stats["duplicates"] < len(plain.gaussians)
