@@ -285,12 +285,20 @@ def main() -> None:
     results = json.loads(out_path.read_text()) if out_path.is_file() else {}
     results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()}
     model, _ = load_model(ModelSpec("tiny-synthetic"))
+
+    def save() -> None:  # after every part, so a long run keeps what it measured
+        results["machine"]["load_after"] = os.getloadavg()
+        out_path.write_text(json.dumps(results, indent=1) + "\n")
+
     if "rooms" in args.parts:
         results["rooms"] = rooms(args, model)
+        save()
     if "dtu" in args.parts:
         results["dtu_scan24"] = real_scene(args, model, "DTU scan 24", args.data / "dtu_scan24", "images_4", (64, 80))
+        save()
     if "fern" in args.parts:
         results["llff_fern"] = real_scene(args, model, "LLFF fern", args.data / "llff_fern", "images_8", (64, 80))
+        save()
     if "video" in args.parts:
         results["video"] = []
         for frames in args.frames:
@@ -302,8 +310,8 @@ def main() -> None:
                 continue
             results["video"].append(json.loads(child.stdout.strip().splitlines()[-1]))
             print(f"video {frames} frames: {json.dumps(results['video'][-1])}", flush=True)
-    results["machine"]["load_after"] = os.getloadavg()
-    out_path.write_text(json.dumps(results, indent=1) + "\n")
+            save()
+    save()
     print_table(results)
 
 
