@@ -351,3 +351,19 @@ def test_reconstruct_refuses_focal_with_a_camera_file(orbit_views, tmp_path, cap
     assert (
         err == "surfsplat reconstruct: error: --focal: only used when the cameras are estimated (without --cameras)\n"
     )
+
+
+@pytest.mark.slow
+def test_sequential_matching_pairs_only_neighbours_and_keeps_accuracy(room):
+    """Ordered frames (a video): each image is matched with its next `sequential_overlap` ones only;
+    six views 6 degrees apart, neighbours only, still give every camera within a degree."""
+    truth = _orbit(6, 30.0)
+    images, _ = _render(room, truth)
+    config = PoseConfig(matching="sequential", sequential_overlap=1, focal=float(truth.K[0, 0, 0]))
+    cams, summary = estimate_cameras(images, config=config)
+    assert [(p.first, p.second) for p in summary.pairs] == [(f"view_{i:03d}", f"view_{i + 1:03d}") for i in range(5)]
+    assert summary.registered == [f"view_{i:03d}" for i in range(6)]
+    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot.max() < 1.0 and trans.max() < 2.0, (rot, trans)
+    with pytest.raises(SurfSplatInputError, match="matching"):
+        PoseConfig(matching="spatial")

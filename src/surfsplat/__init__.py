@@ -3,7 +3,8 @@
 from .compaction import compact
 from .gaussians import Gaussians
 from .geometry.cameras import Cameras
+from .reconstruction import CaptureOptions, Scene, reconstruct
 
 __version__ = "0.1.0"
 
-__all__ = ["Cameras", "Gaussians", "compact", "__version__"]
+__all__ = ["Cameras", "CaptureOptions", "Gaussians", "Scene", "compact", "reconstruct", "__version__"]

@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         write_results,
     )
     from ..metrics.lpips import try_load_lpips
-    from .reconstruct import _device
+    from ..reconstruction.pipeline import resolve_device as _device
 
     if (args.checkpoint is None) == (args.compare is None):
         raise SurfSplatInputError("give --checkpoint or --compare (one of them)")

@@ -1,4 +1,4 @@
-"""`surfsplat reconstruct`: posed photos -> surfels, renders, depth and normal maps, videos, a mesh.
+"""`surfsplat reconstruct`: photos, a folder or a video -> surfels, renders, depth and normal maps, videos, a mesh.
 
     surfsplat reconstruct --checkpoint runs/tiny --images a.png b.png --cameras cameras.json --out out/
     surfsplat reconstruct --checkpoint runs/tiny --images a.jpg b.jpg --out out/     # cameras estimated
@@ -11,6 +11,13 @@ images are matched to its cameras by file name. Images are rescaled and centre-c
 the network accepts (multiples of 16; `--size` to choose), with K following exactly. Without
 `--cameras` the cameras are estimated from the images first (`surfsplat poses`): the output folder
 then also holds estimated_cameras.json, poses.json and report.html (each photo beside its camera).
+
+Many photos (`--images` with a folder or any number of files) and videos (`--video`) are cut into
+forward passes of `--views-per-pass` neighbouring views and fused into one scene; the folder then
+also holds capture.json and capture.html (every camera, the passes, held-out views with
+`--holdout-every`, the video's frames and why unused ones were dropped).
+
+This module only parses arguments: the work is `surfsplat.reconstruct` and `Scene.save`.
 """
 
 from __future__ import annotations
@@ -18,29 +25,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
-import time
 from pathlib import Path
 
-import torch
-
-from ..checks import SurfSplatInputError, check_output_dir
-from ..precision import PRECISIONS, autocast
-from .export import (
-    FORMATS,
-    add_export_arguments,
-    compact_from_args,
-    export_reconstruction,
-    options_from_args,
-    output_names,
-    print_written,
-)
-from .poses import add_pose_arguments, estimate_from_args
-
-logger = logging.getLogger(__name__)
-
-# Written beside the export's files; reconstruction.json last, so it marks a finished run.
-SUMMARY_FILES = ("estimated_cameras.json", "poses.json", "report.html", "reconstruction.json")
+from ..checks import check_output_dir
+from ..precision import PRECISIONS
+from .export import FORMATS, add_export_arguments, options_from_args, output_names, print_written
+from .poses import add_pose_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a weights name (`surfsplat weights list`, e.g. re10k-256x256-small), hf://owner/repo/file, "
         "our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
     )
-    parser.add_argument("--images", nargs="+", required=True, type=Path, help="two or more context images")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--images", nargs="+", type=Path, help="two or more context images, or one folder of images")
+    source.add_argument("--video", type=Path, help="a video of the scene (frames chosen by motion and sharpness)")
     parser.add_argument(
         "--cameras",
         default=None,
@@ -91,129 +83,95 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
     add_pose_arguments(parser)
+    group = parser.add_argument_group("many views and videos")
+    group.add_argument("--views-per-pass", type=int, default=3, help="context views of one forward pass (default 3)")
+    group.add_argument(
+        "--holdout-every",
+        type=int,
+        default=None,
+        metavar="K",
+        help="keep views 0, K, 2K, ... out of the passes and render them from the fused scene",
+    )
+    group.add_argument("--max-frames", type=int, default=None, help="video: at most this many frames (evenly spaced)")
+    group.add_argument(
+        "--min-motion",
+        type=float,
+        default=0.02,
+        help="video: a frame is used when it differs from the last used one by this much (mean grey, 0..1)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data.images import read_image
-    from ..data.transforms import rescale_and_crop
-    from ..evaluate import ModelSpec, load_model
-    from ..export.paths import load_cameras
-    from ..geometry.cameras import Cameras
-    from ..model.pretrained import check_resolution
+    from ..capture import FrameConfig
+    from ..reconstruction import CaptureOptions, reconstruct
+    from ..reconstruction.scene import SUMMARY_FILES
 
-    # ---- validate every input and the output folder before any heavy work
+    # The output folder first: nothing heavy runs before a bad --out is refused.
+    given = [args.video] if args.video is not None else list(args.images)
     check_output_dir(
-        args.out, "--out", inputs=[*args.images, args.cameras], writes=[*output_names(args.formats), *SUMMARY_FILES]
+        args.out, "--out", inputs=[*given, args.cameras], writes=[*output_names(args.formats), *SUMMARY_FILES]
     )
-    if len(args.images) < 2:
-        raise SurfSplatInputError(
-            f"--images: the model matches views, expected at least 2 images, got {len(args.images)}"
-        )
-    for path in args.images:
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: image file not found")
-    photos, poses = list(args.images), None
-    if args.cameras is None:  # estimated (nothing is written before the reconstruction succeeds)
-        cams, poses = estimate_from_args(args)
-        args.images = [p for p in args.images if p.name in cams.names]
+
+    if args.video is not None:
+        images = args.video
+    elif len(args.images) == 1 and args.images[0].is_dir():
+        images = args.images[0]
     else:
-        if args.focal is not None:
-            raise SurfSplatInputError("--focal: only used when the cameras are estimated (without --cameras)")
-        cams = load_cameras(args.cameras, images=args.images_folder).select(
-            [p.name for p in args.images], str(args.cameras)
-        )
-    images = []
-    for path in args.images:
-        rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))
-        images.append(rgb)
-    sizes = {tuple(im.shape[1:]) for im in images}
-    if len(sizes) != 1:
-        raise SurfSplatInputError(f"--images: all images must have one size, got {sorted(sizes)}")
-    ((height, width),) = sizes
-    K = cams.resized(width, height, str(args.cameras)).K
-    near, far = _depth_range(args, cams)
-    device = _device(args.device)
-    model, label = load_model(ModelSpec(args.checkpoint, preset=args.preset, trust_pickle=args.trust_pickle), device)
-    m = model.cfg.encoder.size_multiple
-    if args.size is None and (height < m or width < m):  # the user gave images, not a size: name them
-        raise SurfSplatInputError(
-            f"--images: {args.images[0]} is {width}x{height} pixels; the network needs at least {m}x{m}"
-        )
-    shape = tuple(args.size) if args.size else (height // m * m, width // m * m)
-    if shape[0] < m or shape[1] < m or shape[0] % m or shape[1] % m:
-        raise SurfSplatInputError(f"--size: expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}")
-    stack, K, _ = rescale_and_crop(torch.stack(images), K.to(torch.float32), shape)
-    check_resolution(model, *shape)  # named weights know the resolution they were trained at
-    cameras = Cameras(cams.cameras.c2w.to(torch.float32), K)
-
-    # ---- reconstruct
-    start = time.perf_counter()
-    with torch.no_grad(), autocast(args.precision, device) as precision:
-        prediction = model(stack[None].clamp(0, 1).to(device), cameras.to(device), near, far)
-    seconds = time.perf_counter() - start
-    gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
-    logger.info(
-        f"{label}: {len(gaussians):,} surfels from {len(args.images)} views at {shape[1]}x{shape[0]} in {seconds:.2f} s"
+        images = args.images
+    capture = CaptureOptions(
+        views_per_pass=args.views_per_pass,
+        holdout_every=args.holdout_every,
+        frames=FrameConfig(max_size=min(args.max_size, 960), min_motion=args.min_motion, max_frames=args.max_frames),
     )
-
-    from ..model.decoder import decoder_mode
-
-    mode = decoder_mode(model.cfg.adapter)
-    options = options_from_args(args, tuple(args.formats), mode)
-    options = dataclasses.replace(options, alpha_threshold=prediction.alpha_threshold)
-    gaussians = compact_from_args(args, gaussians, cameras, shape[0], shape[1], options)
-    written = export_reconstruction(
-        gaussians,
-        cameras,
-        shape[1],
-        shape[0],
-        args.out,
-        options,
-        names=[p.name for p in args.images],
-        near=near,
-        far=far,
+    scene = reconstruct(
+        images,
+        checkpoint=args.checkpoint,
+        cameras=args.cameras,
+        device=args.device,
+        size=tuple(args.size) if args.size else None,
+        near=args.near,
+        far=args.far,
+        preset=args.preset,
+        trust_pickle=args.trust_pickle,
+        images_folder=args.images_folder,
+        focal=args.focal,
+        max_size=args.max_size,
+        compact=args.compact,
+        capture=capture,
+        progress=not args.no_progress,
+        precision=args.precision,
     )
-    from ..export.figures import write_text
-
-    if poses is not None:
-        from ..poses.report import write_pose_outputs
-
-        renders = [args.out / "renders" / f"view{i:02d}_color.png" for i in range(len(args.images))]
-        renders = renders if "context renders" in written else None
-        written.update(write_pose_outputs(args.out, cams, poses, photos, renders))
-    summary = {
-        "checkpoint": str(args.checkpoint),
-        "model": label,
-        "images": [str(p) for p in args.images],
-        "size": list(shape),
-        "near": near,
-        "far": far,
-        "surfels": len(gaussians),
-        "compact_level": args.compact,
-        "seconds_forward": seconds,
-        "precision": precision,
-        "render_mode": mode,
-        "alpha_threshold": prediction.alpha_threshold,
-        "files": {k: str(v) for k, v in written.items()},
-        "cameras": str(args.cameras) if args.cameras is not None else "estimated from the images (poses.json)",
-    }
-    written["summary"] = write_text(args.out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")
+    if scene.video is not None:
+        print("\n".join(scene.video.lines()))
+    if scene.poses is not None:
+        print("\n".join(scene.poses.lines()))
+    if scene.compact_stats:
+        s = scene.compact_stats
+        print(
+            f"compact level {args.compact}: {s['input']:,} -> {s['output']:,} surfels ({s['input'] / s['output']:.2f}x "
+            f"fewer; {s['pruned']:,} pruned, {s['duplicates']:,} duplicates, {s['merged_away']:,} merged away)"
+        )
+    if scene.fusion_stats:
+        f = scene.fusion_stats
+        print(
+            f"fused {f['passes']} passes of {len(scene.names)} views: {f['predicted']:,} surfels predicted, "
+            f"{f['duplicates']:,} duplicates removed, {len(scene.gaussians):,} kept"
+        )
+    if scene.holdout is not None:
+        h = scene.holdout.to_dict()
+        print(
+            f"held out {len(scene.holdout.names)} views: PSNR {h['mean_psnr']:.2f} dB, coverage {h['mean_coverage']:.3f}"
+        )
+    options = options_from_args(args, tuple(args.formats), scene.mode)
+    options = dataclasses.replace(options, alpha_threshold=scene.alpha_threshold)
+    written = scene.save(args.out, options=options)
+    summary = json.loads(written["summary"].read_text())
+    c = summary["closure"]
+    print(
+        f"closure {c['closure']:.3f} (alpha x4 / x1 from the context views), {c['undersized_share']:.0%} of surfels "
+        f"under half their pixel footprint, median opacity {c['opacity_quantiles']['p50']:.2f}"
+        + ("" if c["closed"] else f": not closed ({'; '.join(c['problems'])})")
+    )
     print(f"wrote {args.out}/:")
     print_written(written)
     return 0
-
-
-def _depth_range(args: argparse.Namespace, cams) -> tuple[float, float]:
-    near = args.near if args.near is not None else (cams.near if cams.near is not None else 0.5)
-    far = args.far if args.far is not None else (cams.far if cams.far is not None else 100.0)
-    if not 0 < near < far:
-        raise SurfSplatInputError(f"--near/--far: expected 0 < near < far, got {near}, {far}")
-    return float(near), float(far)
-
-
-def _device(choice: str) -> torch.device:
-    if choice == "cuda" and not torch.cuda.is_available():
-        raise SurfSplatInputError("--device cuda: no CUDA device is available")
-    if choice == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(choice)

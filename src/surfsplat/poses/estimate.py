@@ -8,8 +8,9 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    `PoseConfig.min_extraction_size` (SIFT on a 2x upscaled 400x300 DTU view finds about 5x more
    verified matches and halves the rotation error), large ones downscaled to `max_size`. The
    keypoints are then mapped back to the original pixels, so everything after sees the real images.
-2. SIFT extraction, exhaustive matching and geometric verification (E/F/H with RANSAC) into a
-   temporary COLMAP database.
+2. SIFT extraction, matching and geometric verification (E/F/H with RANSAC) into a temporary
+   COLMAP database. Pairs: all of them (exhaustive) for small sets, each image with its next
+   `sequential_overlap` images in input order (sequential) for ordered frames and large sets.
 3. Two images: the dedicated two-view path. COLMAP's incremental mapper refuses most two-image
    models (its initial pair needs 100 inliers and a 16 degree triangulation angle), and two views
    is the model's main setting: a calibrated relative pose (LO-RANSAC, 5-point) on the verified
@@ -44,6 +45,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -55,6 +57,7 @@ from ..geometry.cameras import Cameras
 from .exif import exif_focal
 
 FOCAL_PRIOR_FACTOR = 1.2  # COLMAP's default focal guess: 1.2 x the long side of the image
+MAX_PAIRS_SHOWN = 20  # pairs listed one per line in the summary; above this only the weakest
 
 
 @dataclass
@@ -78,11 +81,18 @@ class PoseConfig:
     depth_margin: float = 1.5  # near = p2 / margin, far = p98 * margin of the points' depths
     near: float | None = None  # overrides the near bound from the points
     far: float | None = None  # overrides the far bound from the points
+    matching: Literal["auto", "exhaustive", "sequential"] = "auto"  # which image pairs are matched (see below)
+    sequential_overlap: int = 10  # sequential matching: each image is matched with this many following ones
+    exhaustive_max_images: int = 30  # auto: exhaustive matching up to this many images, sequential above
     threads: int = -1  # CPU threads for pycolmap (-1: all)
     seed: int = 0  # RANSAC and mapper seed: the same photos give the same cameras
     colmap_log: bool = False  # let COLMAP log its stages to stderr
 
     def __post_init__(self) -> None:
+        if self.matching not in ("auto", "exhaustive", "sequential"):
+            raise SurfSplatInputError(f"matching: expected 'auto', 'exhaustive' or 'sequential', got {self.matching!r}")
+        if self.sequential_overlap < 1:
+            raise SurfSplatInputError(f"sequential_overlap: expected at least 1, got {self.sequential_overlap}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise SurfSplatInputError(f"--focal: expected a positive focal length in pixels, got {self.focal}")
         if self.max_size < 64:
@@ -141,7 +151,11 @@ class PoseSummary:
             f"world: first camera at the origin, median point depth {self.median_depth:g}; "
             f"near {self.near:.3f}, far {self.far:.3f}",
         ]
-        for p in self.pairs:
+        shown = self.pairs
+        if len(self.pairs) > MAX_PAIRS_SHOWN:  # hundreds of frames: the count and the weakest pairs
+            shown = sorted(self.pairs, key=lambda p: p.inliers)[:MAX_PAIRS_SHOWN]
+            out.append(f"{len(self.pairs)} pairs matched; the {len(shown)} with fewest inliers:")
+        for p in shown:
             out.append(f"  {p.first} - {p.second}: {p.matches} matches, {p.inliers} inliers ({p.geometry})")
         out.extend(self.notes)
         return out
@@ -410,20 +424,44 @@ class _Workspace:
         finally:
             db.close()
 
+    def sequential(self) -> bool:
+        """Whether only neighbours in input order are matched (ordered frames, large sets)."""
+        cfg = self.config
+        if cfg.matching == "auto":
+            return len(self.names) > cfg.exhaustive_max_images
+        return cfg.matching == "sequential"
+
     def match(self) -> list[PairStats]:
+        """Match and verify pairs: every pair (exhaustive), or each image with its `sequential_overlap`
+        successors in input order (sequential: frames of a video or an ordered walk, where matching
+        all N^2 / 2 pairs of hundreds of frames costs hours and adds only pairs that share nothing)."""
         pycolmap = self.pycolmap
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = self.config.threads
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = self.config.seed
-        pycolmap.match_exhaustive(
-            self.database, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
-        )
+        sequential = self.sequential()
+        if sequential:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = self.config.sequential_overlap
+            pairing.quadratic_overlap = False
+            pycolmap.match_sequential(
+                self.database,
+                matching_options=matching,
+                pairing_options=pairing,
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )
+        else:
+            pycolmap.match_exhaustive(
+                self.database, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+            )
+        reach = self.config.sequential_overlap if sequential else len(self.names)
         db = pycolmap.Database.open(self.database)
         pairs = []
         try:
             for i in range(len(self.names)):
-                for j in range(i + 1, len(self.names)):
+                for j in range(i + 1, min(len(self.names), i + 1 + reach)):
                     a, b = self.ids[self.names[i]], self.ids[self.names[j]]
                     matches = len(db.read_matches(a, b)) if db.exists_matches(a, b) else 0
                     inliers, geometry = 0, "no geometry"

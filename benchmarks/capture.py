@@ -1,0 +1,360 @@
+"""Capture benchmark: one fused scene from many views against two-view reconstructions, and the
+cost of a video against its length.
+
+    python benchmarks/capture.py                          # rooms, DTU, fern, video 10 and 50 frames
+    python benchmarks/capture.py --parts video --frames 10 50 300      # the 300-frame 1080p video too
+    python benchmarks/capture.py --parts rooms --rooms 2               # quicker
+
+Parts (each writes its entry of benchmarks/results/capture.json and prints a table):
+- rooms: procedural rooms (`make_scene`), cameras on a straight path of `--path-length` metres
+  through the room (the training paths are 0.15-0.6 m) rendered as 25 frames at 64x64 with the
+  exact cameras; frames 0, 4, 8, ... are held out. The fused scene of the 18 others against the
+  two-view reconstruction from the two context frames at the path's ends: held-out PSNR,
+  coverage (alpha >= 0.5) and depth AbsRel against the exact depth (over pixels both cover).
+  Then the same frames as an MP4 at 256x256 with the cameras estimated from it (`reconstruct`
+  on the video): pairwise rotation and translation-direction errors against the truth, and the
+  held-out PSNR in the estimated frame. And surfels against the area covered: one path, 9 / 17 /
+  33 frames, and paths of 0.5 / 1 / 1.5 / 2 m at one frame every 6 cm.
+- dtu / fern: all views of DTU scan 24 (49) and LLFF fern (20) with their calibrations, every
+  8th held out: held-out PSNR of the fused scene against the best pair of neighbouring context
+  views (the pair whose two-view reconstruction scores best on the held-out views).
+- video: a synthetic 1080p video (the room ray-cast at 480x270, upscaled by ffmpeg to 1920x1080,
+  H.264) of 10 / 50 / 300 frames along a 2 m path, reconstructed with the cameras estimated from
+  it: seconds per stage and peak memory, each size in a fresh process.
+The model is `tiny-synthetic` (64x64 rooms); on real photos it reconstructs poorly, which the
+numbers show.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SIZE = 64
+
+
+# ----------------------------------------------------------------------------------------- rooms
+def long_path(scene, generator, length: float):
+    """A straight path of `length` metres inside the room, keeping the clearance of the training paths."""
+    from surfsplat.data.synthetic import Trajectory, make_trajectory
+    from surfsplat.data.synthetic.scene import _clearance
+
+    for _ in range(500):
+        t = make_trajectory(scene, generator)
+        direction = (t.eye1 - t.eye0) / (t.eye1 - t.eye0).norm()
+        end = t.eye0 + length * direction
+        s = torch.linspace(0, 1, 40, dtype=torch.float64)[:, None]
+        if bool((_clearance(scene, t.eye0 * (1 - s) + end * s) > 0.8).all()):
+            return Trajectory(t.eye0, end, t.target0, t.target1, t.fov_deg)
+    raise RuntimeError(f"no {length} m path fits in this room")
+
+
+def held_out_scores(scene, cameras, images, depths):
+    """PSNR, coverage and depth AbsRel of a scene's renders at cameras against exact images/depths."""
+    from surfsplat.metrics import psnr
+
+    out = scene.render(cameras)
+    covered = out.alpha >= 0.5
+    valid = covered & (depths > 0)
+    absrel = ((out.depth - depths).abs() / depths.clamp_min(1e-6))[valid].mean()
+    return {
+        "psnr": float(psnr(out.color.clamp(0, 1), images).mean()),
+        "coverage": float(covered.float().mean()),
+        "depth_absrel": float(absrel),
+    }
+
+
+def rooms(args, model) -> dict:
+    import surfsplat
+    from surfsplat.capture import frame_name
+    from surfsplat.data.synthetic import make_scene, render_synthetic
+    from surfsplat.export.paths import CameraSet
+    from surfsplat.export.video import write_video
+    from surfsplat.poses.errors import relative_pose_errors
+
+    rows = []
+    n = 25
+    for seed in range(args.rooms):
+        room = make_scene(1000 + seed)
+        path = long_path(room, torch.Generator().manual_seed(seed), args.path_length)
+        cams = path.cameras(torch.linspace(0, 1, n), SIZE, SIZE)
+        truth = render_synthetic(room, cams, SIZE, SIZE)
+        names = [frame_name(i) for i in range(n)]
+        every = CameraSet(cams, SIZE, SIZE, names, 0.5, 15.0)
+        options = surfsplat.CaptureOptions(holdout_every=4)
+        start = time.perf_counter()
+        fused = surfsplat.reconstruct(list(truth.image), model, cameras=every, capture=options, progress=False)
+        seconds = time.perf_counter() - start
+        held = [i for i in range(n) if i % 4 == 0]
+        ctx = [i for i in range(n) if i % 4]
+        ends = [ctx[0], ctx[-1]]
+        two = surfsplat.reconstruct(
+            [truth.image[i] for i in ends],
+            model,
+            cameras=CameraSet(cams[torch.tensor(ends)], SIZE, SIZE, ["a", "b"], 0.5, 15.0),
+            progress=False,
+        )
+        h = torch.tensor(held)
+        row = {
+            "seed": 1000 + seed,
+            "fused": held_out_scores(fused, cams[h], truth.image[h], truth.depth[h]),
+            "two_view": held_out_scores(two, cams[h], truth.image[h], truth.depth[h]),
+            "surfels_fused": len(fused.gaussians),
+            "surfels_two_view": len(two.gaussians),
+            "predicted": fused.fusion_stats["predicted"],
+            "seconds": seconds,
+        }
+        # the same path as a video, cameras estimated from it
+        with tempfile.TemporaryDirectory() as tmp:
+            big = render_synthetic(room, cams.scaled(4), 4 * SIZE, 4 * SIZE).image
+            write_video(Path(tmp) / "room.mp4", big, fps=10, quality=9)
+            from surfsplat.capture import FrameConfig
+
+            options = surfsplat.CaptureOptions(holdout_every=4, frames=FrameConfig(min_motion=0.0))
+            start = time.perf_counter()
+            video = surfsplat.reconstruct(
+                Path(tmp) / "room.mp4", model, size=(SIZE, SIZE), capture=options, progress=False
+            )
+            row["video_seconds"] = time.perf_counter() - start
+        used = [int(name.split("_")[1]) for name in video.pose_cameras.names]
+        rot, trans = relative_pose_errors(video.pose_cameras.cameras.c2w, cams.c2w.double()[torch.tensor(used)])
+        row["video"] = {
+            "registered": len(used),
+            "rotation_error_max_deg": float(rot.max()),
+            "translation_direction_error_max_deg": float(trans.max()),
+            "held_out_psnr": video.holdout.to_dict()["mean_psnr"],
+            "held_out_coverage": video.holdout.to_dict()["mean_coverage"],
+        }
+        rows.append(row)
+        print(f"room {1000 + seed}: {json.dumps(row)}", flush=True)
+    area = surfels_vs_area(model)
+    return {"path_length_m": args.path_length, "frames": n, "held_out_every": 4, "rooms": rows, "area": area}
+
+
+def surfels_vs_area(model) -> dict:
+    import surfsplat
+    from surfsplat.data.synthetic import make_scene, render_synthetic
+    from surfsplat.export.paths import CameraSet
+
+    room = make_scene(1000)
+    out = {"frames_on_one_path": [], "path_length": []}
+    path = long_path(room, torch.Generator().manual_seed(0), 1.5)
+    for n in (9, 17, 33):
+        cams = path.cameras(torch.linspace(0, 1, n), SIZE, SIZE)
+        images = render_synthetic(room, cams, SIZE, SIZE).image
+        every = CameraSet(cams, SIZE, SIZE, [f"v{i}" for i in range(n)], 0.5, 15.0)
+        scene = surfsplat.reconstruct(list(images), model, cameras=every, progress=False)
+        out["frames_on_one_path"].append({"frames": n, "surfels": len(scene.gaussians)})
+    for length in (0.5, 1.0, 1.5, 2.0):
+        path = long_path(room, torch.Generator().manual_seed(0), length)
+        n = max(3, round(length / 0.06) + 1)
+        cams = path.cameras(torch.linspace(0, 1, n), SIZE, SIZE)
+        images = render_synthetic(room, cams, SIZE, SIZE).image
+        every = CameraSet(cams, SIZE, SIZE, [f"v{i}" for i in range(n)], 0.5, 15.0)
+        scene = surfsplat.reconstruct(list(images), model, cameras=every, progress=False)
+        out["path_length"].append({"metres": length, "frames": n, "surfels": len(scene.gaussians)})
+    return out
+
+
+# ----------------------------------------------------------------------------------------- real scenes
+def real_scene(args, model, name: str, folder: Path, images: str, size: tuple[int, int]) -> dict:
+    import surfsplat
+    from surfsplat.data.images import list_images
+    from surfsplat.export.paths import load_cameras
+    from surfsplat.metrics import psnr
+
+    photos = list_images(folder / images)
+    cameras = load_cameras(folder, images=images)
+    options = surfsplat.CaptureOptions(holdout_every=8)
+    start = time.perf_counter()
+    fused = surfsplat.reconstruct(photos, model, cameras=cameras, size=size, capture=options, progress=False)
+    seconds = time.perf_counter() - start
+    h = fused.holdout
+    ctx = [p for i, p in enumerate(photos) if i % 8]
+    pairs = []
+    for a, b in zip(ctx, ctx[1:]):
+        two = surfsplat.reconstruct([a, b], model, cameras=cameras, size=size, progress=False)
+        out = two.render(h.cameras)
+        pairs.append(
+            {
+                "pair": [a.name, b.name],
+                "psnr": float(psnr(out.color.clamp(0, 1), h.images).mean()),
+                "coverage": float((out.alpha >= 0.5).float().mean()),
+            }
+        )
+    best = max(pairs, key=lambda p: p["psnr"])
+    result = {
+        "views": len(photos),
+        "held_out": h.names,
+        "size": list(size),
+        "fused": h.to_dict(),
+        "surfels_fused": len(fused.gaussians),
+        "best_pair": best,
+        "pairs": pairs,
+        "seconds": seconds,
+    }
+    print(f"{name}: fused {result['fused']['mean_psnr']:.2f} dB, best pair {best['psnr']:.2f} dB", flush=True)
+    return result
+
+
+# ----------------------------------------------------------------------------------------- video cost
+def write_1080p_video(path: Path, frames: int) -> None:
+    """The room along a 2 m path, ray-cast at 480x270 and upscaled by ffmpeg to 1920x1080 (H.264)."""
+    import imageio_ffmpeg
+    import numpy as np
+
+    from surfsplat.data.synthetic import make_scene, render_synthetic
+
+    room = make_scene(1000)
+    trajectory = long_path(room, torch.Generator().manual_seed(0), 2.0)
+    writer = imageio_ffmpeg.write_frames(
+        str(path),
+        (480, 270),
+        fps=30,
+        codec="libx264",
+        quality=8,
+        macro_block_size=2,
+        output_params=["-vf", "scale=1920:1080:flags=bicubic"],
+    )
+    writer.send(None)
+    for s in torch.linspace(0, 1, frames).split(10):
+        images = render_synthetic(room, trajectory.cameras(s, 480, 270), 480, 270).image
+        for image in images:
+            writer.send(np.ascontiguousarray((image.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)))
+    writer.close()
+
+
+def video_cost(frames: int) -> dict:
+    """Run in a fresh process: seconds per stage and peak memory of reconstructing the video."""
+    import surfsplat
+    from surfsplat.evaluate import peak_rss_bytes
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "capture.mp4"
+        start = time.perf_counter()
+        write_1080p_video(path, frames)
+        made = time.perf_counter() - start
+        base = peak_rss_bytes()
+        start = time.perf_counter()
+        scene = surfsplat.reconstruct(path, "tiny-synthetic", size=(SIZE, 112), progress=False)
+        seconds = time.perf_counter() - start
+    video = scene.video
+    return {
+        "frames": frames,
+        "used": len(video.indices),
+        "registered": len(scene.names),
+        "dropped": video.dropped(),
+        "seconds": seconds,
+        "stages": scene.seconds,
+        "seconds_writing_the_video": made,
+        "peak_rss_bytes": peak_rss_bytes(),
+        "peak_rss_bytes_before": base,
+        "surfels": len(scene.gaussians),
+    }
+
+
+# ----------------------------------------------------------------------------------------- main
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", nargs="+", default=["rooms", "dtu", "fern", "video"])
+    parser.add_argument("--rooms", type=int, default=4)
+    parser.add_argument("--path-length", type=float, default=1.5)
+    parser.add_argument("--frames", nargs="+", type=int, default=[10, 50], help="video lengths (300: the long one)")
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--out", type=Path, default=RESULTS / "capture.json", help="results JSON (parts are merged in)")
+    parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
+    args = parser.parse_args()
+    if args.one_video is not None:
+        print(json.dumps(video_cost(args.one_video)))
+        return
+
+    from surfsplat.evaluate import ModelSpec, load_model
+
+    out_path = args.out
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    results = json.loads(out_path.read_text()) if out_path.is_file() else {}
+    results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()}
+    model, _ = load_model(ModelSpec("tiny-synthetic"))
+
+    def save() -> None:  # after every part, so a long run keeps what it measured
+        results["machine"]["load_after"] = os.getloadavg()
+        out_path.write_text(json.dumps(results, indent=1) + "\n")
+
+    if "rooms" in args.parts:
+        results["rooms"] = rooms(args, model)
+        save()
+    if "dtu" in args.parts:
+        results["dtu_scan24"] = real_scene(args, model, "DTU scan 24", args.data / "dtu_scan24", "images_4", (64, 80))
+        save()
+    if "fern" in args.parts:
+        results["llff_fern"] = real_scene(args, model, "LLFF fern", args.data / "llff_fern", "images_8", (64, 80))
+        save()
+    if "video" in args.parts:
+        results["video"] = []
+        for frames in args.frames:
+            child = subprocess.run(
+                [sys.executable, __file__, "--one-video", str(frames)], capture_output=True, text=True, check=False
+            )
+            if child.returncode != 0:
+                results["video"].append({"frames": frames, "error": child.stderr.strip().splitlines()[-1]})
+                continue
+            results["video"].append(json.loads(child.stdout.strip().splitlines()[-1]))
+            print(f"video {frames} frames: {json.dumps(results['video'][-1])}", flush=True)
+            save()
+    save()
+    print_table(results)
+
+
+def print_table(results: dict) -> None:
+    if "rooms" in results:
+        print("\nrooms (held-out frames)       PSNR dB   coverage   depth AbsRel   surfels")
+        rows = results["rooms"]["rooms"]
+        for key in ("fused", "two_view"):
+
+            def mean(k: str, key: str = key) -> float:
+                return sum(r[key][k] for r in rows) / len(rows)
+
+            surfels = sum(r["surfels_" + key] for r in rows) / len(rows)
+            print(
+                f"  {key:<27} {mean('psnr'):7.2f}   {mean('coverage'):8.3f}   {mean('depth_absrel'):12.3f}   {surfels:7.0f}"
+            )
+        worst_rot = max(r["video"]["rotation_error_max_deg"] for r in rows)
+        worst_dir = max(r["video"]["translation_direction_error_max_deg"] for r in rows)
+        print(f"  poses from the video: rotation error <= {worst_rot:.2f} deg, direction <= {worst_dir:.2f} deg")
+        area = results["rooms"]["area"]
+        print(
+            "  surfels vs frames on one path: "
+            + ", ".join(f"{a['frames']}: {a['surfels']}" for a in area["frames_on_one_path"])
+        )
+        print("  surfels vs path length: " + ", ".join(f"{a['metres']} m: {a['surfels']}" for a in area["path_length"]))
+    for key in ("dtu_scan24", "llff_fern"):
+        if key in results:
+            r = results[key]
+            print(
+                f"{key}: fused {r['fused']['mean_psnr']:.2f} dB (coverage {r['fused']['mean_coverage']:.3f}) vs best pair "
+                f"{r['best_pair']['psnr']:.2f} dB ({', '.join(r['best_pair']['pair'])})"
+            )
+    for v in results.get("video", []):
+        if "error" in v:
+            print(f"video {v['frames']} frames: failed: {v['error']}")
+        else:
+            print(
+                f"video {v['frames']} frames of 1080p: {v['used']} used, {v['seconds']:.1f} s, "
+                f"peak {v['peak_rss_bytes'] / 2**30:.2f} GiB, stages {json.dumps({k: round(s, 1) for k, s in v['stages'].items()})}"
+            )
+    if "machine" in results:
+        print(f"load average before/after: {results['machine']['load']} / {results['machine'].get('load_after')}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,177 @@
+"""Fuse the surfels of many forward passes into one scene, streaming.
+
+    fusion = SurfelFusion(FusionConfig(), mode="surfel", alpha_threshold=0.001)
+    for gaussians, cameras in passes:          # one surfel per pixel of each pass's views
+        fusion.add(gaussians, cameras, height, width)
+    scene = fusion.gaussians()
+
+Overlapping passes predict the same surfaces again (every view of a capture sees much of what its
+neighbours see). The views are added one at a time; before a view's surfels join, the scene fused
+so far is rendered from that view (colour-free: depth, normal and alpha, with the reconstruction's
+forced alpha blending), and a new surfel is a duplicate, and dropped, when at the pixel it was
+predicted for the fused scene already
+- covers the pixel (alpha >= `cover_alpha`),
+- lies at the surfel's depth within `depth_tolerance` (relative: the network's depth error is
+  relative, about a tenth on the rooms, so two passes' predictions of one wall differ by that), and
+- faces the same way (normals within `normal_degrees`).
+Surfels on surfaces the scene does not cover yet, or at other depths (a surface in front of or
+behind what is fused), join it. The views of one pass are checked against each other the same
+way, so the count grows with the area seen rather than with the number of frames. This is the
+compaction's cross-view duplicate removal (`compaction._duplicate_cover`) carried over to a scene
+that grows: it compares with the rendered scene, so a surface seen again much later (a loop) is
+recognised too, and it needs no per-view pixel ownership, which passes do not share.
+
+Memory: only the fused surfels are held (and one view's render); the passes stream through.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..checks import SurfSplatInputError
+from ..gaussians import Gaussians
+from ..geometry.cameras import Cameras
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """When a new surfel duplicates the fused scene."""
+
+    depth_tolerance: float = 0.1  # |z_new - z_fused| <= this x z_fused (camera depth at the surfel's pixel)
+    normal_degrees: float = 60.0  # the surfel's normal within this angle of the fused normal
+    cover_alpha: float = 0.5  # the fused scene covers a pixel where its alpha reaches this
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.depth_tolerance) and self.depth_tolerance >= 0):
+            raise SurfSplatInputError(f"fusion.depth_tolerance: expected >= 0, got {self.depth_tolerance}")
+        if not 0 <= self.normal_degrees <= 180:
+            raise SurfSplatInputError(f"fusion.normal_degrees: expected 0..180, got {self.normal_degrees}")
+        if not 0 < self.cover_alpha <= 1:
+            raise SurfSplatInputError(f"fusion.cover_alpha: expected a value in (0, 1], got {self.cover_alpha}")
+
+
+class SurfelFusion:
+    """The scene fused so far; `add` one pass at a time."""
+
+    def __init__(
+        self,
+        config: FusionConfig | None = None,
+        *,
+        mode: str = "surfel",
+        alpha_threshold: float | None = 0.001,
+        backend: str = "auto",
+    ):
+        self.config = config or FusionConfig()
+        self.mode = mode
+        self.alpha_threshold = alpha_threshold
+        self.backend = backend
+        self._parts: list[Gaussians] = []
+        self._fused: Gaussians | None = None
+        self.stats = {"passes": 0, "predicted": 0, "duplicates": 0}
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self._parts)
+
+    def gaussians(self) -> Gaussians:
+        """The fused scene (all surfels kept so far)."""
+        if not self._parts:
+            raise SurfSplatInputError("fusion: no surfels were added")
+        if self._fused is None or len(self._fused) != len(self):
+            self._fused = Gaussians.cat(self._parts)
+            self._parts = [self._fused]
+        return self._fused
+
+    @torch.no_grad()
+    def add(
+        self,
+        gaussians: Gaussians,  # [N] unbatched
+        cameras: Cameras,  # the V views of the pass, K in pixels of height x width
+        height: int,
+        width: int,
+        pixels: Tensor | None = None,  # [N, 3] (view, row, column) each surfel was predicted at
+    ) -> int:
+        """Add a pass's surfels that are not duplicates of the scene so far; returns how many joined.
+        Without `pixels` the surfels are the model's output: one per pixel, (view, row, column) order."""
+        v = len(cameras)
+        if pixels is None:
+            if len(gaussians) != v * height * width:
+                raise SurfSplatInputError(
+                    f"fusion: expected one surfel per pixel of {v} views of {width}x{height} "
+                    f"({v * height * width:,}), got {len(gaussians):,}; pass their pixels"
+                )
+            views, rows, cols = torch.meshgrid(
+                torch.arange(v), torch.arange(height), torch.arange(width), indexing="ij"
+            )
+            pixels = torch.stack((views.flatten(), rows.flatten(), cols.flatten()), -1)
+        elif pixels.shape != (len(gaussians), 3):
+            raise SurfSplatInputError(f"fusion: pixels expected [{len(gaussians)}, 3], got {tuple(pixels.shape)}")
+        g = gaussians.detach()
+        pixels = pixels.to(g.means.device)
+        cameras = cameras.to(device=g.means.device, dtype=g.means.dtype)
+        joined = 0
+        for view in range(v):
+            idx = torch.nonzero(pixels[:, 0] == view).squeeze(-1)
+            if len(idx) == 0:
+                continue
+            part = g.subset(idx)
+            if self._parts:
+                duplicate = self._duplicates(part, pixels[idx, 1:], cameras[view], height, width)
+                self.stats["duplicates"] += int(duplicate.sum())
+                part = part.subset(~duplicate)
+            if len(part):
+                self._parts.append(part)
+                joined += len(part)
+            self.stats["predicted"] += len(idx)
+        self.stats["passes"] += 1
+        return joined
+
+    def _duplicates(self, new: Gaussians, pixel: Tensor, camera: Cameras, height: int, width: int) -> Tensor:
+        """[M] which of one view's new surfels lie on the fused scene as that view sees it."""
+        from ..render import render
+
+        fused = self.gaussians()
+        seen = fused.subset(_in_view(fused.means, camera, height, width))
+        if len(seen) == 0:
+            return torch.zeros(len(new), dtype=torch.bool, device=new.means.device)
+        colourless = Gaussians(
+            seen.means, seen.quats, seen.scales, seen.opacities, torch.zeros_like(seen.sh[..., :1]), validate=False
+        )
+        out = render(
+            colourless,
+            camera,
+            width,
+            height,
+            mode=self.mode,
+            backend=self.backend,
+            alpha_threshold=self.alpha_threshold,
+        )
+        r, c = pixel[:, 0], pixel[:, 1]
+        alpha = out.alpha[0, 0, r, c]
+        depth = out.depth[0, 0, r, c]
+        normal = out.normal[0, :, r, c].T  # [M, 3] world, facing the camera
+        w2c = camera.w2c[0]
+        z = new.means @ w2c[2, :3] + w2c[2, 3]
+        n = new.normals
+        toward = camera.centers[0] - new.means
+        n = torch.where((n * toward).sum(-1, keepdim=True) < 0, -n, n)
+        cfg = self.config
+        covered = alpha >= cfg.cover_alpha
+        same_depth = (z - depth).abs() <= cfg.depth_tolerance * depth
+        facing = (n * normal).sum(-1) >= math.cos(math.radians(cfg.normal_degrees)) * normal.norm(dim=-1)
+        return covered & same_depth & facing
+
+
+def _in_view(means: Tensor, camera: Cameras, height: int, width: int, margin: float = 0.25) -> Tensor:
+    """[N] surfels in front of the camera whose centres project within the image grown by `margin`
+    of its size each side (the render of the fused scene needs only these)."""
+    w2c = camera.w2c[0]
+    p = means @ w2c[:3, :3].T + w2c[:3, 3]
+    z = p[:, 2]
+    front = z > 1e-6
+    uv = (p @ camera.K[0].T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
+    mu, mv = margin * width, margin * height
+    return front & (uv[:, 0] > -mu) & (uv[:, 0] < width + mu) & (uv[:, 1] > -mv) & (uv[:, 1] < height + mv)

@@ -1,0 +1,352 @@
+"""`reconstruct`: photos, a folder or a video -> cameras -> network passes -> one fused scene.
+
+    scene = reconstruct(["a.jpg", "b.jpg"])                       # cameras estimated, the shipped model
+    scene = reconstruct("capture.mp4", checkpoint="tiny-synthetic")
+    scene = reconstruct("photos/", cameras="photos/cameras.json", size=(256, 256))
+
+Steps:
+1. inputs and options are checked (`_check_options`, `read_capture`); a video becomes its chosen
+   frames (`surfsplat.capture.select_video_frames`).
+2. cameras: given (a camera file, a scene folder, a CameraSet or Cameras), or estimated from the
+   views (`surfsplat.poses.estimate_cameras`; sequential matching for video frames and for sets
+   over 30 photos, exhaustive below).
+3. the network: every `holdout_every`-th view is kept out (to look at the scene from there); the
+   others are split into context sets (`surfsplat.capture.context_sets`), one forward pass each,
+   with the photos read and resized for that pass only.
+4. fusion: one pass is the scene as the model made it (one surfel per pixel); several are fused
+   into one scene as they stream by (`surfsplat.capture.SurfelFusion`), optionally each compacted
+   first (`compact`), so memory holds the fused surfels and one pass.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from ..capture import FrameConfig, FusionConfig, SurfelFusion, context_sets
+from ..checks import SurfSplatInputError
+from ..geometry.cameras import Cameras
+from .inputs import CaptureInput, ImageSource, read_capture
+from .scene import HeldOut, Scene
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CaptureOptions:
+    """How a capture of many views becomes one scene."""
+
+    views_per_pass: int = 3  # context views of one forward pass (3 measured better and faster than 2 on rooms)
+    holdout_every: int | None = None  # views 0, k, 2k, ... are kept out of the passes and rendered (None: none)
+    matching: Literal["auto", "exhaustive", "sequential"] = "auto"  # pose estimation's image pairs
+    frames: FrameConfig = field(default_factory=FrameConfig)  # frame choice of a video
+    fusion: FusionConfig = field(default_factory=FusionConfig)  # duplicate removal between views and passes
+
+
+def reconstruct(
+    images: ImageSource | Sequence[ImageSource],
+    checkpoint="tiny-synthetic",
+    cameras=None,
+    device: str | torch.device = "auto",
+    *,
+    size: tuple[int, int] | None = None,
+    near: float | None = None,
+    far: float | None = None,
+    preset: str | None = None,
+    trust_pickle: bool = False,
+    images_folder: str | None = None,
+    focal: float | None = None,
+    max_size: int = 1600,
+    compact: int | None = None,
+    capture: CaptureOptions | None = None,
+    progress: bool = True,
+    precision: str = "auto",
+) -> Scene:
+    """One scene of surfels from photos, a folder of photos, or a video.
+
+    images:     two or more image files or arrays ([H, W, 3] uint8 or float in [0, 1], or [3, H, W]
+                tensors), all of one size; a folder of images; or a video file (.mp4, .mov, ...)
+    checkpoint: a weights name (default "tiny-synthetic"), hf://owner/repo/file, a checkpoint path,
+                or a loaded SurfSplat model
+    cameras:    None (estimated from the images), a JSON camera file / COLMAP model / scene folder
+                (views matched by name; video frames are named frame_000012, ...), a CameraSet
+                (matched by name; arrays take its names in order), or Cameras with K in pixels of
+                the images (one per view, in order)
+    device:     "auto" (CUDA when available), "cpu", "cuda" or a torch.device
+    size:       network input (height, width), multiples of the model's (default: the largest crop)
+    near, far:  depth range (default: from the cameras, else 0.5 and 100)
+    preset, trust_pickle: how to read a release .ckpt given by path
+    images_folder: image folder of a scene folder given as `cameras` (e.g. images_4)
+    focal, max_size: pose estimation (focal length in pixels; long side above which photos are downscaled)
+    compact:    a compaction level applied to each pass's surfels before fusion (None: none)
+    capture:    CaptureOptions for many views and videos
+    precision:  forward passes in "fp32", "bf16" (autocast) or "auto" (bf16 where the device has fast
+                bf16); surfels and rendering stay float32
+    Returns a Scene. Bad input raises SurfSplatInputError (or FileNotFoundError) naming it.
+    """
+    start = time.perf_counter()
+    # ---- every input is checked here, before anything heavy runs
+    capture = capture or CaptureOptions()
+    device = _check_options(capture, device, size, near, far, compact, max_size)
+    from ..precision import autocast, parse_precision
+
+    parse_precision(precision)
+    if focal is not None and cameras is not None:
+        raise SurfSplatInputError("--focal: only used when the cameras are estimated (without --cameras)")
+    views = read_capture(images, capture.frames)
+    given = _given_cameras(cameras, views, images_folder)
+
+    # ---- cameras
+    seconds: dict[str, float] = {}
+    poses, pose_cameras, photos = None, None, []
+    if given is None:
+        from ..poses import PoseConfig, estimate_cameras
+
+        matching = "sequential" if views.ordered and capture.matching == "auto" else capture.matching
+        config = PoseConfig(focal=focal, max_size=max_size, near=near, far=far, matching=matching)
+        photos = views.pose_inputs()
+        pose_cameras, poses = estimate_cameras(photos, config=config, names=views.names)
+        views = views.subset([views.names.index(n) for n in pose_cameras.names])
+        given, source = pose_cameras, "estimated from the images (poses.json)"
+        seconds["poses"] = poses.seconds
+    else:
+        given, source = given
+    K = given.resized(views.width, views.height, source).K
+    c2w = given.cameras.c2w
+    near, far = _depth_range(near, far, given)
+
+    # ---- the model
+    model, label = _load(checkpoint, preset, trust_pickle, device)
+    m = model.cfg.encoder.size_multiple
+    if size is None and (views.height < m or views.width < m):  # the user gave images, not a size: name them
+        raise SurfSplatInputError(
+            f"--images: {views.sources[0]} is {views.width}x{views.height} pixels; the network needs at least {m}x{m}"
+        )
+    shape = tuple(size) if size else (views.height // m * m, views.width // m * m)
+    if shape[0] < m or shape[1] < m or shape[0] % m or shape[1] % m:
+        raise SurfSplatInputError(
+            f"size (--size): expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}"
+        )
+    from ..model.decoder import decoder_mode
+    from ..model.pretrained import check_resolution
+
+    check_resolution(model, *shape)  # named weights know the resolution they were trained at
+    mode = decoder_mode(model.cfg.adapter)
+
+    # ---- held-out views and context sets
+    everything = list(range(len(views)))
+    k = capture.holdout_every
+    held = [i for i in everything if k is not None and i % k == 0]
+    context = [i for i in everything if i not in held]
+    if len(context) < 2:
+        raise SurfSplatInputError(
+            f"holdout_every (--holdout-every): {len(views)} views leave {len(context)} context views; 2 are needed"
+        )
+    ctx_c2w = c2w[context]
+    passes = context_sets(ctx_c2w[:, :3, 3], capture.views_per_pass, views.ordered)
+
+    def network_views(indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        from ..data.transforms import rescale_and_crop
+
+        stack = torch.stack([views.image(i) for i in indices])
+        stack, K_net, _ = rescale_and_crop(stack, K[indices].to(torch.float32), shape)
+        return stack.clamp(0, 1), K_net
+
+    # ---- forward passes, fused as they stream by
+    from ..log import progress as progress_bar
+
+    fusion = SurfelFusion(capture.fusion, mode=mode) if len(passes) > 1 else None
+    seconds["forward"], seconds["fusion"], seconds["compact"] = 0.0, 0.0, 0.0
+    compact_stats: dict[str, int] = {}
+    single, alpha_threshold, ctx_K, multipliers, ran = None, None, [None] * len(context), None, "fp32"
+    for members in progress_bar(passes, desc="forward passes", unit="pass", enabled=progress and len(passes) > 1):
+        indices = [context[j] for j in members]
+        stack, K_net = network_views(indices)
+        for j, kk in zip(members, K_net):
+            ctx_K[j] = kk
+        cams = Cameras(c2w[indices].to(torch.float32), K_net)
+        tick = time.perf_counter()
+        with torch.no_grad(), autocast(precision, device) as ran:
+            prediction = model(stack[None].to(device), cams.to(device), near, far)
+        seconds["forward"] += time.perf_counter() - tick
+        alpha_threshold = prediction.alpha_threshold
+        gaussians = prediction.gaussians.select(0).to("cpu", torch.float32)
+        if model.cfg.adapter.prior == "surface" and compact is None and len(passes) == 1:
+            multipliers = prediction.adapter_output.scales_mul[0].to("cpu", torch.float32)
+        pixels = None
+        if compact is not None:
+            tick = time.perf_counter()
+            gaussians, pixels = _compact(gaussians, cams, shape, compact, mode, alpha_threshold, compact_stats)
+            seconds["compact"] += time.perf_counter() - tick
+        if fusion is None:
+            single = gaussians
+            continue
+        fusion.alpha_threshold = alpha_threshold
+        tick = time.perf_counter()
+        fusion.add(gaussians, cams, shape[0], shape[1], pixels)
+        seconds["fusion"] += time.perf_counter() - tick
+    gaussians = single if fusion is None else fusion.gaussians()
+    scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
+    logger.info(
+        f"{label}: {len(gaussians):,} surfels from {len(context)} views in {len(passes)} "
+        f"pass{'es' if len(passes) > 1 else ''} at {shape[1]}x{shape[0]} in {seconds['forward']:.2f} s"
+    )
+    holdout = None
+    if held:
+        images_h, K_h = network_views(held)
+        holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(torch.float32), K_h), images_h)
+    scene = Scene(
+        gaussians=gaussians,
+        cameras=scene_cameras,
+        width=shape[1],
+        height=shape[0],
+        names=[views.names[i] for i in context],
+        near=near,
+        far=far,
+        mode=mode,
+        alpha_threshold=alpha_threshold,
+        model=label,
+        checkpoint=str(checkpoint if checkpoint is not None and not _is_model(checkpoint) else label),
+        sources=[views.sources[i] for i in context],
+        cameras_source=source,
+        passes=[[views.names[context[j]] for j in members] for members in passes],
+        seconds=seconds,
+        compact_level=compact,
+        compact_stats=compact_stats,
+        fusion_stats=dict(fusion.stats) if fusion is not None else {},
+        poses=poses,
+        pose_cameras=pose_cameras,
+        photos=photos,
+        video=views.video,
+        holdout=holdout,
+        precision=ran,
+        scale_multipliers=multipliers,
+        multiplier_range=model.cfg.adapter.scale_multiplier_range if multipliers is not None else None,
+    )
+    if holdout is not None:
+        _score_holdout(scene)
+    seconds["total"] = time.perf_counter() - start
+    return scene
+
+
+# ----------------------------------------------------------------------------------------- checks
+def _check_options(capture: CaptureOptions, device, size, near, far, compact, max_size) -> torch.device:
+    from ..compaction import LEVELS
+
+    if not isinstance(capture, CaptureOptions):
+        raise SurfSplatInputError(f"capture: expected CaptureOptions, got {type(capture).__name__}")
+    if capture.views_per_pass < 2:
+        raise SurfSplatInputError(
+            f"views_per_pass (--views-per-pass): the model matches views, expected at least 2, got {capture.views_per_pass}"
+        )
+    if capture.holdout_every is not None and capture.holdout_every < 2:
+        raise SurfSplatInputError(f"holdout_every (--holdout-every): expected at least 2, got {capture.holdout_every}")
+    if size is not None and (len(size) != 2 or any(int(s) != s or s < 1 for s in size)):
+        raise SurfSplatInputError(f"size (--size): expected (height, width) in pixels, got {size}")
+    for name, value in (("near", near), ("far", far)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise SurfSplatInputError(f"{name} (--{name}): expected a positive depth, got {value}")
+    if near is not None and far is not None and not near < far:
+        raise SurfSplatInputError(f"near/far (--near/--far): expected 0 < near < far, got {near}, {far}")
+    if compact is not None and compact not in LEVELS:
+        raise SurfSplatInputError(f"compact (--compact): expected a level in {sorted(LEVELS)}, got {compact}")
+    if max_size < 64:
+        raise SurfSplatInputError(f"max_size (--max-size): expected at least 64 pixels, got {max_size}")
+    return resolve_device(device)
+
+
+def resolve_device(choice: str | torch.device) -> torch.device:
+    """The torch device of "auto" (CUDA when available), "cpu", "cuda" or a torch.device."""
+    if isinstance(choice, torch.device):
+        choice = str(choice)
+    if choice not in ("auto", "cpu") and not choice.startswith("cuda"):
+        raise SurfSplatInputError(f"device (--device): expected auto, cpu or cuda, got {choice!r}")
+    if choice.startswith("cuda") and not torch.cuda.is_available():
+        raise SurfSplatInputError("device (--device cuda): no CUDA device is available")
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(choice)
+
+
+def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
+    """(CameraSet of the views in their order, where they came from), or None to estimate them."""
+    from ..export.paths import CameraSet, load_cameras
+
+    if cameras is None:
+        if images_folder is not None:
+            raise SurfSplatInputError("images_folder (--images-folder): only used with a scene folder as cameras")
+        return None
+    if isinstance(cameras, (str, os.PathLike)):
+        return load_cameras(cameras, images=images_folder).select(views.names, str(cameras)), str(cameras)
+    if isinstance(cameras, CameraSet):
+        unnamed = views.video is None and all(p is None for p in views.paths)
+        if unnamed and len(cameras.names) == len(views) and not set(views.names) <= set(cameras.names):
+            views.names = list(cameras.names)  # arrays have no names of their own: the cameras' in order
+        return cameras.select(views.names, "cameras"), "given (CameraSet)"
+    if isinstance(cameras, Cameras):
+        if len(cameras) != len(views):
+            raise SurfSplatInputError(f"cameras: expected {len(views)} cameras (one per view), got {len(cameras)}")
+        return CameraSet(cameras, views.width, views.height, list(views.names)), "given (Cameras)"
+    raise SurfSplatInputError(
+        f"cameras: expected None, a camera file or folder, a CameraSet or Cameras, got {type(cameras).__name__}"
+    )
+
+
+def _depth_range(near: float | None, far: float | None, cams) -> tuple[float, float]:
+    near = near if near is not None else (cams.near if cams.near is not None else 0.5)
+    far = far if far is not None else (cams.far if cams.far is not None else 100.0)
+    if not 0 < near < far:
+        raise SurfSplatInputError(f"near/far (--near/--far): expected 0 < near < far, got {near}, {far}")
+    return float(near), float(far)
+
+
+# ----------------------------------------------------------------------------------------- steps
+def _is_model(checkpoint) -> bool:
+    from ..model import SurfSplat
+
+    return isinstance(checkpoint, SurfSplat)
+
+
+def _load(checkpoint, preset, trust_pickle, device):
+    from ..evaluate import ModelSpec, load_model
+
+    if checkpoint is None:
+        checkpoint = "tiny-synthetic"
+    if _is_model(checkpoint):
+        info = getattr(checkpoint, "pretrained_info", None)
+        return checkpoint.to(device).eval(), info.name if info is not None else "SurfSplat model"
+    if not isinstance(checkpoint, (str, os.PathLike)):
+        raise SurfSplatInputError(
+            f"checkpoint (--checkpoint): expected a name, a path or a SurfSplat model, got {type(checkpoint).__name__}"
+        )
+    return load_model(ModelSpec(str(checkpoint), preset=preset, trust_pickle=trust_pickle), device)
+
+
+def _compact(gaussians, cams, shape, level, mode, alpha_threshold, totals):
+    """One pass's surfels compacted, with the pixel (view, row, column) each now stands at."""
+    from ..compaction import compact_surfels
+
+    result = compact_surfels(gaussians, cams, shape[0], shape[1], level, mode=mode, alpha_threshold=alpha_threshold)
+    for key, value in result.stats.items():
+        totals[key] = totals.get(key, 0) + int(value)
+    cells = result.cells
+    centre = cells[:, 3] // 2  # a merged block stands at its middle pixel
+    pixels = torch.stack((cells[:, 0], cells[:, 1] + centre, cells[:, 2] + centre), -1)
+    return result.gaussians, pixels
+
+
+def _score_holdout(scene: Scene) -> None:
+    from ..metrics import psnr
+
+    h = scene.holdout
+    out = scene.render(h.cameras)
+    color = out.color.clamp(0, 1)
+    h.psnr = [float(psnr(color[i : i + 1], h.images[i : i + 1])) for i in range(len(h.names))]
+    h.coverage = [float((out.alpha[i] >= 0.5).float().mean()) for i in range(len(h.names))]

@@ -1,0 +1,86 @@
+"""What `Scene.save` writes about a capture of many views: capture.json and capture.html.
+
+capture.html shows the whole capture: every context camera from above, the forward passes and
+what fusion kept, each held-out view's photo beside the fused scene's render from its camera (with
+PSNR and coverage), and for a video which frames were used and why the others were dropped.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ..export.paths import CameraSet
+
+THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
+
+
+def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:
+    """Write capture.json, capture/ (cameras from above, held-out renders) and capture.html."""
+    from ..export.figures import write_text
+    from ..export.images import write_png
+    from ..export.report import HtmlReport
+    from ..poses.report import top_view_svg
+
+    out = Path(out_dir)
+    written = {
+        "capture summary": write_text(out / "capture.json", json.dumps(scene.capture_summary(), indent=1) + "\n")
+    }
+    report = HtmlReport("SurfSplat reconstruction of a capture")
+    report.heading("The capture")
+    fusion = scene.fusion_stats
+    lines = [
+        f"{len(scene.names)} context views at {scene.width}x{scene.height} in {len(scene.passes)} forward passes; "
+        f"{len(scene.gaussians):,} surfels",
+    ]
+    if fusion:
+        lines.append(
+            f"fusion: {fusion['predicted']:,} surfels predicted, {fusion['duplicates']:,} duplicates of surfaces "
+            f"already fused removed ({fusion['duplicates'] / max(fusion['predicted'], 1):.0%})"
+        )
+    lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in scene.seconds.items()))
+    if scene.video is not None:
+        lines.extend(scene.video.lines())
+    report.preformatted("\n".join(lines))
+    cameras = CameraSet(scene.cameras, scene.width, scene.height, list(scene.names))
+    written["capture cameras"] = write_text(out / "capture" / "cameras.svg", top_view_svg(cameras))
+    report.figure("capture/cameras.svg", "Every context camera from above (x right, z forward of the first camera)")
+    report.table(
+        "Forward passes (context views of each)",
+        ["pass", "views"],
+        [[str(i), ", ".join(p)] for i, p in enumerate(scene.passes)],
+    )
+    h = scene.holdout
+    if h is not None:
+        report.heading("Held-out views: never a context view, rendered from the fused scene")
+        out_h = scene.render(h.cameras)
+        figures = []
+        for i, name in enumerate(h.names):
+            photo = write_png(out / "capture" / f"{name}_photo.png", h.images[i])
+            render = write_png(out / "capture" / f"{name}_render.png", out_h.color[i].clamp(0, 1))
+            figures.append((str(photo.relative_to(out)), f"{name}: photo"))
+            figures.append(
+                (str(render.relative_to(out)), f"{name}: render, {h.psnr[i]:.2f} dB, coverage {h.coverage[i]:.2f}")
+            )
+        report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
+        summary = h.to_dict()
+        report.paragraph(
+            f"Mean over {len(h.names)} held-out views: PSNR {summary['mean_psnr']:.2f} dB, "
+            f"coverage (alpha >= 0.5) {summary['mean_coverage']:.3f}."
+        )
+        written["held-out renders"] = out / "capture"
+    if scene.video is not None:
+        rows = [
+            [
+                str(r.index),
+                "yes" if r.kept else "no",
+                r.reason,
+                f"{r.sharpness:.4g}",
+                "" if r.motion is None else f"{r.motion:.4f}",
+            ]
+            for r in scene.video.records
+        ]
+        report.table("Video frames", ["frame", "used", "why", "sharpness", "motion"], rows)
+    report.links("Files:", [("capture.json", "the capture summary"), ("cameras.json", "every context camera")])
+    written["capture report"] = report.write(out / "capture.html")
+    return written

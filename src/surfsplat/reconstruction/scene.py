@@ -1,0 +1,225 @@
+"""`Scene`: what `surfsplat.reconstruct` returns - the surfels, their context cameras, and how they came about.
+
+scene.render()                       # RenderOutput at the context cameras
+scene.render(cameras, scale=4)       # any cameras (K in pixels of width x height), 4x the resolution
+scene.save("out/")                   # {what: path}: PLY, renders, videos, mesh, reconstruction.json, ...
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..checks import SurfSplatInputError
+from ..gaussians import Gaussians
+from ..geometry.cameras import Cameras
+
+
+@dataclass
+class HeldOut:
+    """Views of the capture kept out of every forward pass, to see the scene from where no context view was."""
+
+    names: list[str]
+    cameras: Cameras  # K in pixels of the scene's width x height
+    images: Tensor  # [H, 3, height, width] the photos at the network's size
+    psnr: list[float] = field(default_factory=list)  # per view, of the scene's render (forced alpha blending)
+    coverage: list[float] = field(default_factory=list)  # share of pixels with alpha >= 0.5
+
+    def to_dict(self) -> dict:
+        return {
+            "names": self.names,
+            "psnr": self.psnr,
+            "coverage": self.coverage,
+            "mean_psnr": sum(self.psnr) / len(self.psnr) if self.psnr else None,
+            "mean_coverage": sum(self.coverage) / len(self.coverage) if self.coverage else None,
+        }
+
+
+# Written beside the export's files; reconstruction.json last, so it marks a finished run.
+SUMMARY_FILES = ("estimated_cameras.json", "poses.json", "report.html", "reconstruction.json")
+
+
+@dataclass
+class Scene:
+    """One reconstruction: fused surfels and the cameras of the views they came from."""
+
+    gaussians: Gaussians  # [N] unbatched, world frame
+    cameras: Cameras  # the context cameras, K in pixels of width x height
+    width: int
+    height: int
+    names: list[str]  # one per context camera (video frames: frame_000012, ...)
+    near: float
+    far: float
+    mode: str  # rasterization the model's surfels are drawn with ("surfel" or "ewa")
+    alpha_threshold: float | None  # forced alpha blending tau of the model (None: off)
+    model: str  # label of the network
+    checkpoint: str
+    sources: list[str]  # what each context view came from (a file, an array, a video's frame)
+    cameras_source: str  # where the cameras came from
+    passes: list[list[str]]  # the context views of each forward pass
+    seconds: dict[str, float] = field(default_factory=dict)  # poses, forward (all passes), fusion, total
+    compact_level: int | None = None
+    compact_stats: dict[str, int] = field(default_factory=dict)  # summed over passes
+    fusion_stats: dict[str, int] = field(default_factory=dict)  # passes, predicted, duplicates (empty: one pass)
+    poses: object | None = None  # PoseSummary when the cameras were estimated
+    pose_cameras: object | None = None  # their CameraSet (K in pixels of the photos)
+    photos: list = field(default_factory=list)  # every photo given to pose estimation (path or uint8 array)
+    video: object | None = None  # VideoFrames when the capture was a video
+    holdout: HeldOut | None = None
+    precision: str = "fp32"  # what the forward passes ran in (surfels and rendering are float32)
+    scale_multipliers: Tensor | None = None  # [N, 2] Eq. 9 multipliers (one uncompacted pass only)
+    multiplier_range: float | None = None  # the clamp's r of those multipliers
+
+    def closure(self, factors: tuple[int, ...] = (1, 2, 4), max_views: int = 4):
+        """ClosureMetrics (`surfsplat.metrics.closure`) from the context cameras (at most `max_views`,
+        evenly spread): does the surface keep its alpha when rendered at each factor?"""
+        from ..metrics.closure import closure_metrics, views_of_pixels
+
+        n = len(self.cameras)
+        picked = torch.linspace(0, n - 1, min(n, max_views)).round().long().unique()
+        one_per_pixel = self.scale_multipliers is not None and len(self.gaussians) == n * self.width * self.height
+        return closure_metrics(
+            self.gaussians,
+            self.cameras[picked],
+            self.width,
+            self.height,
+            factors,
+            source_cameras=self.cameras,
+            views=views_of_pixels(n, self.height, self.width) if one_per_pixel else None,
+            multipliers=self.scale_multipliers if one_per_pixel else None,
+            multiplier_range=self.multiplier_range if one_per_pixel else None,
+            mode=self.mode,
+        )
+
+    def render(self, cameras: Cameras | None = None, scale: float = 1.0):
+        """RenderOutput of the scene from `cameras` (default: the context cameras; K in pixels of
+        width x height) at scale times the resolution, K scaled exactly."""
+        from ..render import render
+
+        if not (math.isfinite(scale) and scale > 0):
+            raise SurfSplatInputError(f"scale: expected a positive factor, got {scale}")
+        cams = self.cameras if cameras is None else cameras
+        if not isinstance(cams, Cameras):
+            raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cams).__name__}")
+        w, h = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        with torch.no_grad():
+            return render(
+                self.gaussians,
+                cams.to(self.gaussians.means).scaled(scale),
+                w,
+                h,
+                mode=self.mode,
+                alpha_threshold=self.alpha_threshold,
+            )
+
+    def summary(self) -> dict:
+        """reconstruction.json without the written files."""
+        out = {
+            "checkpoint": self.checkpoint,
+            "model": self.model,
+            "images": self.sources,
+            "size": [self.height, self.width],
+            "near": self.near,
+            "far": self.far,
+            "surfels": len(self.gaussians),
+            "compact_level": self.compact_level,
+            "seconds_forward": self.seconds.get("forward", 0.0),
+            "render_mode": self.mode,
+            "alpha_threshold": self.alpha_threshold,
+            "cameras": self.cameras_source,
+            "precision": self.precision,
+        }
+        if self.is_capture:
+            out["capture"] = self.capture_summary()
+        return out
+
+    @property
+    def is_capture(self) -> bool:
+        """More than one forward pass, a video or held-out views: the capture outputs are written."""
+        return len(self.passes) > 1 or self.video is not None or self.holdout is not None
+
+    def capture_summary(self) -> dict:
+        return {
+            "views": len(self.names),
+            "passes": self.passes,
+            "fusion": self.fusion_stats,
+            "compaction": self.compact_stats,
+            "seconds": self.seconds,
+            "held_out": self.holdout.to_dict() if self.holdout is not None else None,
+            "video": self.video.to_dict() if self.video is not None else None,
+        }
+
+    def save(
+        self,
+        out_dir: str | Path,
+        formats: tuple[str, ...] | None = None,
+        options=None,  # surfsplat.commands.export.ExportOptions; default: `formats` with the model's rendering
+    ) -> dict[str, Path]:
+        """Write the reconstruction (see `export_reconstruction`), the cameras' report when they were
+        estimated, the capture's report and reconstruction.json; returns {what: path}."""
+        from ..checks import check_output_dir
+        from ..commands.export import FORMATS, ExportOptions, export_reconstruction, output_names
+        from ..export.figures import write_text
+
+        if options is None:
+            options = ExportOptions(
+                formats=tuple(formats) if formats is not None else FORMATS,
+                mode=self.mode,
+                alpha_threshold=self.alpha_threshold,
+            )
+        elif formats is not None:
+            options = replace(options, formats=tuple(formats))
+        out = check_output_dir(
+            out_dir, "out_dir", inputs=self.input_files(), writes=[*output_names(options.formats), *SUMMARY_FILES]
+        )
+        closure = self.closure()  # before any file is written: a failure here leaves nothing behind
+        written = export_reconstruction(
+            self.gaussians,
+            self.cameras,
+            self.width,
+            self.height,
+            out,
+            options,
+            names=self.names,
+            near=self.near,
+            far=self.far,
+        )
+        if self.poses is not None:
+            written.update(self._pose_outputs(out, written))
+        if self.is_capture:
+            from .report import write_capture_outputs
+
+            written.update(write_capture_outputs(self, out, options))
+        summary = self.summary()
+        summary["closure"] = closure.to_json()
+        summary["files"] = {k: str(v) for k, v in written.items()}
+        written["summary"] = write_text(out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")
+        return written
+
+    def input_files(self) -> list[Path]:
+        """The files the scene was made from (images, a video), which saving must never overwrite."""
+        out = [Path(p) for p in self.sources if isinstance(p, (str, Path)) and Path(p).exists()]
+        if self.video is not None and getattr(self.video, "path", None) is not None:
+            out.append(Path(self.video.path))
+        return out
+
+    def _pose_outputs(self, out: Path, written: dict[str, Path]) -> dict[str, Path]:
+        from ..export.images import write_png
+        from ..poses.report import write_pose_outputs
+
+        photos = []
+        for k, item in enumerate(self.photos):  # frames and arrays are written so the report can show them
+            if isinstance(item, (str, Path)):
+                photos.append(Path(item))
+            else:
+                image = torch.from_numpy(item).permute(2, 0, 1).float() / 255
+                photos.append(write_png(out / "frames" / f"{self.poses.images[k]}.png", image))
+        renders = None
+        if "context renders" in written and list(self.pose_cameras.names) == list(self.names):
+            renders = [out / "renders" / f"view{i:02d}_color.png" for i in range(len(self.names))]
+        return write_pose_outputs(out, self.pose_cameras, self.poses, photos, renders)

@@ -1,0 +1,290 @@
+"""Captures of many views and videos: fusion against closed-form planes, context sets, video frame
+choice on a synthetic video with repeated and blurred frames, the library call against the command
+bit for bit, and one-line errors for bad captures."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter
+
+import surfsplat
+from surfsplat.capture import FrameConfig, FusionConfig, SurfelFusion, context_sets, frame_name, select_video_frames
+from surfsplat.checks import SurfSplatInputError
+from surfsplat.cli import main
+from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
+from surfsplat.export.images import write_png
+from surfsplat.export.paths import CameraSet, save_cameras
+from surfsplat.export.video import write_video
+from surfsplat.model import SurfSplat, save_checkpoint
+
+SIZE = 32
+FOCAL = 32.0
+
+
+def _camera(x: float = 0.0) -> surfsplat.Cameras:
+    """A camera at (x, 0, 0) looking along +z, K for SIZE x SIZE pixels."""
+    c2w = torch.eye(4)[None].clone()
+    c2w[0, 0, 3] = x
+    K = torch.tensor([[[FOCAL, 0.0, SIZE / 2], [0.0, FOCAL, SIZE / 2], [0.0, 0.0, 1.0]]])
+    return surfsplat.Cameras(c2w, K)
+
+
+def _plane(depth: float, camera: surfsplat.Cameras, opacity: float = 0.9) -> surfsplat.Gaussians:
+    """One fronto-parallel surfel per pixel of `camera` on the plane z = depth: centred on the pixel's
+    ray, one pixel footprint (depth / focal) wide, in (row, column) order."""
+    rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(SIZE), indexing="ij")
+    x = (cols.flatten() + 0.5 - SIZE / 2) / FOCAL * depth + camera.c2w[0, 0, 3]
+    y = (rows.flatten() + 0.5 - SIZE / 2) / FOCAL * depth
+    n = SIZE * SIZE
+    means = torch.stack((x, y, torch.full((n,), depth)), -1)
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1)
+    scales = torch.full((n, 2), depth / FOCAL)
+    sh = torch.rand(n, 3, 1, generator=torch.Generator().manual_seed(0))
+    return surfsplat.Gaussians(means, quats, scales, torch.full((n,), opacity), sh)
+
+
+# ----------------------------------------------------------------------------------------- fusion
+def test_fusion_removes_exact_duplicates():
+    camera = _camera()
+    plane = _plane(2.0, camera)
+    fusion = SurfelFusion(FusionConfig())
+    assert fusion.add(plane, camera, SIZE, SIZE) == SIZE * SIZE
+    assert fusion.add(plane, camera, SIZE, SIZE) == 0  # the same pass again adds nothing
+    assert len(fusion.gaussians()) == SIZE * SIZE
+    assert torch.equal(fusion.gaussians().means, plane.means)
+    assert fusion.stats == {"passes": 2, "predicted": 2 * SIZE * SIZE, "duplicates": SIZE * SIZE}
+
+
+def test_fusion_keeps_distinct_surfaces():
+    camera = _camera()
+    fusion = SurfelFusion(FusionConfig(depth_tolerance=0.1))
+    fusion.add(_plane(2.0, camera), camera, SIZE, SIZE)
+    # 30 % deeper (beyond the 10 % tolerance): another surface, every surfel joins
+    assert fusion.add(_plane(2.6, camera), camera, SIZE, SIZE) == SIZE * SIZE
+    # 5 % deeper: the same surface, nothing joins
+    assert fusion.add(_plane(2.1, camera), camera, SIZE, SIZE) == 0
+    # the same depth but turned 80 degrees: not the same surface
+    turned = _plane(2.0, camera)
+    half = torch.deg2rad(torch.tensor(40.0))
+    turned.quats[:] = torch.tensor([float(half.cos()), float(half.sin()), 0.0, 0.0])
+    assert fusion.add(turned, camera, SIZE, SIZE) == SIZE * SIZE
+    assert len(fusion.gaussians()) == 3 * SIZE * SIZE
+
+
+def test_fusion_of_a_moved_view_keeps_exactly_the_new_area():
+    """A camera moved sideways by 1.0 sees the plane z = 2 shifted by half its width: the surfels whose
+    centres the first view's plane covers are dropped, the ones beyond its edge join."""
+    first, moved = _camera(0.0), _camera(1.0)
+    fusion = SurfelFusion()
+    fusion.add(_plane(2.0, first), first, SIZE, SIZE)
+    new = _plane(2.0, moved)
+    joined = fusion.add(new, moved, SIZE, SIZE)
+    x = new.means[:, 0]
+    edge = (SIZE / 2) / FOCAL * 2.0  # the first view's plane ends at x = 1.0 (its last pixel centre at 0.97)
+    kept = fusion.gaussians().means[SIZE * SIZE :, 0]
+    assert bool((kept > edge - 2 * 2.0 / FOCAL).all())  # nothing inside the covered area joined ...
+    assert (
+        int((x > edge + 2.0 / FOCAL).sum()) <= joined <= int((x > edge - 2 * 2.0 / FOCAL).sum())
+    )  # ... all beyond did
+
+
+# ----------------------------------------------------------------------------------------- context sets
+def test_context_sets_cover_ordered_and_unordered_views():
+    line = torch.stack([torch.tensor([float(i), 0.0, 0.0]) for i in range(7)])
+    assert context_sets(line, 2, ordered=True) == [[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [5, 6]]
+    assert context_sets(line, 3, ordered=True) == [[0, 1, 2], [2, 3, 4], [4, 5, 6]]
+    assert context_sets(line, 4, ordered=True) == [[0, 1, 2, 3], [3, 4, 5, 6]]
+    assert context_sets(line[:3], 4, ordered=True) == [[0, 1, 2]]
+    # unordered photos along a line, shuffled: windows follow the nearest-neighbour walk, not the list
+    perm = [0, 5, 2, 6, 1, 3, 4]  # positions of photos 0..6
+    shuffled = line[perm]
+    sets = context_sets(shuffled, 2, ordered=False)
+    for a, b in sets:
+        assert abs(perm[a] - perm[b]) == 1, sets
+    assert sorted({i for s in sets for i in s}) == list(range(7))
+
+
+# ----------------------------------------------------------------------------------------- video
+@pytest.fixture(scope="module")
+def room_video(tmp_path_factory):
+    """A 64x64 video along a room's camera path: 6 distinct frames, three of them repeated, two blurred
+    copies; the frame numbers selection should use, and the true cameras of every frame."""
+    root = tmp_path_factory.mktemp("video")
+    scene = make_scene(11)
+    path = make_trajectory(scene, torch.Generator().manual_seed(2))
+    cams = path.cameras(torch.linspace(0, 1, 6), 64, 64)
+    frames = render_synthetic(scene, cams, 64, 64).image  # [6, 3, 64, 64]
+    blurred = lambda f: torch.from_numpy(gaussian_filter(f.numpy(), sigma=(0, 2.5, 2.5)))  # noqa: E731
+    # (distinct frame, kind) per video frame
+    sequence = [(0, "sharp"), (0, "sharp"), (1, "sharp"), (2, "blur"), (2, "sharp"), (2, "sharp")]
+    sequence += [(3, "sharp"), (4, "blur"), (4, "sharp"), (4, "sharp"), (4, "sharp"), (5, "sharp")]
+    video = torch.stack([blurred(frames[k]) if kind == "blur" else frames[k] for k, kind in sequence])
+    write_video(root / "room.mp4", video, fps=10, quality=10)
+    expected = [0, 2, 4, 6, 8, 11]
+    c2w = torch.stack([cams.c2w[k] for k, _ in sequence])
+    K = torch.stack([cams.K[k] for k, _ in sequence])
+    every = CameraSet(surfsplat.Cameras(c2w, K), 64, 64, [frame_name(i) for i in range(len(sequence))], 0.5, 15.0)
+    return root / "room.mp4", expected, every, sequence
+
+
+def test_video_frames_chosen_by_motion_and_sharpness(room_video):
+    path, expected, _, sequence = room_video
+    video = select_video_frames(path, FrameConfig())
+    assert video.indices == expected
+    assert video.names == [frame_name(i) for i in expected]
+    reasons = {r.index: r.reason for r in video.records}
+    assert reasons[3].startswith("blurred") and reasons[7].startswith("blurred")
+    for i in (1, 5, 9, 10):
+        assert reasons[i].startswith("near-duplicate"), reasons[i]
+    assert video.dropped() == {"blurred": 2, "near-duplicate": 4}
+    assert video.frames[0].shape == (64, 64, 3) and video.frames[0].dtype == np.uint8
+    # budget: evenly spaced among the chosen (positions 0, 2.5 -> 2, 5 of the six)
+    capped = select_video_frames(path, FrameConfig(max_frames=3))
+    assert capped.indices == [0, 4, 11]
+    assert len(sequence) == len(video.records)
+
+
+def test_reconstruct_a_video_with_known_cameras(room_video, tiny_checkpoint, tmp_path):
+    path, expected, every, _ = room_video
+    options = surfsplat.CaptureOptions(views_per_pass=2)
+    scene = surfsplat.reconstruct(path, tiny_checkpoint, cameras=every, size=(32, 32), capture=options, progress=False)
+    assert scene.names == [frame_name(i) for i in expected]
+    assert scene.passes == [[frame_name(a), frame_name(b)] for a, b in zip(expected, expected[1:])]
+    assert len(scene.gaussians) < len(expected) * 32 * 32 and len(scene.gaussians) >= 32 * 32
+    written = scene.save(tmp_path / "out", formats=("ply",))
+    capture = json.loads(written["capture summary"].read_text())
+    assert capture["video"]["used"] == scene.names and capture["video"]["dropped"] == {
+        "blurred": 2,
+        "near-duplicate": 4,
+    }
+    assert [f["name"] for f in json.loads(written["cameras"].read_text())["frames"]] == scene.names
+    assert "near-duplicate of frame_000000" in written["capture report"].read_text()
+
+
+# ----------------------------------------------------------------------------------------- API == CLI
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    weights, _ = save_checkpoint(SurfSplat.from_preset("tiny"), tmp_path_factory.mktemp("tiny") / "tiny")
+    return weights
+
+
+@pytest.fixture(scope="module")
+def five_views(tmp_path_factory):
+    root = tmp_path_factory.mktemp("views")
+    scene = make_scene(5)
+    cams = make_trajectory(scene, torch.Generator().manual_seed(0)).cameras(torch.linspace(0, 1, 5), 32, 32)
+    paths = [
+        write_png(root / f"v{i}.png", image) for i, image in enumerate(render_synthetic(scene, cams, 32, 32).image)
+    ]
+    save_cameras(root / "cameras.json", cams, 32, 32, [p.name for p in paths], near=0.5, far=15.0)
+    return paths, root / "cameras.json"
+
+
+def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path, capsys):
+    paths, cameras = five_views
+    argv = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--cameras", str(cameras), "--holdout-every", "4"]
+    argv += ["--views-per-pass", "2"]
+    argv += [
+        "--formats",
+        "ply",
+        "renders",
+        "--no-progress",
+        "--out",
+        str(tmp_path / "cli"),
+        "--images",
+        *map(str, paths),
+    ]
+    assert main(argv) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    assert "fused 2 passes of 3 views" in printed and "held out 2 views" in printed
+    scene = surfsplat.reconstruct(
+        paths,
+        tiny_checkpoint,
+        cameras=cameras,
+        capture=surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4),
+        progress=False,
+    )
+    assert scene.names == ["v1.png", "v2.png", "v3.png"] and scene.holdout.names == ["v0.png", "v4.png"]
+    assert scene.passes == [["v1.png", "v2.png"], ["v2.png", "v3.png"]]
+    from surfsplat.commands.export import ExportOptions
+
+    scene.save(tmp_path / "api", options=ExportOptions(formats=("ply", "renders"), progress=False))
+    for name in (
+        "surfels.ply",
+        "surfels_3dgs.ply",
+        "cameras.json",
+        "renders/view02_depth.png",
+        "capture/v4.png_render.png",
+    ):
+        assert (tmp_path / "cli" / name).read_bytes() == (tmp_path / "api" / name).read_bytes(), name
+    cli, api = (json.loads((tmp_path / d / "reconstruction.json").read_text()) for d in ("cli", "api"))
+    for summary in (cli, api):
+        summary.pop("files"), summary.pop("seconds_forward"), summary["capture"].pop("seconds")
+    assert cli == api
+    assert cli["surfels"] == len(scene.gaussians) < 3 * 32 * 32
+    # the viewer shows the fused surfels and every context camera
+    from surfsplat.viewer import load_viewer_scene
+
+    shown = load_viewer_scene(tmp_path / "cli")
+    assert len(shown.gaussians) == len(scene.gaussians) and shown.names == scene.names
+
+
+def test_two_views_stay_one_pass_of_one_surfel_per_pixel(five_views, tiny_checkpoint):
+    paths, cameras = five_views
+    scene = surfsplat.reconstruct(paths[:2], tiny_checkpoint, cameras=cameras, progress=False)
+    assert len(scene.gaussians) == 2 * 32 * 32 and scene.passes == [["v0.png", "v1.png"]] and not scene.is_capture
+    out = scene.render(scale=2)
+    assert out.color.shape == (2, 3, 64, 64)
+    again = scene.render(scene.cameras)
+    assert torch.allclose(again.color, scene.render().color)
+
+
+# ----------------------------------------------------------------------------------------- bad input
+def _fails(argv, capsys, *needles):
+    code = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1, err
+    for needle in needles:
+        assert needle in err, err
+
+
+def test_bad_captures_get_one_line(tmp_path, room_video, tiny_checkpoint, capsys):
+    base = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "o")]
+    (tmp_path / "broken.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 8)
+    _fails([*base, "--video", str(tmp_path / "broken.mp4")], capsys, "broken.mp4", "cannot read the video")
+    still = torch.stack([render_synthetic(make_scene(1), _room_camera(), 64, 64).image[0]] * 8)
+    write_video(tmp_path / "still.mp4", still, fps=8, quality=10)
+    _fails([*base, "--video", str(tmp_path / "still.mp4")], capsys, "still.mp4", "only 1 usable frame", "did not move")
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no images here")
+    _fails([*base, "--images", str(tmp_path / "empty")], capsys, "empty", "holds no images")
+    _fails([*base, "--video", str(tmp_path / "nope.mp4")], capsys, "nope.mp4", "not found")
+    path = room_video[0]
+    _fails([*base, "--video", str(path), "--views-per-pass", "1"], capsys, "--views-per-pass", "at least 2")
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(SurfSplatInputError, match="at least 2 images"):
+        surfsplat.reconstruct([np.zeros((32, 32, 3), np.uint8)])
+
+
+def _room_camera() -> surfsplat.Cameras:
+    scene = make_scene(1)
+    return make_trajectory(scene, torch.Generator().manual_seed(0)).cameras(torch.tensor([0.0]), 64, 64)
+
+
+def test_each_pass_is_compacted_before_fusion(five_views, tiny_checkpoint):
+    paths, cameras = five_views
+    options = surfsplat.CaptureOptions(views_per_pass=2)
+    plain = surfsplat.reconstruct(paths[:3], tiny_checkpoint, cameras=cameras, capture=options, progress=False)
+    scene = surfsplat.reconstruct(
+        paths[:3], tiny_checkpoint, cameras=cameras, capture=options, compact=1, progress=False
+    )
+    stats = scene.compact_stats
+    assert stats["input"] == 2 * 2 * 32 * 32 and stats["output"] < stats["input"]  # two passes of two views
+    assert scene.fusion_stats["predicted"] == stats["output"]  # fusion saw the compacted surfels
+    assert len(scene.gaussians) == stats["output"] - scene.fusion_stats["duplicates"] < len(plain.gaussians)
