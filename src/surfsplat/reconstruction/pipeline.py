@@ -165,7 +165,7 @@ def reconstruct(
     fusion = SurfelFusion(capture.fusion, mode=mode) if len(passes) > 1 else None
     seconds["forward"], seconds["fusion"], seconds["compact"] = 0.0, 0.0, 0.0
     compact_stats: dict[str, int] = {}
-    single, alpha_threshold, ctx_K, multipliers, ran = None, None, [None] * len(context), None, "fp32"
+    single, alpha_threshold, ctx_K, multipliers = None, None, [None] * len(context), None
     for members in progress_bar(passes, desc="forward passes", unit="pass", enabled=progress and len(passes) > 1):
         indices = [context[j] for j in members]
         stack, K_net = network_views(indices)
