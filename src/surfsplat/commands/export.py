@@ -308,7 +308,7 @@ def write_viewer_ply(gaussians, cameras, width: int, height: int, out: Path, opt
         alpha_threshold=options.alpha_threshold,
         show_progress=options.progress,
     )
-    logger.info(report.summary())
+    logger.debug(report.summary())  # the figures are in surfels_3dgs.json; -v shows them here
     return {
         "surfels (3DGS PLY, baked for viewers)": save_ply(baked, out / "surfels_3dgs.ply"),
         "viewer bake figures": write_text(out / "surfels_3dgs.json", json.dumps(report.to_dict(), indent=1) + "\n"),

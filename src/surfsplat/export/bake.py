@@ -74,8 +74,8 @@ class BakeConfig:
 class ViewerFigures:
     """How a standard viewer's picture compares with ours over the pixels our render covers."""
 
-    alpha: float  # mean standard-compositing alpha there
-    psnr: float  # colour PSNR (dB) of the standard composite on black against our render there (mean over views)
+    alpha: float | None  # mean standard-compositing alpha there (None: our render covers no pixel)
+    psnr: float | None  # colour PSNR (dB) of the standard composite on black against our render there (mean over views)
     covered: float  # fraction of pixels our render covers (alpha >= COVERED_ALPHA)
 
 
@@ -107,6 +107,8 @@ class BakeReport:
         """One line: the context views' figures at x1, before and after."""
         key = next(iter(self.after))
         b, a = self.before[key], self.after[key]
+        if b.alpha is None or a.alpha is None:
+            return f"standard viewers ({key}): our render covers no pixel, nothing to compare ({self.seconds:.0f} s)"
         return (
             f"standard viewers ({key}): alpha {b.alpha:.2f} -> {a.alpha:.2f}, "
             f"PSNR {b.psnr:.1f} -> {a.psnr:.1f} dB against our render ({self.seconds:.0f} s)"
@@ -139,7 +141,7 @@ def viewer_figures(
 def _figures(color: Tensor, alpha: Tensor, ours: Tensor, ours_alpha: Tensor) -> ViewerFigures:
     covered = ours_alpha >= COVERED_ALPHA  # [C, 1, H, W]
     if not bool(covered.any()):
-        return ViewerFigures(alpha=math.nan, psnr=math.nan, covered=0.0)
+        return ViewerFigures(alpha=None, psnr=None, covered=0.0)
     err = (color.clamp(0, 1) - ours.clamp(0, 1)).square().mean(1, keepdim=True)  # [C, 1, H, W]
     psnrs = []
     for c in range(len(err)):
