@@ -154,23 +154,8 @@ def test_highres_terms():
 
 
 # ------------------------------------------------------------------------------------------ training
-def _quick(out: Path, **changes):
-    base = {
-        "out_dir": str(out),
-        "steps": 2,
-        "log_every": 1,
-        "checkpoint_every": 2,
-        "val_every": 2,
-        "image_every": 0,
-        "progress": False,
-        "val_factors": [1, 2],
-        "data.image_shape": [32, 32],
-        "data.num_target_views": 1,
-        "data.synthetic_length": 2,
-        "data.val_samples": 1,
-    }
-    base.update(changes)
-    return override(train_preset("tiny"), base)
+# The tiny preset cut to seconds, as test_train_fit runs it (32x32 rooms, one target, two steps).
+from test_train_fit import _quick  # noqa: E402
 
 
 def test_close_up_terms_join_the_loss_and_validation_reports_closure(tmp_path: Path):
