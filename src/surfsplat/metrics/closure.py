@@ -76,6 +76,19 @@ def pixel_footprints(
     return torch.where(torch.isfinite(out), out, torch.zeros_like(out)).float()
 
 
+def undersized(gaussians: Gaussians, footprints: Tensor) -> Tensor:
+    """[N] bool: the smaller tangent scale is under UNDERSIZE_FRACTION of the pixel footprint."""
+    smallest = gaussians.scales.detach().float().min(-1).values
+    return smallest < UNDERSIZE_FRACTION * footprints.to(smallest)
+
+
+def at_bounds(multipliers: Tensor, multiplier_range: float) -> tuple[Tensor, Tensor]:
+    """Per multiplier value, whether it sits at the clamp's lower bound 1/r and at its upper bound r
+    (the clamp returns the bound exactly; a relative tolerance absorbs float rounding)."""
+    m, r = multipliers.detach().float(), float(multiplier_range)
+    return m <= (1 / r) * (1 + _AT_BOUND), m >= r * (1 - _AT_BOUND)
+
+
 @dataclass
 class ClosureMetrics:
     """Closure figures of one or more reconstructions (see the module docstring)."""
@@ -140,6 +153,7 @@ class ClosureAccumulator:
     def __init__(self) -> None:
         self._alpha: dict[int, list[float]] = {}  # factor -> [sum alpha, pixels, count >= 0.5, count >= 0.9]
         self._ratios: list[Tensor] = []
+        self._undersized: list[Tensor] = []
         self._opacities: list[Tensor] = []
         self._multipliers: list[Tensor] = []
         self._range: float | None = None
@@ -167,6 +181,7 @@ class ClosureAccumulator:
             raise SurfSplatInputError(f"footprints: expected [{len(gaussians)}], got {tuple(footprints.shape)}")
         smallest = gaussians.scales.detach().float().min(-1).values
         self._ratios.append((smallest / footprints.clamp_min(1e-12)).cpu())
+        self._undersized.append(undersized(gaussians, footprints).cpu())
         self._opacities.append(gaussians.opacities.detach().float().flatten().cpu())
         if multipliers is not None:
             if multiplier_range is None:
@@ -185,13 +200,12 @@ class ClosureAccumulator:
         quantiles = torch.quantile(_subsample(opacities), q) if opacities.numel() else torch.full_like(q, float("nan"))
         low = high = None
         if self._multipliers:
-            m, r = torch.cat(self._multipliers), self._range
-            low = float((m <= (1 / r) * (1 + _AT_BOUND)).float().mean())
-            high = float((m >= r * (1 - _AT_BOUND)).float().mean())
+            at_low, at_high = at_bounds(torch.cat(self._multipliers), self._range)
+            low, high = float(at_low.float().mean()), float(at_high.float().mean())
         return ClosureMetrics(
             mean_alpha=mean_alpha,
             coverage=dict(sorted(coverage.items())),
-            undersized=float((ratios < UNDERSIZE_FRACTION).float().mean()) if ratios.numel() else 0.0,
+            undersized=float(torch.cat(self._undersized).float().mean()) if ratios.numel() else 0.0,
             opacity_quantiles={float(a): float(b) for a, b in zip(OPACITY_QUANTILES, quantiles)},
             multiplier_at_low=low,
             multiplier_at_high=high,

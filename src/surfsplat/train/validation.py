@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from ..export.figures import image_grid
-from ..metrics.closure import UNDERSIZE_FRACTION, pixel_footprints, views_of_pixels
+from ..metrics.closure import at_bounds, pixel_footprints, undersized, views_of_pixels
 from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator, upsample_ground_truth
 from ..metrics.lpips import Lpips, LpipsUnavailable
@@ -129,9 +129,8 @@ def _surfel_counts(prediction, cameras, height: int, width: int, multiplier_rang
     gaussians = prediction.gaussians.select(0)
     v = prediction.depths.shape[1]
     footprints = pixel_footprints(gaussians, cameras[:v], width, height, views_of_pixels(v, height, width))
-    undersized = (gaussians.scales.min(-1).values < UNDERSIZE_FRACTION * footprints.to(gaussians.scales)).sum()
+    small = float(undersized(gaussians, footprints).sum())
     at_low = 0.0
-    if multiplier_range is not None:
-        smallest = prediction.adapter_output.scales_mul[0].min(-1).values
-        at_low = float((smallest <= (1 / multiplier_range) * (1 + 1e-4)).sum())
-    return torch.tensor([float(undersized), at_low, float(len(gaussians))], dtype=torch.float64)
+    if multiplier_range is not None:  # either axis at 1/r
+        at_low = float(at_bounds(prediction.adapter_output.scales_mul[0], multiplier_range)[0].any(-1).sum())
+    return torch.tensor([small, at_low, float(len(gaussians))], dtype=torch.float64)
