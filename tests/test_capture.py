@@ -20,6 +20,7 @@ from surfsplat.export.images import write_png
 from surfsplat.export.paths import CameraSet, save_cameras
 from surfsplat.export.video import write_video
 from surfsplat.model import SurfSplat, save_checkpoint
+from surfsplat.render import render
 
 SIZE = 32
 FOCAL = 32.0
@@ -56,7 +57,37 @@ def test_fusion_removes_exact_duplicates():
     assert fusion.add(plane, camera, SIZE, SIZE) == 0  # the same pass again adds nothing
     assert len(fusion.gaussians()) == SIZE * SIZE
     assert torch.equal(fusion.gaussians().means, plane.means)
-    assert fusion.stats == {"passes": 2, "predicted": 2 * SIZE * SIZE, "duplicates": SIZE * SIZE}
+    assert fusion.stats == {"passes": 2, "predicted": 2 * SIZE * SIZE, "duplicates": SIZE * SIZE, "replaced": 0}
+
+
+@pytest.mark.parametrize("replace_ratio", [0.7, None])
+def test_fusion_lets_a_closer_view_replace_a_distant_one(replace_ratio):
+    """The plane z = 2 seen from the origin (footprint 2 / 32), then from (0, 0, 1) (footprint 1 / 32,
+    half): the closer view sees x, y in [-0.5, 0.5), where the first view's surfels have columns and
+    rows 8..23. Those 256 are replaced and the closer view's surfels take their place; without the
+    rule the closer view adds nothing (the plane already covers it)."""
+    far = _camera()
+    near = _camera()
+    near.c2w[0, 2, 3] = 1.0
+    seen_near = _plane(1.0, far)
+    seen_near.means[:, 2] += 1.0
+    fusion = SurfelFusion(FusionConfig(replace_ratio=replace_ratio))
+    fusion.add(_plane(2.0, far), far, SIZE, SIZE)
+    joined = fusion.add(seen_near, near, SIZE, SIZE)
+    if replace_ratio is None:
+        assert joined == 0 and fusion.stats["replaced"] == 0
+        return
+    assert fusion.stats["replaced"] == 16 * 16
+    # the far view's rim surfels (twice as wide) still cover a ring of about 4 pixels at the border
+    assert (SIZE - 8) ** 2 <= joined <= SIZE * SIZE
+    kept = fusion.gaussians()
+    assert float(render(kept, near, SIZE, SIZE).alpha.min()) >= 0.5  # no hole where the rim meets the new surfels
+    assert len(kept) == SIZE * SIZE - 16 * 16 + joined
+    old = kept.means[: SIZE * SIZE - 16 * 16]
+    assert bool(((old[:, 0].abs() > 0.5) | (old[:, 1].abs() > 0.5)).all())  # none of the far view's inside the near one
+    # the finer surfels stay when the far view comes back: it does not replace them
+    assert fusion.add(_plane(2.0, far), far, SIZE, SIZE) == 0
+    assert fusion.stats["replaced"] == 16 * 16
 
 
 def test_fusion_keeps_distinct_surfaces():

@@ -22,7 +22,7 @@ import torch
 from _golden import OUTPUTS, lightning_release_state, output, rel, run_case
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
-from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.model import SurfSplat, export_release_state_dict, load_pretrained, save_checkpoint
 from surfsplat.model import pretrained as pretrained_module
 from surfsplat.model.checkpoint import ours_to_release, release_to_ours, unimatch_to_ours

@@ -15,7 +15,14 @@ predicted for the fused scene already
   relative, about a tenth on the rooms, so two passes' predictions of one wall differ by that), and
 - faces the same way (normals within `normal_degrees`).
 Surfels on surfaces the scene does not cover yet, or at other depths (a surface in front of or
-behind what is fused), join it. The views of one pass are checked against each other the same
+behind what is fused), join it.
+
+The finer view wins: each fused surfel remembers its footprint (the world size of a pixel of the
+view that predicted it, camera depth / focal). Before the duplicate test, a fused surfel that the
+joining view sees at its own predicted depth (same tolerance and orientation) with a footprint
+under `replace_ratio` of the surfel's own is replaced: it leaves the scene and the joining view's
+surfels there stay. Along a capture that walks toward a surface, the close views' sharper and
+better-triangulated surfels take over from the first distant ones. The views of one pass are checked against each other the same
 way, so the count grows with the area seen rather than with the number of frames. This is the
 compaction's cross-view duplicate removal (`compaction._duplicate_cover`) carried over to a scene
 that grows: it compares with the rendered scene, so a surface seen again much later (a loop) is
@@ -44,6 +51,9 @@ class FusionConfig:
     depth_tolerance: float = 0.1  # |z_new - z_fused| <= this x z_fused (camera depth at the surfel's pixel)
     normal_degrees: float = 60.0  # the surfel's normal within this angle of the fused normal
     cover_alpha: float = 0.5  # the fused scene covers a pixel where its alpha reaches this
+    replace_ratio: float | None = (
+        0.7  # a view whose footprint is under this x a fused surfel's replaces it (None: never)
+    )
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.depth_tolerance) and self.depth_tolerance >= 0):
@@ -52,6 +62,10 @@ class FusionConfig:
             raise SurfSplatInputError(f"fusion.normal_degrees: expected 0..180, got {self.normal_degrees}")
         if not 0 < self.cover_alpha <= 1:
             raise SurfSplatInputError(f"fusion.cover_alpha: expected a value in (0, 1], got {self.cover_alpha}")
+        if self.replace_ratio is not None and not 0 < self.replace_ratio <= 1:
+            raise SurfSplatInputError(
+                f"fusion.replace_ratio: expected a value in (0, 1] or None, got {self.replace_ratio}"
+            )
 
 
 class SurfelFusion:
@@ -70,8 +84,9 @@ class SurfelFusion:
         self.alpha_threshold = alpha_threshold
         self.backend = backend
         self._parts: list[Gaussians] = []
+        self._footprints: list[Tensor] = []  # [N] per part: camera depth / focal of the predicting view
         self._fused: Gaussians | None = None
-        self.stats = {"passes": 0, "predicted": 0, "duplicates": 0}
+        self.stats = {"passes": 0, "predicted": 0, "duplicates": 0, "replaced": 0}
 
     def __len__(self) -> int:
         return sum(len(p) for p in self._parts)
@@ -83,6 +98,7 @@ class SurfelFusion:
         if self._fused is None or len(self._fused) != len(self):
             self._fused = Gaussians.cat(self._parts)
             self._parts = [self._fused]
+            self._footprints = [torch.cat(self._footprints)]
         return self._fused
 
     @torch.no_grad()
@@ -118,16 +134,60 @@ class SurfelFusion:
             if len(idx) == 0:
                 continue
             part = g.subset(idx)
+            footprint = _footprints(part.means, cameras[view])
+            if self._parts:
+                if self.config.replace_ratio is not None:
+                    self._replace(part, footprint, pixels[idx, 1:], cameras[view], height, width)
             if self._parts:
                 duplicate = self._duplicates(part, pixels[idx, 1:], cameras[view], height, width)
                 self.stats["duplicates"] += int(duplicate.sum())
-                part = part.subset(~duplicate)
+                part, footprint = part.subset(~duplicate), footprint[~duplicate]
             if len(part):
                 self._parts.append(part)
+                self._footprints.append(footprint)
                 joined += len(part)
             self.stats["predicted"] += len(idx)
         self.stats["passes"] += 1
         return joined
+
+    def _replace(
+        self, new: Gaussians, footprint: Tensor, pixel: Tensor, camera: Cameras, height: int, width: int
+    ) -> None:
+        """Drop the fused surfels that one view's new surfels (at `pixel`, [M, 2] row, column) show
+        finer: the fused surfel projects to a pixel whose new surfel lies at its depth, faces its way,
+        and has a footprint under replace_ratio x its own."""
+        fused = self.gaussians()
+        old_footprint = self._footprints[0]
+        w2c = camera.w2c[0]
+        p = fused.means @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2]
+        front = z > 1e-6
+        uv = (p @ camera.K[0].T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
+        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = front & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        # the new surfel predicted at each pixel (-1: none)
+        at = torch.full((height * width,), -1, dtype=torch.long, device=z.device)
+        at[pixel[:, 0] * width + pixel[:, 1]] = torch.arange(len(new), device=z.device)
+        which = torch.where(inside, at[(row * width + col).clamp(0, height * width - 1)], torch.full_like(col, -1))
+        candidate = torch.nonzero(which >= 0).squeeze(-1)
+        if len(candidate) == 0:
+            return
+        j = which[candidate]
+        z_new = new.means[j] @ w2c[2, :3] + w2c[2, 3]
+        cfg = self.config
+        same_depth = (z[candidate] - z_new).abs() <= cfg.depth_tolerance * z_new
+        cosine = (fused.normals[candidate] * new.normals[j]).sum(-1).abs()
+        facing = cosine >= math.cos(math.radians(cfg.normal_degrees))
+        finer = footprint[j] < cfg.replace_ratio * old_footprint[candidate]
+        gone = candidate[same_depth & facing & finer]
+        if len(gone) == 0:
+            return
+        keep = torch.ones(len(fused), dtype=torch.bool, device=z.device)
+        keep[gone] = False
+        self._fused = fused.subset(keep)
+        self._parts = [self._fused]
+        self._footprints = [old_footprint[keep]]
+        self.stats["replaced"] += len(gone)
 
     def _duplicates(self, new: Gaussians, pixel: Tensor, camera: Cameras, height: int, width: int) -> Tensor:
         """[M] which of one view's new surfels lie on the fused scene as that view sees it."""
@@ -163,6 +223,14 @@ class SurfelFusion:
         same_depth = (z - depth).abs() <= cfg.depth_tolerance * depth
         facing = (n * normal).sum(-1) >= math.cos(math.radians(cfg.normal_degrees)) * normal.norm(dim=-1)
         return covered & same_depth & facing
+
+
+def _footprints(means: Tensor, camera: Cameras) -> Tensor:  # means [N, 3] -> [N]
+    """The world size of one pixel of `camera` at each point: camera depth / mean focal."""
+    w2c = camera.w2c[0]
+    z = means @ w2c[2, :3] + w2c[2, 3]
+    focal = 0.5 * (camera.K[0, 0, 0] + camera.K[0, 1, 1])
+    return z.clamp_min(1e-9) / focal
 
 
 def _in_view(means: Tensor, camera: Cameras, height: int, width: int, margin: float = 0.25) -> Tensor:

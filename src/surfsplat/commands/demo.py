@@ -390,8 +390,8 @@ def evaluate_demo(config: DemoConfig, checkpoint: Path, data_dir: Path, index_pa
     and against native high-resolution truth, coverage at each scale, geometry against the exact
     truth; write figures (with error maps) of the shipped model on the first rooms."""
     from ..data.eval_index import EvaluationIndex
-    from ..evaluate import ModelSpec, iter_index_samples, load_model, predict_sample
-    from ..evaluate_geometry import GeometryConfig, GeometryEvaluator, format_geometry_table
+    from ..evaluation import ModelSpec, iter_index_samples, load_model, predict_sample
+    from ..evaluation.geometry import GeometryConfig, GeometryEvaluator, format_geometry_table
     from ..metrics.closure import ClosureAccumulator
     from ..metrics.hrrc import HrrcConfig, HrrcEvaluator, format_hrrc_table
     from ..metrics.lpips import try_load_lpips

@@ -105,7 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..data.eval_index import EvaluationIndex
-    from ..evaluate import (
+    from ..evaluation import (
         RESULT_FILES,
         EvalConfig,
         ModelSpec,
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--max-entries: expected at least 1, got {args.max_entries}")
     geometry = None
     if args.geometry:
-        from ..evaluate_geometry import GeometryConfig
+        from ..evaluation.geometry import GeometryConfig
 
         if 1 not in args.factors:
             raise SurfSplatInputError("--geometry scores the x1 renders: --factors must include 1")

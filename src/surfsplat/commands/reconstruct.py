@@ -155,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
         f = scene.fusion_stats
         print(
             f"fused {f['passes']} passes of {len(scene.names)} views: {f['predicted']:,} surfels predicted, "
-            f"{f['duplicates']:,} duplicates removed, {len(scene.gaussians):,} kept"
+            f"{f['duplicates']:,} duplicates removed, {f.get('replaced', 0):,} replaced by closer views, "
+            f"{len(scene.gaussians):,} kept"
         )
     if scene.holdout is not None:
         h = scene.holdout.to_dict()

@@ -315,7 +315,7 @@ def _is_model(checkpoint) -> bool:
 
 
 def _load(checkpoint, preset, trust_pickle, device):
-    from ..evaluate import ModelSpec, load_model
+    from ..evaluation import ModelSpec, load_model
 
     if checkpoint is None:
         checkpoint = "tiny-synthetic"

@@ -36,7 +36,8 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
     if fusion:
         lines.append(
             f"fusion: {fusion['predicted']:,} surfels predicted, {fusion['duplicates']:,} duplicates of surfaces "
-            f"already fused removed ({fusion['duplicates'] / max(fusion['predicted'], 1):.0%})"
+            f"already fused removed ({fusion['duplicates'] / max(fusion['predicted'], 1):.0%}), "
+            f"{fusion.get('replaced', 0):,} fused surfels replaced by a closer view's"
         )
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in scene.seconds.items()))
     if scene.video is not None:

@@ -65,7 +65,9 @@ class Scene:
     seconds: dict[str, float] = field(default_factory=dict)  # poses, forward (all passes), fusion, total
     compact_level: int | None = None
     compact_stats: dict[str, int] = field(default_factory=dict)  # summed over passes
-    fusion_stats: dict[str, int] = field(default_factory=dict)  # passes, predicted, duplicates (empty: one pass)
+    fusion_stats: dict[str, int] = field(
+        default_factory=dict
+    )  # passes, predicted, duplicates, replaced (empty: one pass)
     poses: object | None = None  # PoseSummary when the cameras were estimated
     pose_cameras: object | None = None  # their CameraSet (K in pixels of the photos)
     photos: list = field(default_factory=list)  # every photo given to pose estimation (path or uint8 array)

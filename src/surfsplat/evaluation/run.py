@@ -34,24 +34,24 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .checks import SurfSplatInputError
-from .data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
-from .data.eval_index import EvaluationIndex
-from .data.transforms import rescale_and_crop
-from .evaluate_geometry import COLUMNS as GEOMETRY_COLUMNS
-from .evaluate_geometry import GeometryConfig, GeometryEvaluator, GeometryReport, format_geometry_table
-from .geometry.cameras import Cameras
-from .log import progress
-from .metrics.closure import ClosureAccumulator, ClosureMetrics, format_closure_table
-from .metrics.depth import depth_metrics
-from .metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
-from .metrics.lpips import Lpips, LpipsUnavailable
-from .model.decoder import decoder_mode
-from .model.pretrained import check_resolution, load_pretrained, with_adapter
-from .model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
-from .model.surfsplat import SurfSplat
-from .precision import Precision, Resolved, autocast, parse_precision, resolve_precision
-from .render import RenderOutput, render
+from ..checks import SurfSplatInputError
+from ..data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
+from ..data.eval_index import EvaluationIndex
+from ..data.transforms import rescale_and_crop
+from ..geometry.cameras import Cameras
+from ..log import progress
+from ..metrics.closure import ClosureAccumulator, ClosureMetrics, format_closure_table
+from ..metrics.depth import depth_metrics
+from ..metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
+from ..metrics.lpips import Lpips, LpipsUnavailable
+from ..model.decoder import decoder_mode
+from ..model.pretrained import check_resolution, load_pretrained, with_adapter
+from ..model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
+from ..model.surfsplat import SurfSplat
+from ..precision import Precision, Resolved, autocast, parse_precision, resolve_precision
+from ..render import RenderOutput, render
+from .geometry import COLUMNS as GEOMETRY_COLUMNS
+from .geometry import GeometryConfig, GeometryEvaluator, GeometryReport, format_geometry_table
 
 DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
 
@@ -275,7 +275,7 @@ class ScenePrediction:
     def closure_surfels(self) -> tuple[Tensor, Tensor | None, float | None]:
         """(pixel footprints [N], multipliers, r) of the rendered surfels, for `ClosureAccumulator`:
         as predicted, each surfel's own context view judges its size; compacted, the finest view."""
-        from .metrics.closure import pixel_footprints, views_of_pixels
+        from ..metrics.closure import pixel_footprints, views_of_pixels
 
         cams = self.sample.context_cameras
         h, w = self.sample.context_images.shape[-2:]
@@ -313,7 +313,7 @@ def predict_sample(
     rmode = decoder_mode(model.cfg.adapter, mode)
     tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
     if compact is not None:
-        from .compaction import compact as compact_gaussians
+        from ..compaction import compact as compact_gaussians
 
         ch, cw = sample.context_images.shape[-2:]
         gaussians = compact_gaussians(gaussians, cams, ch, cw, compact, mode=rmode, alpha_threshold=tau)
@@ -577,7 +577,7 @@ def write_results(
 ) -> dict[str, Path]:
     """metrics.json (every number), per_scene.csv and table.txt in out_dir; each written atomically.
     `counts`: what happened to the index entries for one model (every model sees the same entries)."""
-    from .export.figures import write_text
+    from ..export.figures import write_text
 
     out = Path(out_dir)
     document = {"models": {n: r.to_json() for n, r in results.items()}}

@@ -21,8 +21,8 @@ from surfsplat.data.synthetic import (
     render_synthetic,
     write_synthetic_chunks,
 )
-from surfsplat.evaluate import EvalConfig, evaluate, format_results, iter_index_samples, predict_sample, write_results
-from surfsplat.evaluate_geometry import GeometryConfig, GeometryEvaluator, procedural_scene, score_scene
+from surfsplat.evaluation import EvalConfig, evaluate, format_results, iter_index_samples, predict_sample, write_results
+from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator, procedural_scene, score_scene
 from surfsplat.geometry.rotations import matrix_to_quat
 from surfsplat.metrics.lpips import LpipsUnavailable
 from surfsplat.model import SurfSplat

@@ -13,7 +13,7 @@ import torch
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.eval_index import EvaluationIndex
 from surfsplat.data.synthetic import write_synthetic_chunks
-from surfsplat.evaluate import (
+from surfsplat.evaluation import (
     EvalConfig,
     ModelSpec,
     SampleCounts,
