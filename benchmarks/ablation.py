@@ -7,7 +7,7 @@ Four variants of the tiny preset, trained with the same steps, data and seed on 
 rooms (MSE loss), then scored on the same held-out rooms at x1 (standard) and x2 / x4 (HRRC: K
 scaled, ground truth upsampled bicubically), against native high-resolution truth (exact for these
 scenes), by coverage (share of pixels with accumulated alpha > 0.5, i.e. no hole), and by geometry
-against the exact truth of the procedural rooms (`surfsplat.evaluate_geometry`): depth AbsRel and
+against the exact truth of the procedural rooms (`surfsplat.evaluation.geometry`): depth AbsRel and
 normal error at the target views (x1), and Chamfer distance / F-score of the opacity-weighted surfel
 centres and of the TSDF mesh (fused from x2 depth renders) against the surfaces the context views see:
 
@@ -34,8 +34,8 @@ import torch
 
 from surfsplat.commands.demo import DemoConfig, native_truth, write_eval_data
 from surfsplat.data.eval_index import EvaluationIndex
-from surfsplat.evaluate import ModelSpec, iter_index_samples, load_model, predict_sample
-from surfsplat.evaluate_geometry import GeometryConfig, GeometryEvaluator
+from surfsplat.evaluation import ModelSpec, iter_index_samples, load_model, predict_sample
+from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator
 from surfsplat.export.figures import write_text
 from surfsplat.metrics.hrrc import HrrcConfig, HrrcEvaluator
 from surfsplat.metrics.lpips import try_load_lpips

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.bake import BakeConfig, bake_for_viewers, thin_gaussians, viewer_figures
 from surfsplat.export.figures import write_text
 from surfsplat.model.decoder import decoder_mode

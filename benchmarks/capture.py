@@ -237,7 +237,7 @@ def write_1080p_video(path: Path, frames: int) -> None:
 def video_cost(frames: int) -> dict:
     """Run in a fresh process: seconds per stage and peak memory of reconstructing the video."""
     import surfsplat
-    from surfsplat.evaluate import peak_rss_bytes
+    from surfsplat.evaluation import peak_rss_bytes
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "capture.mp4"
@@ -278,7 +278,7 @@ def main() -> None:
         print(json.dumps(video_cost(args.one_video)))
         return
 
-    from surfsplat.evaluate import ModelSpec, load_model
+    from surfsplat.evaluation import ModelSpec, load_model
 
     out_path = args.out
     out_path.parent.mkdir(parents=True, exist_ok=True)

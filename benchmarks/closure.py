@@ -30,8 +30,8 @@ from pathlib import Path
 
 import torch
 
-from surfsplat.evaluate import ModelSpec, iter_index_samples, load_model, predict_sample
-from surfsplat.evaluate_geometry import GeometryConfig, GeometryEvaluator
+from surfsplat.evaluation import ModelSpec, iter_index_samples, load_model, predict_sample
+from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator
 from surfsplat.export.figures import write_text
 from surfsplat.metrics.closure import ClosureAccumulator, closure_metrics, pixel_footprints, views_of_pixels
 from surfsplat.metrics.image import psnr

@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from surfsplat.compaction import LEVELS, compact_surfels
-from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.figures import write_text
 from surfsplat.export.ply import save_ply
 from surfsplat.geometry.cameras import Cameras
@@ -125,7 +125,7 @@ def procedural_scenes(count: int, size: int) -> list[dict]:
     """Held-out rooms (the demo's evaluation seed) with native truth at every factor."""
     from surfsplat.commands.demo import DemoConfig, native_truth, write_eval_data
     from surfsplat.data.eval_index import EvaluationIndex
-    from surfsplat.evaluate import iter_index_samples
+    from surfsplat.evaluation import iter_index_samples
 
     if count < 1:
         return []

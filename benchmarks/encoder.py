@@ -72,7 +72,7 @@ def run_one(
     import torch
 
     from surfsplat import Cameras
-    from surfsplat.evaluate import peak_memory
+    from surfsplat.evaluation import peak_memory
     from surfsplat.model import SurfSplat
     from surfsplat.precision import autocast
 

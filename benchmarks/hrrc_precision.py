@@ -34,7 +34,7 @@ def main() -> int:
 
     from surfsplat.commands.demo import DemoConfig, write_eval_data
     from surfsplat.data.eval_index import EvaluationIndex
-    from surfsplat.evaluate import EvalConfig, ModelSpec, evaluate, iter_index_samples, load_model
+    from surfsplat.evaluation import EvalConfig, ModelSpec, evaluate, iter_index_samples, load_model
     from surfsplat.metrics.lpips import try_load_lpips
 
     torch.set_num_threads(args.threads)

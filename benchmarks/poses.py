@@ -66,7 +66,7 @@ def write_views(folder: Path, n: int, width: int, height: int) -> list[Path]:
 
 
 def run_one(folder: Path, n: int, size: int, repeats: int, threads: int, min_idle: float, timeout: float) -> dict:
-    from surfsplat.evaluate import peak_rss_bytes
+    from surfsplat.evaluation import peak_rss_bytes
     from surfsplat.poses import PoseConfig, estimate_cameras, relative_pose_errors
 
     width, height = SIZES[size]

@@ -89,7 +89,7 @@ def available_backends() -> list[str]:
 def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict:
     """Measure one configuration in this process (threads are set by the caller)."""
     from surfsplat import Gaussians
-    from surfsplat.evaluate import peak_rss_bytes
+    from surfsplat.evaluation import peak_rss_bytes
     from surfsplat.render import render
 
     scene = _scene()

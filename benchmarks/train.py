@@ -50,7 +50,7 @@ def measure(
     from torch.utils.data import default_collate
 
     from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
-    from surfsplat.evaluate import peak_memory
+    from surfsplat.evaluation import peak_memory
     from surfsplat.model.decoder import decoder_mode
     from surfsplat.render import resolve_backend
     from surfsplat.train import build_model, build_optimizer, train_preset

@@ -36,7 +36,7 @@ import torch
 
 from surfsplat.compaction import compact_surfels
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
-from surfsplat.evaluate import ModelSpec, load_model
+from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.bake import bake_for_viewers, thin_gaussians
 from surfsplat.export.images import to_uint8
 from surfsplat.export.ply import save_ply

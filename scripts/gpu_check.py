@@ -43,7 +43,7 @@ def sync(device: torch.device) -> None:
 
 
 def peak_bytes(device: torch.device) -> tuple[int, str]:
-    from surfsplat.evaluate import peak_memory
+    from surfsplat.evaluation import peak_memory
 
     return peak_memory(device)
 

@@ -42,6 +42,7 @@ from torch import Tensor
 from ..checks import SurfSplatInputError
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..metrics.closure import pixel_footprints
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,7 @@ class SurfelFusion:
             if len(idx) == 0:
                 continue
             part = g.subset(idx)
-            footprint = _footprints(part.means, cameras[view])
+            footprint = pixel_footprints(part, cameras[view], width, height, torch.zeros(len(part), dtype=torch.long))
             if self._parts:
                 if self.config.replace_ratio is not None:
                     self._replace(part, footprint, pixels[idx, 1:], cameras[view], height, width)
@@ -223,14 +224,6 @@ class SurfelFusion:
         same_depth = (z - depth).abs() <= cfg.depth_tolerance * depth
         facing = (n * normal).sum(-1) >= math.cos(math.radians(cfg.normal_degrees)) * normal.norm(dim=-1)
         return covered & same_depth & facing
-
-
-def _footprints(means: Tensor, camera: Cameras) -> Tensor:  # means [N, 3] -> [N]
-    """The world size of one pixel of `camera` at each point: camera depth / mean focal."""
-    w2c = camera.w2c[0]
-    z = means @ w2c[2, :3] + w2c[2, 3]
-    focal = 0.5 * (camera.K[0, 0, 0] + camera.K[0, 1, 1])
-    return z.clamp_min(1e-9) / focal
 
 
 def _in_view(means: Tensor, camera: Cameras, height: int, width: int, margin: float = 0.25) -> Tensor:
