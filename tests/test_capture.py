@@ -90,20 +90,24 @@ def test_fusion_lets_a_closer_view_replace_a_distant_one(replace_ratio):
     assert fusion.stats["replaced"] == 16 * 16
 
 
-def test_fusion_keeps_distinct_surfaces():
+@pytest.mark.parametrize("drop_hidden", [True, False])
+def test_fusion_keeps_distinct_surfaces(drop_hidden):
     camera = _camera()
-    fusion = SurfelFusion(FusionConfig(depth_tolerance=0.1))
+    fusion = SurfelFusion(FusionConfig(depth_tolerance=0.1, drop_hidden=drop_hidden))
     fusion.add(_plane(2.0, camera), camera, SIZE, SIZE)
-    # 30 % deeper (beyond the 10 % tolerance): another surface, every surfel joins
-    assert fusion.add(_plane(2.6, camera), camera, SIZE, SIZE) == SIZE * SIZE
-    # 5 % deeper: the same surface, nothing joins
-    assert fusion.add(_plane(2.1, camera), camera, SIZE, SIZE) == 0
+    # 30 % deeper (beyond the 10 % tolerance): another surface, hidden behind the first from this view
+    assert fusion.add(_plane(2.6, camera), camera, SIZE, SIZE) == (0 if drop_hidden else SIZE * SIZE)
+    # 30 % nearer: an occluder the scene lacks, every surfel joins
+    assert fusion.add(_plane(1.4, camera), camera, SIZE, SIZE) == SIZE * SIZE
+    # 5 % deeper than the nearest: the same surface, nothing joins
+    assert fusion.add(_plane(1.47, camera), camera, SIZE, SIZE) == 0
     # the same depth but turned 80 degrees: not the same surface
     turned = _plane(2.0, camera)
     half = torch.deg2rad(torch.tensor(40.0))
     turned.quats[:] = torch.tensor([float(half.cos()), float(half.sin()), 0.0, 0.0])
+    turned.means[:, 2] = 1.4
     assert fusion.add(turned, camera, SIZE, SIZE) == SIZE * SIZE
-    assert len(fusion.gaussians()) == 3 * SIZE * SIZE
+    assert len(fusion.gaussians()) == (3 if drop_hidden else 4) * SIZE * SIZE
 
 
 def test_fusion_of_a_moved_view_keeps_exactly_the_new_area():

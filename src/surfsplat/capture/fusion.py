@@ -14,8 +14,12 @@ predicted for the fused scene already
 - lies at the surfel's depth within `depth_tolerance` (relative: the network's depth error is
   relative, about a tenth on the rooms, so two passes' predictions of one wall differ by that), and
 - faces the same way (normals within `normal_degrees`).
-Surfels on surfaces the scene does not cover yet, or at other depths (a surface in front of or
-behind what is fused), join it.
+Surfels on surfaces the scene does not cover yet, or in front of what is fused (nearer by more than
+the tolerance: an occluder the scene lacks), join it. Surfels behind the fused surface are hidden
+from their own view by the scene as fused (`drop_hidden`): they would not change that view's
+picture, and they are mostly the network's disagreement with itself at depth edges, where
+stretched surfels of one pass span the gap another pass sees through; keeping them made the count
+grow with the number of frames rather than the area (measured in the README).
 
 The finer view wins: each fused surfel remembers its footprint (the world size of a pixel of the
 view that predicted it, camera depth / focal). Before the duplicate test, a fused surfel that the
@@ -52,9 +56,9 @@ class FusionConfig:
     depth_tolerance: float = 0.1  # |z_new - z_fused| <= this x z_fused (camera depth at the surfel's pixel)
     normal_degrees: float = 60.0  # the surfel's normal within this angle of the fused normal
     cover_alpha: float = 0.5  # the fused scene covers a pixel where its alpha reaches this
-    replace_ratio: float | None = (
-        0.7  # a view whose footprint is under this x a fused surfel's replaces it (None: never)
-    )
+    drop_hidden: bool = True  # a new surfel behind the fused surface (beyond the tolerance) is hidden: dropped
+    # a view whose footprint is under this x a fused surfel's replaces it (None: never)
+    replace_ratio: float | None = 0.7
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.depth_tolerance) and self.depth_tolerance >= 0):
@@ -223,6 +227,9 @@ class SurfelFusion:
         covered = alpha >= cfg.cover_alpha
         same_depth = (z - depth).abs() <= cfg.depth_tolerance * depth
         facing = (n * normal).sum(-1) >= math.cos(math.radians(cfg.normal_degrees)) * normal.norm(dim=-1)
+        if cfg.drop_hidden:
+            hidden = z > (1 + cfg.depth_tolerance) * depth
+            return covered & ((same_depth & facing) | hidden)
         return covered & same_depth & facing
 
 
