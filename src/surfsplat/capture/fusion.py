@@ -140,9 +140,8 @@ class SurfelFusion:
                 continue
             part = g.subset(idx)
             footprint = pixel_footprints(part, cameras[view], width, height, torch.zeros(len(part), dtype=torch.long))
-            if self._parts:
-                if self.config.replace_ratio is not None:
-                    self._replace(part, footprint, pixels[idx, 1:], cameras[view], height, width)
+            if self._parts and self.config.replace_ratio is not None:
+                self._replace(part, footprint, pixels[idx, 1:], cameras[view], height, width)
             if self._parts:
                 duplicate = self._duplicates(part, pixels[idx, 1:], cameras[view], height, width)
                 self.stats["duplicates"] += int(duplicate.sum())
