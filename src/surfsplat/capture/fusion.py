@@ -19,18 +19,20 @@ the tolerance: an occluder the scene lacks), join it. Surfels behind the fused s
 from their own view by the scene as fused (`drop_hidden`): they would not change that view's
 picture, and they are mostly the network's disagreement with itself at depth edges, where
 stretched surfels of one pass span the gap another pass sees through; keeping them made the count
-grow with the number of frames rather than the area (measured in the README).
+grow with the number of frames rather than the area (measured in the README). The views of one
+pass are checked against each other the same way, so the count grows with the area seen rather
+than with the number of frames.
 
 The finer view wins: each fused surfel remembers its footprint (the world size of a pixel of the
 view that predicted it, camera depth / focal). Before the duplicate test, a fused surfel that the
 joining view sees at its own predicted depth (same tolerance and orientation) with a footprint
 under `replace_ratio` of the surfel's own is replaced: it leaves the scene and the joining view's
 surfels there stay. Along a capture that walks toward a surface, the close views' sharper and
-better-triangulated surfels take over from the first distant ones. The views of one pass are checked against each other the same
-way, so the count grows with the area seen rather than with the number of frames. This is the
-compaction's cross-view duplicate removal (`compaction._duplicate_cover`) carried over to a scene
-that grows: it compares with the rendered scene, so a surface seen again much later (a loop) is
-recognised too, and it needs no per-view pixel ownership, which passes do not share.
+better-triangulated surfels take over from the first distant ones.
+
+Fusion is the compaction's cross-view duplicate removal (`compaction._duplicate_cover`) carried
+over to a scene that grows: it compares with the rendered scene, so a surface seen again much later
+(a loop) is recognised too, and it needs no per-view pixel ownership, which passes do not share.
 
 Memory: only the fused surfels are held (and one view's render); the passes stream through.
 """
@@ -163,10 +165,7 @@ class SurfelFusion:
         fused = self.gaussians()
         old_footprint = self._footprints[0]
         w2c = camera.w2c[0]
-        p = fused.means @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        front = z > 1e-6
-        uv = (p @ camera.K[0].T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
+        uv, z, front = _project(fused.means, camera)
         col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         inside = front & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         # the new surfel predicted at each pixel (-1: none)
@@ -235,10 +234,17 @@ class SurfelFusion:
 def _in_view(means: Tensor, camera: Cameras, height: int, width: int, margin: float = 0.25) -> Tensor:
     """[N] surfels in front of the camera whose centres project within the image grown by `margin`
     of its size each side (the render of the fused scene needs only these)."""
+    uv, _, front = _project(means, camera)
+    mu, mv = margin * width, margin * height
+    return front & (uv[:, 0] > -mu) & (uv[:, 0] < width + mu) & (uv[:, 1] > -mv) & (uv[:, 1] < height + mv)
+
+
+def _project(means: Tensor, camera: Cameras) -> tuple[Tensor, Tensor, Tensor]:  # means [N, 3]
+    """Pixel coordinates [N, 2], camera depths [N] and whether each point is in front of `camera`
+    (points behind it get meaningless coordinates)."""
     w2c = camera.w2c[0]
     p = means @ w2c[:3, :3].T + w2c[:3, 3]
     z = p[:, 2]
     front = z > 1e-6
     uv = (p @ camera.K[0].T)[:, :2] / torch.where(front, z, torch.ones_like(z))[:, None]
-    mu, mv = margin * width, margin * height
-    return front & (uv[:, 0] > -mu) & (uv[:, 0] < width + mu) & (uv[:, 1] > -mv) & (uv[:, 1] < height + mv)
+    return uv, z, front
