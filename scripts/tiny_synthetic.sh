@@ -23,34 +23,27 @@ surfsplat train --preset tiny --out "$RUNS/tiny-geo" --steps 4000 --batch-size 4
 #    multipliers' clamp passes gradients back into its range, tangents are bounded at 4 pixel
 #    footprints, and each target's x4 native truth in a 64-pixel window is supervised (MSE) with a
 #    small closure term; the depth and normal terms stay; fresh rooms (seed 11), peak lr 2e-4.
-surfsplat train --preset tiny --out "$RUNS/tiny-closed" --steps 2500 --batch-size 4 --image-shape 64 64 \
-    --init-checkpoint "$RUNS/tiny-geo/checkpoints/step-00004000" --lr 2e-4 --vit-lr 2e-4 \
-    --set data.synthetic_length=100000 --set data.cache_samples=false --set data.synthetic_supersample=2 \
-    --set data.synthetic_seed=11 --set loss.depth_weight=1.0 --set loss.normal_weight=0.25 \
-    --set model.adapter.multiplier_gradient=inward --set model.adapter.tangent_clamp_unit=footprint \
-    --set model.adapter.tangent_clamp=4.0 --set data.highres_factor=4 --set data.highres_crop=64 \
-    --set loss.highres_weight=1.0 --set loss.closure_weight=0.01 \
-    --set data.val_samples=8 --val-every 500 --log-every 50 --checkpoint-every 100 --no-progress
+# Stages 3-5 share everything but their length, start, learning rate, rooms, closure weight and
+# validation interval: closed_stage OUT STEPS INIT LR SEED CLOSURE_WEIGHT VAL_EVERY.
+closed_stage() {
+    surfsplat train --preset tiny --out "$1" --steps "$2" --batch-size 4 --image-shape 64 64 \
+        --init-checkpoint "$3" --lr "$4" --vit-lr "$4" \
+        --set data.synthetic_length=100000 --set data.cache_samples=false --set data.synthetic_supersample=2 \
+        --set data.synthetic_seed="$5" --set loss.depth_weight=1.0 --set loss.normal_weight=0.25 \
+        --set model.adapter.multiplier_gradient=inward --set model.adapter.tangent_clamp_unit=footprint \
+        --set model.adapter.tangent_clamp=4.0 --set data.highres_factor=4 --set data.highres_crop=64 \
+        --set loss.highres_weight=1.0 --set loss.closure_weight="$6" \
+        --set data.val_samples=8 --val-every "$7" --log-every 50 --checkpoint-every 100 --no-progress
+}
+closed_stage "$RUNS/tiny-closed" 2500 "$RUNS/tiny-geo/checkpoints/step-00004000" 2e-4 11 0.01 500
 
 # 4. 4,000 more steps from stage 3 with the closure term at 0.003 (x1 PSNR recovers, the surface
 #    stays closed), fresh rooms (seed 12), peak lr 2e-4.
-CLOSED="--set model.adapter.multiplier_gradient=inward --set model.adapter.tangent_clamp_unit=footprint \
-    --set model.adapter.tangent_clamp=4.0 --set data.highres_factor=4 --set data.highres_crop=64 --set loss.highres_weight=1.0"
-surfsplat train --preset tiny --out "$RUNS/tiny-closed-2" --steps 4000 --batch-size 4 --image-shape 64 64 \
-    --init-checkpoint "$RUNS/tiny-closed/checkpoints/step-00002500" --lr 2e-4 --vit-lr 2e-4 \
-    --set data.synthetic_length=100000 --set data.cache_samples=false --set data.synthetic_supersample=2 \
-    --set data.synthetic_seed=12 --set loss.depth_weight=1.0 --set loss.normal_weight=0.25 $CLOSED \
-    --set loss.closure_weight=0.003 \
-    --set data.val_samples=8 --val-every 1000 --log-every 50 --checkpoint-every 100 --no-progress
+closed_stage "$RUNS/tiny-closed-2" 4000 "$RUNS/tiny-closed/checkpoints/step-00002500" 2e-4 12 0.003 1000
 
 # 5. 1,500 more steps from stage 4 with the closure term at 0.007 (surfels on real photos stay whole:
 #    at 0.003 or 0.005 over a third of fern's surfels end under half their footprint), seed 15, peak lr 1e-4.
-surfsplat train --preset tiny --out "$RUNS/tiny-closed-3" --steps 1500 --batch-size 4 --image-shape 64 64 \
-    --init-checkpoint "$RUNS/tiny-closed-2/checkpoints/step-00004000" --lr 1e-4 --vit-lr 1e-4 \
-    --set data.synthetic_length=100000 --set data.cache_samples=false --set data.synthetic_supersample=2 \
-    --set data.synthetic_seed=15 --set loss.depth_weight=1.0 --set loss.normal_weight=0.25 $CLOSED \
-    --set loss.closure_weight=0.007 \
-    --set data.val_samples=8 --val-every 500 --log-every 50 --checkpoint-every 100 --no-progress
+closed_stage "$RUNS/tiny-closed-3" 1500 "$RUNS/tiny-closed-2/checkpoints/step-00004000" 1e-4 15 0.007 500
 
 # 6. Held-out rooms (seed 2026, never trained on) and the evaluation the metadata records.
 python - "$RUNS/heldout-64" 64 <<'PY'
