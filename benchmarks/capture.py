@@ -234,9 +234,11 @@ def write_1080p_video(path: Path, frames: int) -> None:
     writer.close()
 
 
-def video_cost(frames: int) -> dict:
-    """Run in a fresh process: seconds per stage and peak memory of reconstructing the video."""
+def video_cost(frames: int, min_motion: float | None) -> dict:
+    """Run in a fresh process: seconds per stage and peak memory of reconstructing the video
+    (`min_motion`: the frame filter's motion threshold, None: its default)."""
     import surfsplat
+    from surfsplat.capture import FrameConfig
     from surfsplat.evaluation import peak_rss_bytes
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -246,11 +248,14 @@ def video_cost(frames: int) -> dict:
         made = time.perf_counter() - start
         base = peak_rss_bytes()
         start = time.perf_counter()
-        scene = surfsplat.reconstruct(path, "tiny-synthetic", size=(SIZE, 112), progress=False)
+        frame_config = FrameConfig() if min_motion is None else FrameConfig(min_motion=min_motion)
+        capture = surfsplat.CaptureOptions(frames=frame_config)
+        scene = surfsplat.reconstruct(path, "tiny-synthetic", size=(SIZE, 112), capture=capture, progress=False)
         seconds = time.perf_counter() - start
     video = scene.video
     return {
         "frames": frames,
+        "min_motion": frame_config.min_motion,
         "used": len(video.indices),
         "registered": len(scene.names),
         "dropped": video.dropped(),
@@ -272,10 +277,11 @@ def main() -> None:
     parser.add_argument("--frames", nargs="+", type=int, default=[10, 50], help="video lengths (300: the long one)")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--out", type=Path, default=RESULTS / "capture.json", help="results JSON (parts are merged in)")
+    parser.add_argument("--min-motion", type=float, default=None, help="video frame filter's motion threshold (0: every frame)")
     parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
     args = parser.parse_args()
     if args.one_video is not None:
-        print(json.dumps(video_cost(args.one_video)))
+        print(json.dumps(video_cost(args.one_video, args.min_motion)))
         return
 
     from surfsplat.evaluation import ModelSpec, load_model
@@ -302,9 +308,10 @@ def main() -> None:
     if "video" in args.parts:
         results["video"] = []
         for frames in args.frames:
-            child = subprocess.run(
-                [sys.executable, __file__, "--one-video", str(frames)], capture_output=True, text=True, check=False
-            )
+            command = [sys.executable, __file__, "--one-video", str(frames)]
+            if args.min_motion is not None:
+                command += ["--min-motion", str(args.min_motion)]
+            child = subprocess.run(command, capture_output=True, text=True, check=False)
             if child.returncode != 0:
                 results["video"].append({"frames": frames, "error": child.stderr.strip().splitlines()[-1]})
                 continue

@@ -367,3 +367,20 @@ def test_sequential_matching_pairs_only_neighbours_and_keeps_accuracy(room):
     assert rot.max() < 1.0 and trans.max() < 2.0, (rot, trans)
     with pytest.raises(SurfSplatInputError, match="matching"):
         PoseConfig(matching="spatial")
+
+
+@pytest.mark.slow
+def test_sequential_matching_with_quadratic_overlap_matches_powers_of_two_ahead(room):
+    """COLMAP's quadratic overlap: each frame is matched with the frames 1, 2, 4, ... 2^(overlap-1)
+    ahead instead of the next `overlap`, so a slow video still has pairs with a baseline to start from."""
+    truth = _orbit(6, 30.0)
+    images, _ = _render(room, truth)
+    names = [f"view_{i:03d}" for i in range(6)]
+    for quadratic, offsets in ((False, (1, 2, 3)), (True, (1, 2, 4))):
+        config = PoseConfig(
+            matching="sequential", sequential_overlap=3, quadratic_overlap=quadratic, focal=float(truth.K[0, 0, 0])
+        )
+        _, summary = estimate_cameras(images, config=config)
+        matched = {(p.first, p.second): p.matches for p in summary.pairs}
+        assert set(matched) == {(names[i], names[i + d]) for i in range(6) for d in offsets if i + d < 6}
+        assert all(m > 0 for m in matched.values()), matched  # each listed pair was matched by COLMAP
