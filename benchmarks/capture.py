@@ -277,7 +277,9 @@ def main() -> None:
     parser.add_argument("--frames", nargs="+", type=int, default=[10, 50], help="video lengths (300: the long one)")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--out", type=Path, default=RESULTS / "capture.json", help="results JSON (parts are merged in)")
-    parser.add_argument("--min-motion", type=float, default=None, help="video frame filter's motion threshold (0: every frame)")
+    parser.add_argument(
+        "--min-motion", type=float, default=None, help="video frame filter's motion threshold (0: every frame)"
+    )
     parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
     args = parser.parse_args()
     if args.one_video is not None:
