@@ -11,6 +11,8 @@ Parts (each writes its entry of benchmarks/results/capture.json and prints a tab
   exact cameras; frames 0, 4, 8, ... are held out. The fused scene of the 18 others against the
   two-view reconstruction from the two context frames at the path's ends: held-out PSNR,
   coverage (alpha >= 0.5) and depth AbsRel against the exact depth (over pixels both cover).
+  Beside them: the fused scene without its refinement on the context views, and the two-view
+  scene refined the same way on its two photos (`refine_on_views`).
   Then the same frames as an MP4 at 256x256 with the cameras estimated from it (`reconstruct`
   on the video): pairwise rotation and translation-direction errors against the truth, and the
   held-out PSNR in the estimated frame. And surfels against the area covered: one path, 9 / 17 /
@@ -28,6 +30,7 @@ numbers show.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -76,7 +79,7 @@ def held_out_scores(scene, cameras, images, depths):
 
 def rooms(args, model) -> dict:
     import surfsplat
-    from surfsplat.capture import frame_name
+    from surfsplat.capture import RefineConfig, frame_name, refine_on_views
     from surfsplat.data.synthetic import make_scene, render_synthetic
     from surfsplat.export.paths import CameraSet
     from surfsplat.export.video import write_video
@@ -105,10 +108,31 @@ def rooms(args, model) -> dict:
             progress=False,
         )
         h = torch.tensor(held)
+        # the same fusion without the refinement, and the two-view scene refined the same way on its two photos
+        unrefined = surfsplat.reconstruct(
+            list(truth.image),
+            model,
+            cameras=every,
+            capture=surfsplat.CaptureOptions(holdout_every=4, refine=RefineConfig(steps=0)),
+            progress=False,
+        )
+        two_g, _ = refine_on_views(
+            two.gaussians,
+            two.cameras,
+            truth.image[ends],
+            SIZE,
+            SIZE,
+            mode=two.mode,
+            alpha_threshold=two.alpha_threshold,
+        )
+        two_refined = dataclasses.replace(two, gaussians=two_g)
         row = {
             "seed": 1000 + seed,
             "fused": held_out_scores(fused, cams[h], truth.image[h], truth.depth[h]),
+            "fused_unrefined": held_out_scores(unrefined, cams[h], truth.image[h], truth.depth[h]),
             "two_view": held_out_scores(two, cams[h], truth.image[h], truth.depth[h]),
+            "two_view_refined": held_out_scores(two_refined, cams[h], truth.image[h], truth.depth[h]),
+            "refine": fused.refine_stats,
             "surfels_fused": len(fused.gaussians),
             "surfels_two_view": len(two.gaussians),
             "predicted": fused.fusion_stats["predicted"],
@@ -328,14 +352,17 @@ def print_table(results: dict) -> None:
     if "rooms" in results:
         print("\nrooms (held-out frames)       PSNR dB   coverage   depth AbsRel   surfels")
         rows = results["rooms"]["rooms"]
-        for key in ("fused", "two_view"):
+        for key in ("fused", "fused_unrefined", "two_view", "two_view_refined"):
+            if key not in rows[0]:
+                continue
 
             def mean(k: str, key: str = key) -> float:
                 return sum(r[key][k] for r in rows) / len(rows)
 
-            surfels = sum(r["surfels_" + key] for r in rows) / len(rows)
+            surfels = sum(r["surfels_" + key.removesuffix("_refined").removesuffix("_unrefined")] for r in rows)
             print(
-                f"  {key:<27} {mean('psnr'):7.2f}   {mean('coverage'):8.3f}   {mean('depth_absrel'):12.3f}   {surfels:7.0f}"
+                f"  {key:<27} {mean('psnr'):7.2f}   {mean('coverage'):8.3f}   {mean('depth_absrel'):12.3f}"
+                f"   {surfels / len(rows):7.0f}"
             )
         worst_rot = max(r["video"]["rotation_error_max_deg"] for r in rows)
         worst_dir = max(r["video"]["translation_direction_error_max_deg"] for r in rows)

@@ -12,7 +12,16 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 import surfsplat
-from surfsplat.capture import FrameConfig, FusionConfig, SurfelFusion, context_sets, frame_name, select_video_frames
+from surfsplat.capture import (
+    FrameConfig,
+    FusionConfig,
+    RefineConfig,
+    SurfelFusion,
+    context_sets,
+    frame_name,
+    refine_on_views,
+    select_video_frames,
+)
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
@@ -128,6 +137,70 @@ def test_fusion_of_a_moved_view_keeps_exactly_the_new_area():
 
 
 # ----------------------------------------------------------------------------------------- context sets
+# ----------------------------------------------------------------------------------------- refinement
+def _two_views_of_a_textured_plane():
+    """A plane at z = 2 seen by two cameras 0.2 apart, its surfels (one per pixel of the first)
+    coloured by a smooth texture; the photos are their renders. Returns (plane, cameras, photos)."""
+    a, b = _camera(0.0), _camera(0.2)
+    cameras = surfsplat.Cameras(torch.cat((a.c2w, b.c2w)), torch.cat((a.K, b.K)))
+    plane = _plane(2.0, cameras[0])
+    rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(SIZE), indexing="ij")
+    texture = torch.stack((rows / SIZE, cols / SIZE, 0.5 + 0.4 * torch.sin(rows / 3.0) * torch.cos(cols / 4.0)), -1)
+    plane = surfsplat.Gaussians(
+        plane.means,
+        plane.quats,
+        plane.scales,
+        plane.opacities,
+        ((texture.reshape(-1, 3) - 0.5) / 0.28209479)[..., None],
+    )
+    photos = render(plane, cameras, SIZE, SIZE, mode="surfel").color
+    return plane, cameras, photos
+
+
+def test_refinement_recovers_the_colours_and_keeps_the_surface():
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    grey = surfsplat.Gaussians(plane.means, plane.quats, plane.scales, plane.opacities, torch.zeros_like(plane.sh))
+    fitted, stats = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=150, lr=0.05))
+    assert stats["kept"] == 1.0 and stats["steps"] == 150
+    psnr_before, psnr_after = (-10 * np.log10(stats[k]) for k in ("mse_before", "mse_after"))
+    assert psnr_before < 20 and psnr_after > 32, (psnr_before, psnr_after)
+    again = render(fitted, cameras, SIZE, SIZE, mode="surfel").color
+    assert float((again - photos).square().mean()) == pytest.approx(stats["mse_after"], rel=1e-4)
+    assert torch.equal(fitted.means, grey.means) and torch.equal(fitted.quats, grey.quats)  # the surface stays
+    assert fitted.scales.shape == grey.scales.shape  # two tangent scales, no thickness added
+    twice, _ = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=150, lr=0.05))
+    assert torch.equal(twice.sh, fitted.sh)  # the same views in the same order every run
+
+
+def test_refinement_draws_at_most_views_per_step_and_zero_steps_change_nothing():
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    grey = surfsplat.Gaussians(plane.means, plane.quats, plane.scales, plane.opacities, torch.zeros_like(plane.sh))
+    one_view, stats = refine_on_views(
+        grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=60, lr=0.05, views_per_step=1)
+    )
+    assert stats["mse_after"] < 0.2 * stats["mse_before"]
+    same, stats = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=0))
+    assert same.sh is not None and torch.equal(same.sh, grey.sh) and stats["mse_after"] == stats["mse_before"]
+
+
+def test_a_refinement_that_makes_the_photos_worse_is_not_used():
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    grey = surfsplat.Gaussians(plane.means, plane.quats, plane.scales, plane.opacities, torch.zeros_like(plane.sh))
+    # Adam's first steps move every coefficient by about the rate: 50 saturates every colour
+    fitted, stats = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=2, lr=50.0))
+    assert stats["kept"] == 0.0 and stats["mse_after"] > stats["mse_before"]
+    assert torch.equal(fitted.sh, grey.sh) and torch.equal(fitted.opacities, grey.opacities)
+
+
+@pytest.mark.parametrize(
+    "options, needle",
+    [({"steps": -1}, "refine.steps"), ({"lr": 0.0}, "refine.lr"), ({"views_per_step": 0}, "refine.views_per_step")],
+)
+def test_refine_config_refuses_bad_values(options, needle):
+    with pytest.raises(SurfSplatInputError, match=needle):
+        RefineConfig(**options)
+
+
 def test_context_sets_cover_ordered_and_unordered_views():
     line = torch.stack([torch.tensor([float(i), 0.0, 0.0]) for i in range(7)])
     assert context_sets(line, 2, ordered=True) == [[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [5, 6]]

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 from ..checks import check_output_dir
@@ -99,10 +100,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.02,
         help="video: a frame is used when it differs from the last used one by this much (mean grey, 0..1)",
     )
+    group.add_argument(
+        "--refine-steps",
+        type=int,
+        default=100,
+        metavar="N",
+        help="steps fitting a fused scene's colours, opacities and sizes to its context views (0: none; default 100)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..capture import FrameConfig
+    from ..capture import FrameConfig, RefineConfig
     from ..reconstruction import CaptureOptions, reconstruct
     from ..reconstruction.scene import SUMMARY_FILES
 
@@ -122,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         views_per_pass=args.views_per_pass,
         holdout_every=args.holdout_every,
         frames=FrameConfig(max_size=min(args.max_size, 960), min_motion=args.min_motion, max_frames=args.max_frames),
+        refine=RefineConfig(steps=args.refine_steps),
     )
     scene = reconstruct(
         images,
@@ -157,6 +166,13 @@ def run(args: argparse.Namespace) -> int:
             f"fused {f['passes']} passes of {len(scene.names)} views: {f['predicted']:,} surfels predicted, "
             f"{f['duplicates']:,} duplicates removed, {f.get('replaced', 0):,} replaced by closer views, "
             f"{len(scene.gaussians):,} kept"
+        )
+    if scene.refine_stats:
+        r = scene.refine_stats
+        before, after = (-10 * math.log10(max(r[k], 1e-12)) for k in ("mse_before", "mse_after"))
+        print(
+            f"refined on the context views ({int(r['steps'])} steps): colour PSNR there {before:.2f} -> {after:.2f} dB"
+            + ("" if r["kept"] else " (worse: not kept)")
         )
     if scene.holdout is not None:
         h = scene.holdout.to_dict()

@@ -30,7 +30,7 @@ from typing import Literal
 
 import torch
 
-from ..capture import FrameConfig, FusionConfig, SurfelFusion, context_sets
+from ..capture import FrameConfig, FusionConfig, RefineConfig, SurfelFusion, context_sets, refine_on_views
 from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
 from .inputs import CaptureInput, ImageSource, read_capture
@@ -48,6 +48,8 @@ class CaptureOptions:
     matching: Literal["auto", "exhaustive", "sequential"] = "auto"  # pose estimation's image pairs
     frames: FrameConfig = field(default_factory=FrameConfig)  # frame choice of a video
     fusion: FusionConfig = field(default_factory=FusionConfig)  # duplicate removal between views and passes
+    # the fused scene's colours, opacities and sizes fitted to the context views (passes > 1 only)
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
 
 def reconstruct(
@@ -193,6 +195,21 @@ def reconstruct(
         fusion.add(gaussians, cams, shape[0], shape[1], pixels)
         seconds["fusion"] += time.perf_counter() - tick
     gaussians = single if fusion is None else fusion.gaussians()
+    refine_stats: dict[str, float] = {}
+    if fusion is not None and capture.refine.steps > 0:
+        tick = time.perf_counter()
+        images_c, K_c = network_views(context)
+        gaussians, refine_stats = refine_on_views(
+            gaussians,
+            Cameras(ctx_c2w.to(torch.float32), K_c),
+            images_c,
+            shape[1],
+            shape[0],
+            capture.refine,
+            mode=mode,
+            alpha_threshold=alpha_threshold,
+        )
+        seconds["refine"] = time.perf_counter() - tick
     scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
     logger.info(
         f"{label}: {len(gaussians):,} surfels from {len(context)} views in {len(passes)} "
@@ -221,6 +238,7 @@ def reconstruct(
         compact_level=compact,
         compact_stats=compact_stats,
         fusion_stats=dict(fusion.stats) if fusion is not None else {},
+        refine_stats=refine_stats,
         poses=poses,
         pose_cameras=pose_cameras,
         photos=photos,

@@ -8,6 +8,7 @@ PSNR and coverage), and for a video which frames were used and why the others we
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from ..export.paths import CameraSet
@@ -38,6 +39,13 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
             f"fusion: {fusion['predicted']:,} surfels predicted, {fusion['duplicates']:,} duplicates of surfaces "
             f"already fused removed ({fusion['duplicates'] / max(fusion['predicted'], 1):.0%}), "
             f"{fusion.get('replaced', 0):,} fused surfels replaced by a closer view's"
+        )
+    refine = scene.refine_stats
+    if refine:
+        psnr = [-10 * math.log10(max(refine[k], 1e-12)) for k in ("mse_before", "mse_after")]
+        lines.append(
+            f"refined on the context views: {int(refine['steps'])} steps, colour PSNR there {psnr[0]:.2f} -> "
+            f"{psnr[1]:.2f} dB" + ("" if refine["kept"] else " (not kept: the fit made it worse)")
         )
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in scene.seconds.items()))
     if scene.video is not None:

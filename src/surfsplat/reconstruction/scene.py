@@ -68,6 +68,7 @@ class Scene:
     fusion_stats: dict[str, int] = field(
         default_factory=dict
     )  # passes, predicted, duplicates, replaced (empty: one pass)
+    refine_stats: dict[str, float] = field(default_factory=dict)  # steps, mse_before/after, kept (empty: none)
     poses: object | None = None  # PoseSummary when the cameras were estimated
     pose_cameras: object | None = None  # their CameraSet (K in pixels of the photos)
     photos: list = field(default_factory=list)  # every photo given to pose estimation (path or uint8 array)
@@ -150,6 +151,7 @@ class Scene:
             "views": len(self.names),
             "passes": self.passes,
             "fusion": self.fusion_stats,
+            "refine": self.refine_stats,
             "compaction": self.compact_stats,
             "seconds": self.seconds,
             "held_out": self.holdout.to_dict() if self.holdout is not None else None,
