@@ -138,6 +138,10 @@ def rooms(args, model) -> dict:
             "predicted": fused.fusion_stats["predicted"],
             "seconds": seconds,
         }
+        rows.append(row)
+        if args.no_room_video:
+            print(f"room {1000 + seed}: {json.dumps(row)}", flush=True)
+            continue
         # the same path as a video, cameras estimated from it
         with tempfile.TemporaryDirectory() as tmp:
             big = render_synthetic(room, cams.scaled(4), 4 * SIZE, 4 * SIZE).image
@@ -159,8 +163,9 @@ def rooms(args, model) -> dict:
             "held_out_psnr": video.holdout.to_dict()["mean_psnr"],
             "held_out_coverage": video.holdout.to_dict()["mean_coverage"],
         }
-        rows.append(row)
         print(f"room {1000 + seed}: {json.dumps(row)}", flush=True)
+    if args.no_room_video:  # the quick variant: held-out scores only
+        return {"path_length_m": args.path_length, "frames": n, "held_out_every": 4, "rooms": rows}
     area = surfels_vs_area(model)
     return {"path_length_m": args.path_length, "frames": n, "held_out_every": 4, "rooms": rows, "area": area}
 
@@ -298,6 +303,7 @@ def main() -> None:
     parser.add_argument("--parts", nargs="+", default=["rooms", "dtu", "fern", "video"])
     parser.add_argument("--rooms", type=int, default=4)
     parser.add_argument("--path-length", type=float, default=1.5)
+    parser.add_argument("--no-room-video", action="store_true", help="rooms: held-out scores only (no video, no area)")
     parser.add_argument("--frames", nargs="+", type=int, default=[10, 50], help="video lengths (300: the long one)")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     parser.add_argument("--out", type=Path, default=RESULTS / "capture.json", help="results JSON (parts are merged in)")
@@ -364,15 +370,19 @@ def print_table(results: dict) -> None:
                 f"  {key:<27} {mean('psnr'):7.2f}   {mean('coverage'):8.3f}   {mean('depth_absrel'):12.3f}"
                 f"   {surfels / len(rows):7.0f}"
             )
-        worst_rot = max(r["video"]["rotation_error_max_deg"] for r in rows)
-        worst_dir = max(r["video"]["translation_direction_error_max_deg"] for r in rows)
-        print(f"  poses from the video: rotation error <= {worst_rot:.2f} deg, direction <= {worst_dir:.2f} deg")
-        area = results["rooms"]["area"]
-        print(
-            "  surfels vs frames on one path: "
-            + ", ".join(f"{a['frames']}: {a['surfels']}" for a in area["frames_on_one_path"])
-        )
-        print("  surfels vs path length: " + ", ".join(f"{a['metres']} m: {a['surfels']}" for a in area["path_length"]))
+        if "area" in results["rooms"]:  # absent in the quick variant (--no-room-video)
+            worst_rot = max(r["video"]["rotation_error_max_deg"] for r in rows)
+            worst_dir = max(r["video"]["translation_direction_error_max_deg"] for r in rows)
+            print(f"  poses from the video: rotation error <= {worst_rot:.2f} deg, direction <= {worst_dir:.2f} deg")
+            area = results["rooms"]["area"]
+            print(
+                "  surfels vs frames on one path: "
+                + ", ".join(f"{a['frames']}: {a['surfels']}" for a in area["frames_on_one_path"])
+            )
+            print(
+                "  surfels vs path length: "
+                + ", ".join(f"{a['metres']} m: {a['surfels']}" for a in area["path_length"])
+            )
     for key in ("dtu_scan24", "llff_fern"):
         if key in results:
             r = results[key]
