@@ -484,6 +484,13 @@ def test_output_folder_that_cannot_be_written(world, tmp_path, capsys, monkeypat
 
 
 # ------------------------------------------------------------------------------------------ interruption
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default action. A suite started in the
+    background by a non-interactive shell (`nohup pytest &`) inherits SIGINT ignored, and Python
+    then keeps ignoring it, as a user's `nohup surfsplat train &` should."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt(argv: list[str], hold: str, sig: int, tmp: Path) -> tuple[int, str]:
     """Run the command in a process, wait until the file `hold` is fully written but not yet renamed,
     send `sig`; returns (exit code, stderr)."""
@@ -493,6 +500,7 @@ def _interrupt(argv: list[str], hold: str, sig: int, tmp: Path) -> tuple[int, st
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
     deadline = time.monotonic() + 240
     while not ready.exists():
