@@ -46,7 +46,7 @@ class RefineConfig:
 
     def __post_init__(self) -> None:
         if self.steps < 0:
-            raise SurfSplatInputError(f"refine.steps: expected >= 0, got {self.steps}")
+            raise SurfSplatInputError(f"refine.steps (--refine-steps): expected >= 0, got {self.steps}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise SurfSplatInputError(f"refine.lr: expected a positive rate, got {self.lr}")
         if self.views_per_step < 1:
