@@ -3,7 +3,8 @@ cost of a video against its length.
 
     python benchmarks/capture.py                          # rooms, DTU, fern, video 10 and 50 frames
     python benchmarks/capture.py --parts video --frames 10 50 300      # the 300-frame 1080p video too
-    python benchmarks/capture.py --parts rooms --rooms 2               # quicker
+    python benchmarks/capture.py --parts rooms --rooms 2 --no-room-video   # quicker: held-out scores only
+    python benchmarks/capture.py --parts video --frames 300 --min-motion 0   # every frame of the video kept
 
 Parts (each writes its entry of benchmarks/results/capture.json and prints a table):
 - rooms: procedural rooms (`make_scene`), cameras on a straight path of `--path-length` metres
