@@ -181,6 +181,7 @@ def test_refinement_draws_at_most_views_per_step_and_zero_steps_change_nothing()
     assert stats["mse_after"] < 0.2 * stats["mse_before"]
     same, stats = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(steps=0))
     assert same.sh is not None and torch.equal(same.sh, grey.sh) and stats["mse_after"] == stats["mse_before"]
+    assert stats["kept"] == 1.0 and stats["steps"] == 0
 
 
 def test_a_refinement_that_makes_the_photos_worse_is_not_used():
@@ -310,6 +311,7 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
     assert main(argv) == 0, capsys.readouterr().err
     printed = capsys.readouterr().out
     assert "fused 2 passes of 3 views" in printed and "held out 2 views" in printed
+    assert "refined on the context views: 100 steps, colour PSNR there" in printed
     scene = surfsplat.reconstruct(
         paths,
         tiny_checkpoint,

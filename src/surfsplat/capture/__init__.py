@@ -9,7 +9,7 @@
 """
 
 from .fusion import FusionConfig, SurfelFusion
-from .refine import RefineConfig, refine_on_views
+from .refine import RefineConfig, refine_on_views, refine_summary
 from .video import FrameConfig, FrameRecord, VideoFrames, choose_frames, frame_name, is_video_file, select_video_frames
 from .views import context_sets, nearest_neighbour_order
 
@@ -26,5 +26,6 @@ __all__ = [
     "is_video_file",
     "nearest_neighbour_order",
     "refine_on_views",
+    "refine_summary",
     "select_video_frames",
 ]

@@ -94,7 +94,7 @@ def refine_on_views(
 
     before = mse(g0)
     if config.steps == 0:
-        return g0, {"steps": 0, "mse_before": before, "mse_after": before}
+        return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0}
     sh = g0.sh.clone().requires_grad_(True)
     logits = torch.logit(g0.opacities.clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
     log_scales = g0.scales[:, :2].log().requires_grad_(True)
@@ -130,3 +130,12 @@ def refine_on_views(
         )
         return g0, stats
     return fitted, stats
+
+
+def refine_summary(stats: dict[str, float]) -> str:
+    """One line for the reconstruct summary and the capture report, from `refine_on_views`'s figures."""
+    before, after = (-10 * math.log10(max(stats[k], 1e-12)) for k in ("mse_before", "mse_after"))
+    line = (
+        f"refined on the context views: {int(stats['steps'])} steps, colour PSNR there {before:.2f} -> {after:.2f} dB"
+    )
+    return line + ("" if stats["kept"] else " (not kept: the fit made it worse)")

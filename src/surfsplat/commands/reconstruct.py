@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 from pathlib import Path
 
 from ..checks import check_output_dir
@@ -110,7 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..capture import FrameConfig, RefineConfig
+    from ..capture import FrameConfig, RefineConfig, refine_summary
     from ..reconstruction import CaptureOptions, reconstruct
     from ..reconstruction.scene import SUMMARY_FILES
 
@@ -168,12 +167,7 @@ def run(args: argparse.Namespace) -> int:
             f"{len(scene.gaussians):,} kept"
         )
     if scene.refine_stats:
-        r = scene.refine_stats
-        before, after = (-10 * math.log10(max(r[k], 1e-12)) for k in ("mse_before", "mse_after"))
-        print(
-            f"refined on the context views ({int(r['steps'])} steps): colour PSNR there {before:.2f} -> {after:.2f} dB"
-            + ("" if r["kept"] else " (worse: not kept)")
-        )
+        print(refine_summary(scene.refine_stats))
     if scene.holdout is not None:
         h = scene.holdout.to_dict()
         print(

@@ -195,13 +195,14 @@ def reconstruct(
         fusion.add(gaussians, cams, shape[0], shape[1], pixels)
         seconds["fusion"] += time.perf_counter() - tick
     gaussians = single if fusion is None else fusion.gaussians()
+    scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
     if fusion is not None and capture.refine.steps > 0:
         tick = time.perf_counter()
-        images_c, K_c = network_views(context)
+        images_c, _ = network_views(context)
         gaussians, refine_stats = refine_on_views(
             gaussians,
-            Cameras(ctx_c2w.to(torch.float32), K_c),
+            scene_cameras,
             images_c,
             shape[1],
             shape[0],
@@ -210,7 +211,6 @@ def reconstruct(
             alpha_threshold=alpha_threshold,
         )
         seconds["refine"] = time.perf_counter() - tick
-    scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
     logger.info(
         f"{label}: {len(gaussians):,} surfels from {len(context)} views in {len(passes)} "
         f"pass{'es' if len(passes) > 1 else ''} at {shape[1]}x{shape[0]} in {seconds['forward']:.2f} s"

@@ -8,9 +8,9 @@ PSNR and coverage), and for a video which frames were used and why the others we
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
+from ..capture import refine_summary
 from ..export.paths import CameraSet
 
 THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
@@ -40,13 +40,8 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
             f"already fused removed ({fusion['duplicates'] / max(fusion['predicted'], 1):.0%}), "
             f"{fusion.get('replaced', 0):,} fused surfels replaced by a closer view's"
         )
-    refine = scene.refine_stats
-    if refine:
-        psnr = [-10 * math.log10(max(refine[k], 1e-12)) for k in ("mse_before", "mse_after")]
-        lines.append(
-            f"refined on the context views: {int(refine['steps'])} steps, colour PSNR there {psnr[0]:.2f} -> "
-            f"{psnr[1]:.2f} dB" + ("" if refine["kept"] else " (not kept: the fit made it worse)")
-        )
+    if scene.refine_stats:
+        lines.append(refine_summary(scene.refine_stats))
     lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in scene.seconds.items()))
     if scene.video is not None:
         lines.extend(scene.video.lines())
