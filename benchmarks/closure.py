@@ -3,6 +3,7 @@
     python benchmarks/closure.py --checkpoint tiny-synthetic
     python benchmarks/closure.py --checkpoint before=runs/old after=runs/new --data ../data
     python benchmarks/closure.py --checkpoint runs/ablation-* --rooms 12 --out benchmarks/results/ablation.json
+    python benchmarks/closure.py --checkpoint before=runs/old after=tiny-synthetic --figure docs/closure_x4.png
 
 Every model reconstructs the held-out procedural rooms the shipped model's metadata is measured on
 (seed 2026, 12 rooms at 64x64, 6 frames along each camera path, context: the path's ends, targets:
@@ -16,7 +17,8 @@ the four frames between them) and renders the targets at x1, x2 and x4. Scored t
 With `--data` (a folder holding dtu_scan24 and llff_fern) every model also reconstructs the DTU pair
 of the community's index and a fern pair at 192x256, scored for closure from the context cameras
 (photos have no native high-resolution truth). Writes JSON (default benchmarks/results/closure.json)
-and prints one table.
+and prints one table. With `--figure` it also writes a PNG of one held-out target at x4: its native
+truth, then each model's render, with each render's alpha below it (white = 1).
 """
 
 from __future__ import annotations
@@ -52,18 +54,26 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=None, help="folder with dtu_scan24 and llff_fern (optional)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "closure.json")
+    parser.add_argument("--figure", type=Path, default=None, help="PNG of one held-out target at x4 (optional)")
+    parser.add_argument(
+        "--figure-view", type=int, nargs=2, default=(2, 1), metavar=("ROOM", "TARGET"), help="which one (default 2 1)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     models = dict(_named(c) for c in args.checkpoint)
     samples, native = heldout_rooms(args.rooms)
     real = real_pairs(args.data) if args.data is not None else []
-    rows = {}
+    if args.figure is not None and not (0 <= args.figure_view[0] < len(samples) and 0 <= args.figure_view[1] < 4):
+        parser.error(f"--figure-view: room 0..{len(samples) - 1}, target 0..3; got {args.figure_view}")
+    rows, pictures = {}, []
     for name, spec in models.items():
         model, label = load_model(ModelSpec(spec))
         model.eval()
         start = time.perf_counter()
         rows[name] = {"checkpoint": spec, "model": label, **score_rooms(model, samples, native)}
+        if args.figure is not None:
+            pictures.append(render_x4(model, samples[args.figure_view[0]], args.figure_view[1]))
         for pair in real:
             rows[name][pair["name"]] = score_pair(model, pair)
         rows[name]["seconds"] = time.perf_counter() - start
@@ -76,6 +86,15 @@ def main() -> None:
         "models": rows,
     }
     write_text(args.out, json.dumps(document, indent=1) + "\n")
+    if args.figure is not None:
+        from surfsplat.export.figures import image_grid
+        from surfsplat.export.images import write_png
+
+        room, view = args.figure_view
+        truth = native[room][FACTORS[-1]][view]
+        grid = image_grid([[truth, *(c for c, _ in pictures)], [None, *(a for _, a in pictures)]])
+        write_png(args.figure, grid)
+        print(f"wrote {args.figure} (columns: native truth, {', '.join(models)})")
     print(table(rows, [p["name"] for p in real]))
     print(f"wrote {args.out}")
 
@@ -156,6 +175,13 @@ def score_rooms(model, samples: list, native: list[dict[int, torch.Tensor]]) -> 
         "median_normal_deg": mean["median_deg"],
         "closure": closure.report().to_json(),
     }
+
+
+@torch.no_grad()
+def render_x4(model, sample, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(colour [3, H, W], alpha [1, H, W]) of one target rendered at the largest factor."""
+    render = predict_sample(model, sample, (FACTORS[-1],)).renders[FACTORS[-1]]
+    return render.color[view].clamp(0, 1), render.alpha[view].clamp(0, 1)
 
 
 @torch.no_grad()

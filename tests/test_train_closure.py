@@ -15,7 +15,9 @@ from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig, render_synthetic
 from surfsplat.model.adapter import (
     AdapterConfig,
+    GaussianAdapter,
     clamp_multipliers,
+    floor_scales,
     footprint_bounds,
     surface_frames,
     unproject_depth,
@@ -71,6 +73,58 @@ def test_release_mode_refuses_the_new_rules():
         AdapterConfig(mode="official", tangent_clamp_unit="footprint")
     with pytest.raises(SurfSplatInputError, match="multiplier_gradient"):
         AdapterConfig(multiplier_gradient="straight")
+
+
+def test_floor_scales_has_maximums_values_and_the_multipliers_gradient_rule():
+    x = torch.tensor([0.1, 0.1, 1.0, 5.0], requires_grad=True)
+    floor = torch.tensor([0.5, 0.5, 0.5, 0.5])
+    y = floor_scales(x, floor, "inward")
+    assert torch.equal(y, torch.maximum(x.detach(), floor))
+    # Below the floor only a gradient that grows the scale passes; above it every gradient does.
+    y.backward(torch.tensor([-1.0, 1.0, 2.0, -3.0]))
+    assert x.grad.tolist() == [-1.0, 0.0, 2.0, -3.0]
+    z = torch.tensor([0.1, 5.0], requires_grad=True)
+    floor_scales(z, floor[:2], "clamp").backward(torch.tensor([-1.0, 1.0]))
+    assert z.grad.tolist() == [0.0, 1.0]
+
+
+def _shrunk_plane(scale_floor):
+    """The adapter on a fronto-parallel plane 4 units away (f = 30, so a footprint of 4 / 30) with
+    every multiplier forced to Eq. 9's lower bound 1/3; scales as [V, H, W, 3]."""
+    torch.manual_seed(0)
+    adapter = GaussianAdapter(AdapterConfig(scale_floor=scale_floor)).eval()
+    c2w = torch.eye(4).expand(1, 2, 4, 4).clone()
+    c2w[0, 1, 0, 3] = 0.3
+    K = _K(30.0, 16.0).expand(1, 2, 3, 3).clone()
+    raw = torch.randn(1, 2, adapter.num_raw_channels, 32, 32)
+    raw[:, :, adapter.channel_slices()["scale"]] = -20.0  # softplus ~ 0: clamped to 1/3
+    out = adapter(torch.full((1, 2, 32, 32), 4.0), raw, torch.rand(1, 2, 3, 32, 32), K, c2w)
+    return out, out.scales.reshape(2, 32, 32, 3), 4.0 / 30.0
+
+
+@pytest.mark.parametrize("floor", [0.5, 0.75])
+def test_scale_floor_keeps_shrunk_surfels_at_their_footprint_fraction(floor):
+    plain, plain_scales, footprint = _shrunk_plane(None)
+    floored, floored_scales, _ = _shrunk_plane(floor)
+    # Without the floor the plane's surfels are about a third of their footprint (Eq. 9's bound; the
+    # random offsets move the points within their pixels); with it no tangent scale is under the
+    # floor, the ones that were sit exactly on it, and nothing else changes.
+    inner_plain, inner_floored = plain_scales[:, 2:-2, 2:-2, :2], floored_scales[:, 2:-2, 2:-2, :2]
+    assert 0.15 < float(inner_plain.median()) / footprint < 0.45
+    assert bool((floored_scales[..., :2] >= floor * footprint * (1 - 1e-6)).all())
+    below = inner_plain < floor * footprint
+    assert bool(below.all()) and torch.allclose(inner_floored, torch.tensor(floor * footprint), rtol=1e-6)
+    assert torch.equal(plain.gaussians.means, floored.gaussians.means)
+    assert torch.equal(plain.gaussians.opacities, floored.gaussians.opacities)
+    assert torch.equal(plain.scales_mul, floored.scales_mul) and torch.equal(plain.normals, floored.normals)
+
+
+def test_scale_floor_is_validated_and_refused_by_the_release_mode():
+    with pytest.raises(SurfSplatInputError, match="scale_floor"):
+        AdapterConfig(mode="official", scale_floor=0.5)
+    for bad in (0.0, -1.0, 4.0, float("nan"), True, "0.5"):
+        with pytest.raises(SurfSplatInputError, match="scale_floor"):
+            AdapterConfig(scale_floor=bad)
 
 
 def test_default_adapter_is_unchanged_by_the_new_fields():

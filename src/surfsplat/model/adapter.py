@@ -28,6 +28,7 @@ quaternion, then SH as (rgb, (d+1)^2), i.e. channel `sh_start + c * (d+1)^2 + k`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -64,6 +65,11 @@ class AdapterConfig:
     # Gradient of that clamp: "clamp" (zero outside [1/r, r], plain autograd) or "inward" (the same
     # values, but a multiplier stuck at a bound still gets the gradients that pull it back inside).
     multiplier_gradient: Literal["clamp", "inward"] = "clamp"
+    # Smallest tangent scale in pixel footprints z / f (None: no floor, the paper's). Eq. 9's 1/r
+    # bound alone lets a surfel shrink to a third of its base scale, so a model can trade a closed
+    # surface for sharper x1 texture; a floor of 0.5 keeps every surfel at least half a pixel wide at
+    # its depth, whatever the scene's scale. It uses multiplier_gradient's rule at the floor.
+    scale_floor: float | None = None
     alpha_threshold_train: float = 0.1  # tau_alpha of Eq. 11 while training
     alpha_threshold_eval: float = 0.001  # tau_alpha of Eq. 11 at evaluation
     scale_min: float = 1e-10  # final scales clamped to [scale_min, scale_max] (the release's bounds)
@@ -86,6 +92,15 @@ class AdapterConfig:
             raise SurfSplatInputError(
                 "adapter.mode: 'official' reproduces the release, which has prior='surface' and primitive='surfel'; "
                 f"got prior={self.prior!r}, primitive={self.primitive!r}"
+            )
+        if self.mode == "official" and self.scale_floor is not None:
+            raise SurfSplatInputError(
+                f"adapter.mode: 'official' reproduces the release, which has no scale floor; got scale_floor={self.scale_floor!r}"
+            )
+        floor = self.scale_floor
+        if floor is not None and (isinstance(floor, bool) or not isinstance(floor, (int, float)) or not 0 < floor < 4):
+            raise SurfSplatInputError(
+                f"adapter.scale_floor: expected None or a value in (0, 4) footprints, got {floor!r}"
             )
         if self.mode == "official" and (self.tangent_clamp_unit, self.multiplier_gradient) != ("world", "clamp"):
             raise SurfSplatInputError(
@@ -284,6 +299,15 @@ class _InwardClamp(torch.autograd.Function):
         return torch.where(passes, grad, torch.zeros_like(grad)), None, None
 
 
+def floor_scales(scales: Tensor, floor: Tensor, gradient: Literal["clamp", "inward"]) -> Tensor:
+    """max(scales, floor) elementwise (floor: a detached tensor of the same shape), with the
+    multipliers' gradient rule: "clamp" passes none below the floor, "inward" passes the gradients
+    that would grow a surfel back over it."""
+    if gradient == "inward":
+        return _InwardClamp.apply(scales, floor, torch.full_like(floor, math.inf))
+    return torch.maximum(scales, floor)
+
+
 def clamp_multipliers(x: Tensor, lo: float, hi: float, gradient: Literal["clamp", "inward"]) -> Tensor:
     """Eq. 9's clamp of the scale multipliers; the values are the same for both gradient rules."""
     return _InwardClamp.apply(x, lo, hi) if gradient == "inward" else x.clamp(lo, hi)
@@ -448,6 +472,9 @@ class GaussianAdapter(torch.nn.Module):
             # Eq. 9's sigma-hat in [1/3, 3]
             multipliers = clamp_multipliers(F.softplus(raw_scale), 1 / r, r, cfg.multiplier_gradient)
             scales = frames.base_scales * multipliers[..., :2]  # Eq. 9
+            if cfg.scale_floor is not None:
+                floor = torch.cat(footprint_bounds(points_cam.detach(), K, cfg.scale_floor), dim=-1)
+                scales = floor_scales(scales, floor, cfg.multiplier_gradient)
             if cfg.primitive == "gaussian3d":
                 # No base scale exists along the normal; use the mean tangent scale, times its multiplier.
                 thickness = frames.base_scales.mean(-1, keepdim=True) * multipliers[..., 2:]
