@@ -384,3 +384,39 @@ def test_sequential_matching_with_quadratic_overlap_matches_powers_of_two_ahead(
         matched = {(p.first, p.second): p.matches for p in summary.pairs}
         assert set(matched) == {(names[i], names[i + d]) for i in range(6) for d in offsets if i + d < 6}
         assert all(m > 0 for m in matched.values()), matched  # each listed pair was matched by COLMAP
+
+
+def _label_boxes(svg: str) -> list[tuple[float, float, float, float]]:
+    import re
+
+    boxes = []
+    for x, y, text in re.findall(r'<text x="([\d.-]+)" y="([\d.-]+)" font-size="11">([^<]*)</text>', svg):
+        x, y = float(x), float(y)
+        boxes.append((x, y - 10, x + 6.2 * len(text), y + 2))
+    return boxes
+
+
+def test_top_view_labels_never_overlap_and_every_dot_names_its_photo():
+    from surfsplat.export.paths import CameraSet
+    from surfsplat.poses.report import top_view_svg
+
+    # Three cameras 10 units apart, then seventeen within 5 cm of the middle one (a pause in a walk,
+    # where the names would pile up on each other).
+    x = torch.cat((torch.tensor([0.0, 10.0, 20.0]), 10.0 + torch.linspace(0.003, 0.05, 17)))
+    c2w = torch.eye(4).repeat(20, 1, 1)
+    c2w[:, 0, 3] = x
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]).repeat(20, 1, 1)
+    names = [f"frame_{i:05d}.png" for i in range(20)]
+    svg = top_view_svg(CameraSet(Cameras(c2w, K), 64, 48, names))
+    assert all(f"<title>{n}</title>" in svg for n in names)
+    labelled = [n for n in names if f">{n}</text>" in svg]
+    boxes = _label_boxes(svg)
+    assert len(boxes) == len(labelled)
+    assert all(
+        not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
+        for i, a in enumerate(boxes)
+        for b in boxes[:i]
+    )
+    # The spread cameras keep their names; most of the cluster's are hidden, and the picture says so.
+    assert names[:3] == labelled[:3] and len(labelled) <= 6
+    assert f"{20 - len(labelled)} of 20 names hidden" in svg

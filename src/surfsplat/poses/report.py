@@ -96,7 +96,8 @@ def _angle_deg(R: torch.Tensor) -> float:
 
 def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
     """An SVG of the cameras seen from above: the x-z plane of the first camera, each camera a
-    dot and its horizontal field of view as a wedge, labelled with its photo's name."""
+    dot and its horizontal field of view as a wedge, labelled with its photo's name where the label
+    has room (`_place_labels`); every dot names its photo on hover."""
     c2w = camera_set.cameras.c2w.to(torch.float64).numpy()
     K = camera_set.cameras.K.to(torch.float64).numpy()
     centres = c2w[:, [0, 2], 3]
@@ -124,15 +125,58 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
 
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{height}" font-family="sans-serif">']
     parts.append(f'<rect width="{size}" height="{height}" fill="white" stroke="#ccc"/>')
+    dots = []
     for (centre, left, right), name in zip(shapes, camera_set.names):
         parts.append(
             f'<polygon points="{px(centre)} {px(left)} {px(right)}" fill="#0072B2" fill-opacity="0.15" stroke="#0072B2"/>'
         )
         x, y = (float(v) for v in px(centre).split(","))
-        parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="#D55E00"/>')
-        parts.append(f'<text x="{x + 5:.1f}" y="{y + 14:.1f}" font-size="11">{_escape(name)}</text>')
+        dots.append((x, y))
+        parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="#D55E00"><title>{_escape(name)}</title></circle>')
+    labels = _place_labels(dots, list(camera_set.names), size, height)
+    for name, spot in zip(camera_set.names, labels):
+        if spot is not None:
+            parts.append(f'<text x="{spot[0]:.1f}" y="{spot[1]:.1f}" font-size="11">{_escape(name)}</text>')
+    hidden = sum(spot is None for spot in labels)
+    if hidden:
+        parts.append(
+            f'<text x="6" y="{height - 6}" font-size="10" fill="#666">{hidden} of {len(labels)} names hidden where '
+            "they would overlap; hover a dot for its photo</text>"
+        )
     parts.append("</svg>\n")
     return "\n".join(parts)
+
+
+_CHAR_W, _LINE_H = 6.2, 12.0  # rough extent of an 11-pixel sans-serif character
+
+
+def _place_labels(
+    dots: list[tuple[float, float]], names: list[str], width: float, height: float
+) -> list[tuple[float, float] | None]:
+    """Text anchors (x, baseline y) for each dot's name, or None where no spot beside the dot keeps
+    the label inside the picture and clear of the labels placed before it and of the other dots.
+    Greedy, in the cameras' order: the first camera of a tight cluster gets its name."""
+    boxes: list[tuple[float, float, float, float]] = []
+    out: list[tuple[float, float] | None] = []
+    for i, ((x, y), name) in enumerate(zip(dots, names)):
+        w = _CHAR_W * len(name)
+        spot = None
+        for dx, dy in ((5, 14), (5, -5), (-5 - w, 14), (-5 - w, -5)):
+            box = (x + dx, y + dy - _LINE_H + 2, x + dx + w, y + dy + 2)
+            inside = box[0] >= 0 and box[1] >= 0 and box[2] <= width and box[3] <= height
+            clear = not any(_overlap(box, b) for b in boxes) and not any(
+                _overlap(box, (ox - 3, oy - 3, ox + 3, oy + 3)) for j, (ox, oy) in enumerate(dots) if j != i
+            )
+            if inside and clear:
+                spot = (box[0], y + dy)
+                boxes.append(box)
+                break
+        out.append(spot)
+    return out
+
+
+def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def _rotate(v: np.ndarray, angle: float) -> np.ndarray:
