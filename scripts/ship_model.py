@@ -49,7 +49,13 @@ def main() -> None:
             "loss": {k: v for k, v in run["loss"].items() if k.endswith("_weight")},
             "adapter": {
                 k: run["model"]["adapter"][k]
-                for k in ("tangent_clamp", "tangent_clamp_unit", "multiplier_gradient", "scale_multiplier_range")
+                for k in (
+                    "tangent_clamp",
+                    "tangent_clamp_unit",
+                    "multiplier_gradient",
+                    "scale_multiplier_range",
+                    "scale_floor",
+                )
                 if k in run["model"]["adapter"]
             },
             "highres": {k: run["data"][k] for k in ("highres_factor", "highres_crop") if k in run["data"]},
