@@ -73,7 +73,7 @@ def test_synthetic_room_four_views_focal_unknown_within_tolerances(orbit_views):
     images, truth, depth = orbit_views
     cams, summary = estimate_cameras(images)
     assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
-    assert summary.method == "incremental" and summary.focal_source.startswith("estimated by bundle adjustment")
+    assert summary.method.startswith("incremental") and summary.focal_source.startswith("estimated by bundle adjustment")
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     assert rot.max() < 1.0 and trans.max() < 2.0, (rot, trans)
     assert abs(summary.focal / float(truth.K[0, 0, 0]) - 1) < 0.05
@@ -85,6 +85,29 @@ def test_synthetic_room_four_views_focal_unknown_within_tolerances(orbit_views):
     assert float(first.quantile(0.1)) < 4 < float(first.quantile(0.9))
     visible = depth[depth > 0].double() * scale
     assert cams.near < float(visible.quantile(0.02)) and cams.far > float(visible.quantile(0.98))
+
+
+@pytest.mark.slow
+def test_a_mapping_run_that_registers_too_few_images_is_run_again(orbit_views, monkeypatch):
+    import pycolmap
+
+    # COLMAP's threads can make a run stop after its first images; here the first run finds nothing.
+    real, calls = pycolmap.incremental_mapping, []
+
+    def first_run_fails(*args, **kwargs):
+        calls.append(args[3].random_seed)
+        return {} if len(calls) == 1 else real(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", first_run_fails)
+    images, truth, _ = orbit_views
+    cams, summary = estimate_cameras(images, config=PoseConfig(seed=7))
+    assert calls == [7, 8]  # one more run, with the next seed, and no more once every image is in
+    assert summary.method == "incremental (the largest of 2 mapping runs)"
+    assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
+    rot, _ = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot.max() < 1.0
+    with pytest.raises(SurfSplatInputError, match="mapping_attempts"):
+        PoseConfig(mapping_attempts=0)
 
 
 @pytest.mark.slow

@@ -90,7 +90,10 @@ class PoseConfig:
     quadratic_overlap: bool = True  # sequential: the images 2^k ahead (k < overlap) instead, COLMAP's default
     exhaustive_max_images: int = 30  # auto: exhaustive matching up to this many images, sequential above
     threads: int = -1  # CPU threads for pycolmap (-1: all)
-    seed: int = 0  # RANSAC and mapper seed: the same photos give the same cameras
+    seed: int = 0  # RANSAC and mapper seed (COLMAP's threads can still change the outcome between runs)
+    # Incremental mapping is run again (seed + 1, + 2, ...) while the best model so far leaves out an
+    # image that has a verified pair: with several threads a run can stop after its first two images.
+    mapping_attempts: int = 5
     colmap_log: bool = False  # let COLMAP log its stages to stderr
 
     def __post_init__(self) -> None:
@@ -98,6 +101,8 @@ class PoseConfig:
             raise SurfSplatInputError(f"matching: expected 'auto', 'exhaustive' or 'sequential', got {self.matching!r}")
         if self.sequential_overlap < 1:
             raise SurfSplatInputError(f"sequential_overlap: expected at least 1, got {self.sequential_overlap}")
+        if self.mapping_attempts < 1:
+            raise SurfSplatInputError(f"mapping_attempts: expected at least 1, got {self.mapping_attempts}")
         if self.focal is not None and not (math.isfinite(self.focal) and self.focal > 0):
             raise SurfSplatInputError(f"--focal: expected a positive focal length in pixels, got {self.focal}")
         if self.max_size < 64:
@@ -128,7 +133,7 @@ class PoseSummary:
     images: list[str]  # every input image, in input order
     registered: list[str]  # the images that got a camera, in input order
     pairs: list[PairStats]
-    method: str  # "two-view" or "incremental"
+    method: str  # "two-view", or "incremental" (with how many mapping runs when more than one)
     points: int  # triangulated 3D points
     reprojection_error: float  # mean, in pixels of the input images
     focal: float  # pixels of the input images
@@ -661,8 +666,19 @@ class _Workspace:
         # COLMAP threads BA only above 50,000 residuals; a few thousand points of 8 photos are below
         # that and then take 30 % longer (measured: 8 views at 1000 px, 28.7 s -> 20.1 s mapping)
         options.ba_min_num_residuals_for_cpu_multi_threading = 1000
-        models = pycolmap.incremental_mapping(self.database, self.images, self.root / "sparse", options)
-        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        connected = len({p.first for p in usable} | {p.second for p in usable})
+        best, runs = None, 0
+        for attempt in range(cfg.mapping_attempts):
+            runs += 1
+            options.random_seed = cfg.seed + attempt
+            out = self.root / "sparse" / str(attempt)
+            out.mkdir(parents=True, exist_ok=True)
+            models = pycolmap.incremental_mapping(self.database, self.images, out, options)
+            largest = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+            if largest is not None and (best is None or largest.num_reg_images() > best.num_reg_images()):
+                best = largest
+            if best is not None and best.num_reg_images() >= connected:
+                break
         if best is None or best.num_reg_images() < 2:
             recon = self.two_view(max(usable, key=lambda p: p.inliers))
             return recon, "two-view (the incremental mapper registered fewer than 2 images)", None
@@ -683,7 +699,7 @@ class _Workspace:
                 f"{{source}}, kept: the viewing directions span only {spread:.1f} deg, too little to refine it "
                 f"(at least {cfg.focal_observable_angle:g} deg)"
             )
-        return best, "incremental", note
+        return best, "incremental" if runs == 1 else f"incremental (the largest of {runs} mapping runs)", note
 
 
 def _axis_spread(recon) -> float:
