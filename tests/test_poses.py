@@ -73,7 +73,9 @@ def test_synthetic_room_four_views_focal_unknown_within_tolerances(orbit_views):
     images, truth, depth = orbit_views
     cams, summary = estimate_cameras(images)
     assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
-    assert summary.method.startswith("incremental") and summary.focal_source.startswith("estimated by bundle adjustment")
+    assert summary.method.startswith("incremental") and summary.focal_source.startswith(
+        "estimated by bundle adjustment"
+    )
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     assert rot.max() < 1.0 and trans.max() < 2.0, (rot, trans)
     assert abs(summary.focal / float(truth.K[0, 0, 0]) - 1) < 0.05
