@@ -93,19 +93,17 @@ class AdapterConfig:
                 "adapter.mode: 'official' reproduces the release, which has prior='surface' and primitive='surfel'; "
                 f"got prior={self.prior!r}, primitive={self.primitive!r}"
             )
-        if self.mode == "official" and self.scale_floor is not None:
+        release_rules = (self.tangent_clamp_unit, self.multiplier_gradient, self.scale_floor)
+        if self.mode == "official" and release_rules != ("world", "clamp", None):
             raise SurfSplatInputError(
-                f"adapter.mode: 'official' reproduces the release, which has no scale floor; got scale_floor={self.scale_floor!r}"
+                "adapter.mode: 'official' reproduces the release, which clamps tangents in world units with a plain "
+                f"clamp and no scale floor; got tangent_clamp_unit={self.tangent_clamp_unit!r}, "
+                f"multiplier_gradient={self.multiplier_gradient!r}, scale_floor={self.scale_floor!r}"
             )
         floor = self.scale_floor
         if floor is not None and (isinstance(floor, bool) or not isinstance(floor, (int, float)) or not 0 < floor < 4):
             raise SurfSplatInputError(
                 f"adapter.scale_floor: expected None or a value in (0, 4) footprints, got {floor!r}"
-            )
-        if self.mode == "official" and (self.tangent_clamp_unit, self.multiplier_gradient) != ("world", "clamp"):
-            raise SurfSplatInputError(
-                "adapter.mode: 'official' reproduces the release, which clamps tangents in world units with a plain "
-                f"clamp; got tangent_clamp_unit={self.tangent_clamp_unit!r}, multiplier_gradient={self.multiplier_gradient!r}"
             )
         if not 0 < self.opacity_max <= 1:
             raise SurfSplatInputError(f"adapter.opacity_max: expected a value in (0, 1], got {self.opacity_max}")
