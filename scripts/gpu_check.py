@@ -48,8 +48,11 @@ def peak_bytes(device: torch.device) -> tuple[int, str]:
     return peak_memory(device)
 
 
-def render_pass(gaussians, cameras, size: int, backend: str, device: torch.device, weights: dict) -> dict:
-    """Forward and backward of sum(weights * outputs) with `backend` on `device`."""
+def render_pass(
+    gaussians, cameras, size: int, backend: str, device: torch.device, weights: dict, mode: str = "surfel"
+) -> dict:
+    """Forward and backward of sum(weights * outputs) with `backend` on `device` (no forced-alpha
+    normalization: it divides by small alphas and would magnify float32 rounding)."""
     from surfsplat.render import render
 
     leaves = {k: getattr(gaussians, k).detach().to(device).requires_grad_(True) for k in ATTRIBUTES}
@@ -57,7 +60,7 @@ def render_pass(gaussians, cameras, size: int, backend: str, device: torch.devic
     cams = cameras.to(device)
     sync(device)
     start = time.perf_counter()
-    out = render(g, cams, size, size, backend=backend)
+    out = render(g, cams, size, size, backend=backend, mode=mode, alpha_threshold=None)
     sync(device)
     forward = time.perf_counter() - start
     loss = sum((getattr(out, k) * weights[k].to(device)).sum() for k in ("color", "alpha", "depth"))
@@ -72,8 +75,14 @@ def render_pass(gaussians, cameras, size: int, backend: str, device: torch.devic
     }
 
 
-def compare_renderers(candidate: str, device: torch.device, resolution: int, factors: tuple[int, ...]) -> dict:
-    """`candidate` backend on `device` against the compiled CPU renderer, per factor."""
+def compare_renderers(
+    candidate: str, device: torch.device, resolution: int, factors: tuple[int, ...], mode: str = "surfel"
+) -> dict:
+    """`candidate` backend on `device` against the compiled CPU renderer (float64 there), per factor.
+
+    For the gsplat backend in "surfel" mode the depth is the blended centre depth by design
+    (`surfsplat.render.gsplat_backend`), so its depth difference is reported, not a defect.
+    """
     from surfsplat.scenes import make_scene
 
     scene = make_scene(resolution=resolution, views=2, opacity=0.5)
@@ -85,8 +94,9 @@ def compare_renderers(candidate: str, device: torch.device, resolution: int, fac
         weights = {
             k: torch.rand(1, c, size, size, generator=gen) for k, c in (("color", 3), ("alpha", 1), ("depth", 1))
         }
-        ref = render_pass(scene.gaussians, cams, size, "cpu", torch.device("cpu"), weights)
-        got = render_pass(scene.gaussians, cams, size, candidate, device, weights)
+        ref_scene = type(scene.gaussians)(**{k: getattr(scene.gaussians, k).double() for k in ATTRIBUTES})
+        ref = render_pass(ref_scene, cams.to(torch.float64), size, "cpu", torch.device("cpu"), weights, mode)
+        got = render_pass(scene.gaussians, cams, size, candidate, device, weights, mode)
         rows[f"x{s}"] = {
             "size": size,
             "max_abs_diff": {k: float((got["outputs"][k] - ref["outputs"][k]).abs().max()) for k in ref["outputs"]},
@@ -101,7 +111,7 @@ def compare_renderers(candidate: str, device: torch.device, resolution: int, fac
                 "cpu_backward": ref["seconds_backward"],
             },
         }
-    return {"surfels": len(scene.gaussians), "factors": rows}
+    return {"surfels": len(scene.gaussians), "mode": mode, "factors": rows}
 
 
 def encoder_timings(preset: str, size: int, device: torch.device, repeats: int) -> dict:
@@ -218,6 +228,11 @@ def main() -> int:
     parser.add_argument("--preset", default=None, help="encoder and training preset (default small; quick: tiny)")
     parser.add_argument("--size", type=int, default=None, help="encoder and training image size (default 256)")
     parser.add_argument("--train-steps", type=int, default=None, help="bf16 training steps (default 20)")
+    parser.add_argument(
+        "--steps",
+        default="renderer,gsplat,encoder,training",
+        help="comma-separated steps to run (default: all of renderer, gsplat, encoder, training)",
+    )
     args = parser.parse_args()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -240,15 +255,24 @@ def main() -> int:
         "settings": {"preset": preset, "size": size, "train_steps": steps, "render_resolution": resolution},
         "steps": {},
     }
-    run_step(report, "renderer_torch_vs_cpu", compare_renderers, "torch", device, resolution, factors)
-    if gsplat_available(device):
-        run_step(report, "renderer_gsplat_vs_cpu", compare_renderers, "gsplat", device, resolution, factors)
+    wanted = set(args.steps.split(","))
+    if "renderer" in wanted:
+        run_step(report, "renderer_torch_vs_cpu", compare_renderers, "torch", device, resolution, factors)
+    if "gsplat" not in wanted:
+        pass
+    elif gsplat_available(device):
+        for mode in ("surfel", "ewa"):
+            run_step(
+                report, f"renderer_gsplat_vs_cpu_{mode}", compare_renderers, "gsplat", device, resolution, factors, mode
+            )
     else:
         reason = "not a CUDA device" if device.type != "cuda" else "the gsplat package does not import"
         report["steps"]["renderer_gsplat_vs_cpu"] = {"status": "skipped", "reason": reason}
         print(f"renderer_gsplat_vs_cpu: skipped ({reason})", flush=True)
-    run_step(report, "encoder_fp32_bf16", encoder_timings, preset, size, device, 3)
-    run_step(report, "training_bf16", training_steps, preset, size, steps, device)
+    if "encoder" in wanted:
+        run_step(report, "encoder_fp32_bf16", encoder_timings, preset, size, device, 3)
+    if "training" in wanted:
+        run_step(report, "training_bf16", training_steps, preset, size, steps, device)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1))
     print(f"wrote {args.out} (ran on {'GPU' if report['ran_on_gpu'] else 'CPU'}: {report['device']})")

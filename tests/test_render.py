@@ -181,8 +181,10 @@ def test_result_does_not_depend_on_tiling_or_block_size():
         TorchRenderSettings(tile_size=8, block_elements=256, max_block_depth=3),
     ):
         other = render(g, cam, 64, 48, settings=settings)
+        # float32: a pixel's terms are expanded around its tile's origin, up to 16 px from the
+        # pixel, so rho carries ~2 * 16^2 * 6e-8 of rounding at tile size 16.
         for name in ("color", "alpha", "depth", "normal"):
-            assert torch.allclose(getattr(base, name), getattr(other, name), atol=1e-5), name
+            assert torch.allclose(getattr(base, name), getattr(other, name), atol=3e-5), name
 
 
 def test_early_termination_follows_the_3dgs_rule():

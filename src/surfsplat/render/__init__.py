@@ -14,13 +14,14 @@ from ..geometry.cameras import Cameras
 from .cpu import CpuRenderSettings
 from .cpu import backend_unavailable as cpu_backend_unavailable
 from .torch_backend import TorchRenderSettings, render_torch
-from .types import BACKENDS, Backend, RenderMode, RenderOutput
+from .types import BACKENDS, Backend, RenderConventions, RenderMode, RenderOutput
 
 __all__ = [
     "render",
     "RenderOutput",
     "TorchRenderSettings",
     "CpuRenderSettings",
+    "RenderConventions",
     "normalize_by_alpha",
     "gsplat_available",
     "resolve_backend",
@@ -64,7 +65,8 @@ def render(
     backend:         "torch" (reference, any device), "cpu" (compiled numba kernels), "gsplat" (CUDA) or
                      "auto": see `resolve_backend`.
     settings:        TorchRenderSettings or CpuRenderSettings of the chosen backend; with "auto" the
-                     settings' type picks that backend.
+                     settings' type picks that backend. Both carry the `RenderConventions` (low-pass
+                     centre, EWA Jacobian clamp and support) that every backend, gsplat's too, follows.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
     """
     _validate(gaussians, cameras, width, height, mode, alpha_threshold)
@@ -80,7 +82,8 @@ def render(
             )
         from .gsplat_backend import render_gsplat
 
-        color, alpha, depth, normal = render_gsplat(gaussians, cameras, width, height, mode)
+        conventions = settings if isinstance(settings, RenderConventions) else None
+        color, alpha, depth, normal = render_gsplat(gaussians, cameras, width, height, mode, conventions)
     elif backend == "cpu":
         from .cpu import render_cpu
 

@@ -25,11 +25,23 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..geometry.sh import sh_to_color
-from .types import ALPHA_MAX, ALPHA_MIN, EWA_DILATION, LOG_ALPHA_MIN, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN, RenderMode
+from .types import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    EWA_DILATION,
+    EWA_LAMBDA_GAP_MIN,
+    EWA_RADIUS_SIGMAS,
+    EWA_TILE,
+    LOG_ALPHA_MIN,
+    LOWPASS_RHO_SCALE,
+    TRANSMITTANCE_MIN,
+    RenderConventions,
+    RenderMode,
+)
 
 
 @dataclass
-class TorchRenderSettings:
+class TorchRenderSettings(RenderConventions):
     tile_size: int = 4  # tile edge in pixels (small tiles waste fewer pair-pixel slots)
     block_elements: int = 1 << 22  # pair-pixel slots evaluated per work block (bounds peak memory)
     max_block_depth: int = 128  # at most this many Gaussians per tile in one block
@@ -52,6 +64,7 @@ class Projected:
     opacity: Tensor  # [M]
     features: Tensor  # [M, 6 or 7] colour (3), normal (3) [, centre depth (1) for ewa]
     pixel_box: Tensor  # [M, 4] int64 inclusive pixel ranges: col0, col1, row0, row1
+    transform: Tensor | None = None  # surfel: [M, 3, 3] T = K [R S e1, R S e2, mu] (rows T_x, T_y, T_w)
 
 
 def _take(x: Tensor, index: Tensor) -> Tensor:
@@ -78,6 +91,31 @@ def _pixel_box(xmin: Tensor, xmax: Tensor, ymin: Tensor, ymax: Tensor, width: in
     return torch.stack((col0, col1, row0, row1), dim=-1)
 
 
+def _release_tile_box(center: Tensor, a: Tensor, b: Tensor, c: Tensor, width: int, height: int) -> Tensor:
+    """Pixels diff-gaussian-rasterization lets an EWA Gaussian reach: its 16x16 tiles (see `RenderConventions`).
+
+    (a, b, c) is the dilated 2D covariance. The square of radius r = ceil(3 sqrt(lambda_max)),
+    lambda_max = mid + sqrt(max(0.1, mid^2 - det)), around the centre in that rasterizer's pixel
+    frame (pixel centres at integers: our centre - 0.5) selects the tiles floor((p - r) / 16) up
+    to, exclusive, floor((p + r + 15) / 16), clamped to the grid; every pixel of those tiles is
+    then tested against the alpha threshold. An empty tile range culls the Gaussian.
+    """
+    mid = 0.5 * (a + c)
+    lam = mid + (mid * mid - (a * c - b * b)).clamp_min(EWA_LAMBDA_GAP_MIN).sqrt()
+    radius = torch.ceil(EWA_RADIUS_SIGMAS * lam.clamp_min(0).sqrt())
+    p = center - 0.5
+    grid = torch.tensor([-(-width // EWA_TILE), -(-height // EWA_TILE)], dtype=p.dtype, device=p.device)
+    t0 = torch.minimum(torch.floor((p - radius[:, None]) / EWA_TILE).clamp_min(0), grid)
+    t1 = torch.minimum(torch.floor((p + radius[:, None] + EWA_TILE - 1) / EWA_TILE).clamp_min(0), grid)
+    empty = (t1 <= t0).any(dim=1)
+    size = torch.tensor([width, height], dtype=p.dtype, device=p.device)
+    first = t0 * EWA_TILE
+    last = torch.minimum(t1 * EWA_TILE, size) - 1
+    last = torch.where(empty[:, None], first - 1, last)  # an empty range, culled below
+    box = torch.stack((first[:, 0], last[:, 0], first[:, 1], last[:, 1]), dim=-1)
+    return box.clamp(-1, max(width, height)).long()
+
+
 def _cull_and_sort(depth: Tensor, box: Tensor, opacity: Tensor, settings: TorchRenderSettings) -> Tensor:
     keep = (depth > settings.near_plane) & (depth < settings.far_plane) & (opacity >= ALPHA_MIN)
     keep &= (box[:, 0] <= box[:, 1]) & (box[:, 2] <= box[:, 3])
@@ -96,6 +134,28 @@ def _camera_facing(normals: Tensor, means_cam: Tensor, R_cw: Tensor) -> Tensor:
 def _colors(sh: Tensor, means: Tensor, center: Tensor) -> Tensor:
     dirs = F.normalize(means - center, dim=-1)
     return sh_to_color(sh, dirs)
+
+
+def lowpass_center(Tx: Tensor, Ty: Tensor, Tw: Tensor, z: Tensor, sigma: float | None) -> Tensor:
+    """[N, 2] centre c of the surfel low-pass term rho2d = 2 |p - c|^2 (see `RenderConventions`).
+
+    With k = sigma, the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
+    T diag(1, 1, -1/k^2) T^T; its box centre is (C02, C12) / C22 while C22 < 0 (an ellipse).
+    This is 2DGS's `compute_aabb` point (t = (k^2, k^2, -1) there, the same ratio). Elsewhere,
+    and for sigma None, c is the projected surfel centre (T_x[2], T_y[2]) / z.
+    """
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    projected = torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
+    if sigma is None:
+        return projected
+    e = -1.0 / (sigma * sigma)
+    c02 = Tx[:, 0] * Tw[:, 0] + Tx[:, 1] * Tw[:, 1] + e * Tx[:, 2] * Tw[:, 2]
+    c12 = Ty[:, 0] * Tw[:, 0] + Ty[:, 1] * Tw[:, 1] + e * Ty[:, 2] * Tw[:, 2]
+    c22 = Tw[:, 0] * Tw[:, 0] + Tw[:, 1] * Tw[:, 1] + e * Tw[:, 2] * Tw[:, 2]
+    bounded = c22 < -1e-12
+    safe22 = torch.where(bounded, c22, -torch.ones_like(c22))
+    box = torch.stack((c02 / safe22, c12 / safe22), dim=-1)
+    return torch.where(bounded[:, None], box, projected)
 
 
 def project_surfels(
@@ -143,29 +203,33 @@ def project_surfels(
     hx = (c02 * c02 - c00 * safe22).clamp_min(0).sqrt() / safe22.abs()
     hy = (c12 * c12 - c11 * safe22).clamp_min(0).sqrt() / safe22.abs()
     z = mu[:, 2]
-    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
-    center = torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
+    # The cross product is expanded around the projected centre (always next to the surfel, so
+    # tile offsets stay small); the low-pass term has its own centre (see `RenderConventions`).
+    center = lowpass_center(Tx, Ty, Tw, z, None)
+    lowpass = lowpass_center(Tx, Ty, Tw, z, settings.lowpass_center_sigma)
     r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
     inf = torch.full_like(hx, math.inf)
-    xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), center[:, 0] - r_lp)
-    xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), center[:, 0] + r_lp)
-    ymin = torch.minimum(torch.where(bounded, cy_e - hy, -inf), center[:, 1] - r_lp)
-    ymax = torch.maximum(torch.where(bounded, cy_e + hy, inf), center[:, 1] + r_lp)
+    xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), lowpass[:, 0] - r_lp)
+    xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), lowpass[:, 0] + r_lp)
+    ymin = torch.minimum(torch.where(bounded, cy_e - hy, -inf), lowpass[:, 1] - r_lp)
+    ymax = torch.maximum(torch.where(bounded, cy_e + hy, inf), lowpass[:, 1] + r_lp)
     box = _pixel_box(xmin.detach(), xmax.detach(), ymin.detach(), ymax.detach(), width, height)
 
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
     Tx, Ty, Tw, center = _take(Tx, idx), _take(Ty, idx), _take(Tw, idx), _take(center, idx)
+    lowpass_shift = _take(lowpass, idx) - center
     B = torch.linalg.cross(Ty, Tw)
     C = torch.linalg.cross(Tw, Tx)
     # Cross product at the projected centre, so that tiles expand it over small offsets only.
     A_c = torch.linalg.cross(Tx, Ty) + center[:, :1] * B + center[:, 1:] * C
     det = (Tw * torch.linalg.cross(Tx, Ty)).sum(-1)
-    geometry = torch.cat((A_c, B, C, det[:, None], Tw[:, 2:3]), dim=-1)  # [M, 11]
+    geometry = torch.cat((A_c, B, C, det[:, None], Tw[:, 2:3], lowpass_shift), dim=-1)  # [M, 13]
 
     normals = _camera_facing(_take(rotations[:, :, 2], idx), _take(mu, idx).to(means.dtype), w2c[:3, :3])
     colors = _colors(_take(sh, idx), _take(means, idx), cam_center)
     features = torch.cat((colors, normals), dim=-1)
-    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx])
+    transform = torch.stack((Tx, Ty, Tw), dim=1)
+    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform)
 
 
 def project_ewa(
@@ -190,8 +254,12 @@ def project_ewa(
     fx, fy, cx, cy, skew = K[0, 0].to(dt), K[1, 1].to(dt), K[0, 2].to(dt), K[1, 2].to(dt), K[0, 1].to(dt)
     x, y = mu[:, 0] / safe_z, mu[:, 1] / safe_z
     center = torch.stack((fx * x + skew * y + cx, fy * y + cy), dim=-1)
+    if settings.ewa_jacobian_clamp is not None:  # 3DGS: the Jacobian is taken at a point kept near the view
+        lim_x = settings.ewa_jacobian_clamp * width / (2 * fx)
+        lim_y = settings.ewa_jacobian_clamp * height / (2 * fy)
+        x, y = x.clamp(-lim_x, lim_x), y.clamp(-lim_y, lim_y)
     zero = torch.zeros_like(z)
-    # d(pixel)/d(camera point) at the mean.
+    # d(pixel)/d(camera point) at the (clamped) mean.
     J = torch.stack(
         (
             torch.stack((fx / safe_z, skew / safe_z, -(fx * x + skew * y) / safe_z), dim=-1),
@@ -207,16 +275,19 @@ def project_ewa(
     det = (a * c - b * b).clamp_min(1e-20)
     conic = torch.stack((c / det, -b / det, a / det), dim=-1)  # inverse of [[a, b], [b, c]]
 
-    k2 = _opacity_extent(opacities)
-    hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
-    box = _pixel_box(
-        (center[:, 0] - hx).detach(),
-        (center[:, 0] + hx).detach(),
-        (center[:, 1] - hy).detach(),
-        (center[:, 1] + hy).detach(),
-        width,
-        height,
-    )
+    if settings.ewa_support == "release":
+        box = _release_tile_box(center.detach(), a.detach(), b.detach(), c.detach(), width, height)
+    else:
+        k2 = _opacity_extent(opacities)
+        hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
+        box = _pixel_box(
+            (center[:, 0] - hx).detach(),
+            (center[:, 0] + hx).detach(),
+            (center[:, 1] - hy).detach(),
+            (center[:, 1] + hy).detach(),
+            width,
+            height,
+        )
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
 
     n = _camera_facing(_take(normals, idx), _take(mu, idx).to(means.dtype), w2c[:3, :3])
@@ -279,21 +350,23 @@ def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tu
 
     geometry: [n, k, G]; offset: [n, k, 2] = tile origin - projected centre.
     surfel: [4, n, k, 5] coefficients of the planes hx, hy, hz (h = A + dx B + dy C, the cross
-            product at the tile origin expanded over the pixel offsets) and rho2d = 2 |p - c|^2,
-            plus depth parameters [n, k, 2] = (det T, centre depth).
+            product at the tile origin expanded over the pixel offsets) and rho2d = 2 |p - c_lp|^2
+            (c_lp = projected centre + the geometry's low-pass shift), plus depth parameters
+            [n, k, 2] = (det T, centre depth).
     ewa:    [n, k, 6] coefficients of rho = d^T conic d with d = offset + (dx, dy).
     """
     ex, ey = offset[..., 0], offset[..., 1]
     if mode == "surfel":
         A_c, B, C = geometry[..., 0:3], geometry[..., 3:6], geometry[..., 6:9]
         A = A_c + ex[..., None] * B + ey[..., None] * C
+        lx, ly = ex - geometry[..., 11], ey - geometry[..., 12]  # tile origin - low-pass centre
         zero = torch.zeros_like(ex)
         coef = torch.stack(
             (
                 torch.stack((A[..., 0], B[..., 0], C[..., 0], zero, zero), -1),
                 torch.stack((A[..., 1], B[..., 1], C[..., 1], zero, zero), -1),
                 torch.stack((A[..., 2], B[..., 2], C[..., 2], zero, zero), -1),
-                LOWPASS_RHO_SCALE * torch.stack((ex * ex + ey * ey, 2 * ex, 2 * ey, zero + 1, zero), -1),
+                LOWPASS_RHO_SCALE * torch.stack((lx * lx + ly * ly, 2 * lx, 2 * ly, zero + 1, zero), -1),
             )
         )
         return coef, geometry[..., 9:11]

@@ -8,6 +8,8 @@ from typing import Literal, get_args
 
 from torch import Tensor
 
+from ..checks import SurfSplatInputError
+
 RenderMode = Literal["surfel", "ewa"]
 Backend = Literal["auto", "torch", "cpu", "gsplat"]
 BACKENDS: tuple[str, ...] = get_args(Backend)
@@ -19,6 +21,42 @@ ALPHA_MAX = 0.99  # alpha is clamped here so transmittance never reaches exactly
 TRANSMITTANCE_MIN = 1e-4  # a pixel stops accepting Gaussians once transmittance would drop below this
 LOWPASS_RHO_SCALE = 2.0  # 2DGS screen-space filter: rho2d = 2 |p - c|^2 (a 1/sqrt(2) px radius)
 EWA_DILATION = 0.3  # px^2 added to projected 2D covariances (3DGS)
+EWA_TILE = 16  # edge of the tiles through which diff-gaussian-rasterization lets a Gaussian reach pixels
+EWA_RADIUS_SIGMAS = 3.0  # its square of radius ceil(3 sqrt(lambda_max)) picks those tiles
+EWA_LAMBDA_GAP_MIN = 0.1  # and lambda_max = mid + sqrt(max(0.1, mid^2 - det)) there
+EwaSupport = Literal["release", "alpha"]
+
+
+@dataclass
+class RenderConventions:
+    """The rules where the field's reference rasterizers differ; every backend follows the same ones.
+
+    lowpass_center_sigma: the surfel low-pass term rho2d = 2 |p - c|^2 is centred on c, the centre
+        of the bounding box of the projected k-sigma ellipse with k = this value. 3 is 2DGS's
+        reference rasterizer (diff-surfel-rasterization, `compute_aabb` with cutoff 3), the
+        default; 1 is gsplat's `fully_fused_projection_2dgs`; None is the projected surfel centre
+        (the paper's wording). Where the k-sigma ellipse is not bounded (it crosses the camera
+        plane) the projected centre is used.
+    ewa_jacobian_clamp: in "ewa" mode the affine Jacobian is taken at the camera point with x/z
+        and y/z clamped to +-(this) tan(fov/2), tan(fov/2) = W / (2 fx) and H / (2 fy) (3DGS's
+        1.3, the default; gsplat's limit is the same for a centred principal point). None: no clamp.
+    ewa_support: which pixels an "ewa" Gaussian reaches. "release" (default): the pixels of the
+        16x16 tiles overlapped by its square of radius ceil(3 sqrt(lambda_max)), as
+        diff-gaussian-rasterization (the released SurfSplat's renderer) does; "alpha": exactly the
+        pixels where its alpha can reach 1/255 (never truncated, as gsplat's 3.33-sigma boxes).
+    """
+
+    lowpass_center_sigma: float | None = 3.0
+    ewa_jacobian_clamp: float | None = 1.3
+    ewa_support: EwaSupport = "release"
+
+    def __post_init__(self) -> None:
+        for name in ("lowpass_center_sigma", "ewa_jacobian_clamp"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int | float) and value > 0 and math.isfinite(value)):
+                raise SurfSplatInputError(f"settings.{name}: expected a positive number or None, got {value!r}")
+        if self.ewa_support not in get_args(EwaSupport):
+            raise SurfSplatInputError(f"settings.ewa_support: expected 'release' or 'alpha', got {self.ewa_support!r}")
 
 
 @dataclass

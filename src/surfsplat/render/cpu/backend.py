@@ -8,6 +8,7 @@ or one cast) - which also keeps torch's own thread pool out of the way of the ke
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
@@ -97,6 +98,17 @@ def _cameras(cameras: Cameras, width: int, height: int) -> list[_Camera]:
     ]
 
 
+def _convention_args(settings: CpuRenderSettings) -> tuple[float, float, bool]:
+    """The kernels' form of the settings' `RenderConventions`: (low-pass sigma or 0, clamp or inf, release support)."""
+    sigma = settings.lowpass_center_sigma
+    clamp = settings.ewa_jacobian_clamp
+    return (
+        0.0 if sigma is None else float(sigma),
+        math.inf if clamp is None else float(clamp),
+        settings.ewa_support == "release",
+    )
+
+
 def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSettings) -> _Plan:
     """Rotations, projection, culling, depth sort and tile lists (the kernels' first half)."""
     x, q, sc, op, shc, cov = inputs
@@ -126,6 +138,7 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
         camera.height,
         settings.near_plane,
         settings.far_plane,
+        *_convention_args(settings),
         geom,
         box,
         keep,
@@ -257,6 +270,9 @@ class _Rasterize(torch.autograd.Function):
             camera.t_cw,
             camera.center,
             camera.K,
+            camera.width,
+            camera.height,
+            *_convention_args(settings)[:2],
             plan.geom,
             plan.flip,
             g_means,

@@ -21,9 +21,10 @@ the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
 Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
-  surfel: projected centre c, log opacity, centre depth mu_z, det T, and the cross product
+  surfel: projected centre c, log opacity, centre depth mu_z, det T, the cross product
           h(p) = A + p_x B + p_y C of 2DGS stored as A_c = h(c), B, C, so that
-          h(p) = A_c + (p_x - c_x) B + (p_y - c_y) C stays exact far from the image origin.
+          h(p) = A_c + (p_x - c_x) B + (p_y - c_y) C stays exact far from the image origin,
+          and the centre c_lp of the low-pass term rho2d = 2 |p - c_lp|^2.
   ewa:    projected centre, log opacity, centre depth and the inverse 2D covariance (a, b, c).
 """
 
@@ -36,13 +37,24 @@ from numba import get_thread_id, njit, prange
 
 from ...gaussians import THIN_SCALE
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
-from ..types import ALPHA_MAX, ALPHA_MIN, EWA_DILATION, LOG_ALPHA_MIN, LOWPASS_RHO_SCALE, TRANSMITTANCE_MIN
+from ..types import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    EWA_DILATION,
+    EWA_LAMBDA_GAP_MIN,
+    EWA_RADIUS_SIGMAS,
+    EWA_TILE,
+    LOG_ALPHA_MIN,
+    LOWPASS_RHO_SCALE,
+    TRANSMITTANCE_MIN,
+)
 
 # Columns of the per-Gaussian coefficient rows.
 GEOM_CX, GEOM_CY, GEOM_LOGO, GEOM_DEPTH, GEOM_DET = 0, 1, 2, 3, 4
 GEOM_A, GEOM_B, GEOM_C = 5, 8, 11  # surfel: A_c, B, C (3 each)
 GEOM_CONIC = 5  # ewa: conic (a, b, c) of rho = a dx^2 + 2 b dx dy + c dy^2
-GEOM_SIZE = 14
+GEOM_LP = 14  # surfel: the low-pass centre (2; `RenderConventions.lowpass_center_sigma`)
+GEOM_SIZE = 16
 
 # Columns of the per-Gaussian gradient rows produced by the compositing backward pass.
 GRAD_H, GRAD_HX, GRAD_HY = 0, 3, 6  # surfel: sum g_h, sum dx g_h, sum dy g_h over the pixels
@@ -92,10 +104,50 @@ def _opacity_extent(opacity):
 
 @njit(cache=True, error_model="numpy")
 def _pixel_range(lo, hi, size):
-    """Inclusive pixel indices whose centres i + 0.5 lie in [lo, hi], clamped to the image."""
+    """Inclusive pixel indices whose centres i + 0.5 lie in [lo, hi], clamped to the image.
+
+    The bounds are clamped before rounding: an unbounded footprint (a surfel crossing the camera
+    plane) has infinite bounds, and rounding an infinity to an integer is undefined (it gave
+    INT64_MIN, an empty range, and the surfel silently vanished).
+    """
+    lo = min(max(lo, -1.0), size + 1.0)
+    hi = min(max(hi, -1.0), size + 1.0)
     first = min(max(math.ceil(lo - 0.5), 0.0), float(size))
     last = min(max(math.floor(hi - 0.5), -1.0), float(size - 1))
     return int(first), int(last)
+
+
+@njit(cache=True, error_model="numpy")
+def _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, z, sigma):
+    """Centre of the surfel low-pass term and the C22 it came from (0: the projected centre).
+
+    sigma > 0: the box centre of the projected sigma-ellipse, (C02, C12) / C22 of the dual conic
+    T diag(1, 1, -1/sigma^2) T^T while C22 < 0; otherwise (or sigma <= 0, meaning none) the
+    projected centre (T_x[2], T_y[2]) / z. The torch backend's `lowpass_center`.
+    """
+    if sigma > 0.0:
+        e = -1.0 / (sigma * sigma)
+        c22 = tw0 * tw0 + tw1 * tw1 + e * tw2 * tw2
+        if c22 < -1e-12:
+            c02 = tx0 * tw0 + tx1 * tw1 + e * tx2 * tw2
+            c12 = ty0 * tw0 + ty1 * tw1 + e * ty2 * tw2
+            return c02 / c22, c12 / c22, c22
+    safe_z = z if abs(z) > _NEAR_ZERO else 1.0
+    return tx2 / safe_z, ty2 / safe_z, 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _release_tile_range(p, radius, size):
+    """Inclusive pixel range of the 16-pixel tiles diff-gaussian-rasterization picks on one axis.
+
+    p is the centre in that rasterizer's pixel frame (ours - 0.5); empty ranges have first > last.
+    """
+    grid = float(-(-size // EWA_TILE))
+    t0 = min(max(math.floor((p - radius) / EWA_TILE), 0.0), grid)
+    t1 = min(max(math.floor((p + radius + EWA_TILE - 1) / EWA_TILE), 0.0), grid)
+    if t1 <= t0:
+        return 0, -1
+    return int(t0) * EWA_TILE, min(int(t1) * EWA_TILE, size) - 1
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -170,15 +222,16 @@ def _camera_point(x, R_cw, t_cw):
 
 
 @njit(cache=True, error_model="numpy")
-def _ewa_cov2d(mu, cov, R_cw, K):
+def _ewa_cov2d(mu, cov, R_cw, K, lim_x, lim_y):
     """J W Sigma W^T J^T (3DGS Eq. 5) with the affine Jacobian J at the camera-frame mean mu.
 
     Returns its entries (a, b, c) = (00, 01, 11), the rows p, q of J W, and the guarded z.
-    J = [[fx/z, s/z, -(fx x + s y)/z], [0, fy/z, -fy y/z]] with x = mu_x/z, y = mu_y/z.
+    J = [[fx/z, s/z, -(fx x + s y)/z], [0, fy/z, -fy y/z]] with x = mu_x/z, y = mu_y/z clamped
+    to +-lim_x, +-lim_y (3DGS's Jacobian clamp; infinite limits for none).
     """
     z = mu[2] if abs(mu[2]) > _NEAR_ZERO else 1.0
     fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
-    x, y = mu[0] / z, mu[1] / z
+    x, y = min(max(mu[0] / z, -lim_x), lim_x), min(max(mu[1] / z, -lim_y), lim_y)
     j00, j01, j02, j11, j12 = fx / z, skew / z, -(fx * x + skew * y) / z, fy / z, -fy * y / z
     p0 = j00 * R_cw[0, 0] + j01 * R_cw[1, 0] + j02 * R_cw[2, 0]
     p1 = j00 * R_cw[0, 1] + j01 * R_cw[1, 1] + j02 * R_cw[2, 1]
@@ -284,6 +337,9 @@ def project(
     height,
     near,
     far,
+    lowpass_sigma,
+    jacobian_clamp,
+    release_support,
     geom,
     box,
     keep,
@@ -295,6 +351,9 @@ def project(
 ):
     """Per-Gaussian coefficients, pixel boxes, culling, colour and oriented normal (parallel over N).
 
+    lowpass_sigma (<= 0: none), jacobian_clamp (inf: none) and release_support are the
+    `RenderConventions` of the call.
+
     means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
     covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
     Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N], depth [N] (camera
@@ -303,6 +362,8 @@ def project(
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
+    lim_x = jacobian_clamp * width / (2.0 * K[0, 0])
+    lim_y = jacobian_clamp * height / (2.0 * K[1, 1])
     for i in prange(means.shape[0]):
         tid = get_thread_id()
         mu = _camera_point(means[i], R_cw, t_cw)
@@ -317,6 +378,7 @@ def project(
                 mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
             )
             cx, cy = tx2 / safe_z, ty2 / safe_z
+            lx, ly, _ = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, z, lowpass_sigma)
             # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
             # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
             d2 = -1.0 / max(k2, 1e-12)
@@ -330,8 +392,8 @@ def project(
                 ex, ey = c02 / c22, c12 / c22
                 hx = math.sqrt(max(c02 * c02 - c00 * c22, 0.0)) / abs(c22)
                 hy = math.sqrt(max(c12 * c12 - c11 * c22, 0.0)) / abs(c22)
-                xmin, xmax = min(ex - hx, cx - r_lp), max(ex + hx, cx + r_lp)
-                ymin, ymax = min(ey - hy, cy - r_lp), max(ey + hy, cy + r_lp)
+                xmin, xmax = min(ex - hx, lx - r_lp), max(ex + hx, lx + r_lp)
+                ymin, ymax = min(ey - hy, ly - r_lp), max(ey + hy, ly + r_lp)
             else:  # the footprint is unbounded (a hyperbola or parabola): every pixel
                 xmin, xmax, ymin, ymax = -math.inf, math.inf, -math.inf, math.inf
             # h(p) = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x.
@@ -345,28 +407,37 @@ def project(
             g[GEOM_A + 2] = az + cx * bz + cy * qz
             g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2] = bx, by, bz
             g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2] = qx, qy, qz
+            g[GEOM_LP], g[GEOM_LP + 1] = lx, ly
         else:
             if explicit:
                 cov = covariances[i]
             else:
                 cov = cov_scratch[tid, 0]
                 _thin_covariance(rotations[i], scales[i, 0], scales[i, 1], cov)
-            a, b, c, _, _, _, _, _, _, _ = _ewa_cov2d(mu, cov, R_cw, K)
+            a, b, c, _, _, _, _, _, _, _ = _ewa_cov2d(mu, cov, R_cw, K, lim_x, lim_y)
             a += EWA_DILATION
             c += EWA_DILATION
             det = max(a * c - b * b, _CONIC_DET_MIN)
             cx = K[0, 0] * (mu[0] / safe_z) + K[0, 1] * (mu[1] / safe_z) + K[0, 2]
             cy = K[1, 1] * (mu[1] / safe_z) + K[1, 2]
-            hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
-            xmin, xmax, ymin, ymax = cx - hx, cx + hx, cy - hy, cy + hy
+            if not release_support:
+                hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
+                xmin, xmax, ymin, ymax = cx - hx, cx + hx, cy - hy, cy + hy
             g[GEOM_DEPTH] = z
             g[GEOM_DET] = 0.0
             g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2] = c / det, -b / det, a / det
             for j in range(GEOM_CONIC + 3, GEOM_SIZE):
                 g[j] = 0.0
         g[GEOM_CX], g[GEOM_CY] = cx, cy
-        box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
-        box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
+        if surfel or not release_support:
+            box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
+            box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
+        else:  # diff-gaussian-rasterization's square of radius ceil(3 sqrt(lambda_max)), in 16-pixel tiles
+            mid = 0.5 * (a + c)
+            lam = mid + math.sqrt(max(EWA_LAMBDA_GAP_MIN, mid * mid - (a * c - b * b)))
+            radius = math.ceil(EWA_RADIUS_SIGMAS * math.sqrt(max(lam, 0.0)))
+            box[i, 0], box[i, 1] = _release_tile_range(cx - 0.5, radius, width)
+            box[i, 2], box[i, 3] = _release_tile_range(cy - 0.5, radius, height)
         keep[i] = (
             z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
         )
@@ -535,13 +606,16 @@ def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
         A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
         C0, C1, C2 = g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2]
         b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
+        lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
         for j in range(n):
             dx = (fc0 + cols[j]) + 0.5 - cx
             dy = (fr0 + rows[j]) + 0.5 - cy
             hx = (A0 + dy * C0) + dx * b0
             hy = (A1 + dy * C1) + dx * b1
             hz = (A2 + dy * C2) + dx * b2
-            rho2d = LOWPASS_RHO_SCALE * dx * dx + LOWPASS_RHO_SCALE * dy * dy
+            ex = (fc0 + cols[j]) + 0.5 - lx
+            ey = (fr0 + rows[j]) + 0.5 - ly
+            rho2d = LOWPASS_RHO_SCALE * ex * ex + LOWPASS_RHO_SCALE * ey * ey
             q = hx * hx + hy * hy
             use3d = q < rho2d * (hz * hz)
             inv = 1.0 / (hz if use3d else 1.0)
@@ -785,10 +859,10 @@ def composite_backward(
                             s_y2 += dy * g_hz
                             s_det += g_dpair * inv
                         else:
-                            # rho = 2 |p - c|^2, depth = centre depth
+                            # rho = 2 |p - c_lp|^2, depth = centre depth; GRAD_CX, GRAD_CY are dL/dc_lp
                             sc = 2.0 * LOWPASS_RHO_SCALE * g_rho
-                            s_cx -= sc * dx
-                            s_cy -= sc * dy
+                            s_cx -= sc * ((float(c0) + col_f[j]) + 0.5 - g[GEOM_LP])
+                            s_cy -= sc * ((float(r0) + row_f[j]) + 0.5 - g[GEOM_LP + 1])
                             s_depth += g_dpair
                     else:
                         s_h0 += g_rho * dx * dx
@@ -826,10 +900,11 @@ def composite_backward(
 
 
 @njit(cache=True, error_model="numpy")
-def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
+def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, g_rot, g_scale):
     """Chain rule of the surfel projection: writes dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
 
-    gr is the survivor's gradient row from the compositing (GRAD_* columns).
+    gr is the survivor's gradient row from the compositing (GRAD_* columns); (cx, cy) the
+    projected centre the cross product was expanded around, (lx, ly) the low-pass centre.
     """
     tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(mu, R, s0, s1, R_cw, K)
     # h = A + p_x B + p_y C = A_c + dx B + dy C: the centre cancels, so with dx = p_x - c_x
@@ -851,10 +926,23 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
     gw0 = gB1 * ty2 - gB2 * ty1 + tx1 * gC2 - tx2 * gC1 + g_det * ax
     gw1 = gB2 * ty0 - gB0 * ty2 + tx2 * gC0 - tx0 * gC2 + g_det * ay
     gw2 = gB0 * ty1 - gB1 * ty0 + tx0 * gC1 - tx1 * gC0 + g_det * az
-    # Centre c = (Tx[2], Ty[2]) / mu_z; filter-branch depth Tw[2].
+    # Low-pass centre: the box centre c = (C02, C12) / C22 of the dual conic C = T diag(1, 1, e) T^T,
+    # or the projected centre (Tx[2], Ty[2]) / mu_z; filter-branch depth Tw[2].
     g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
     g_mu_z = 0.0
-    if abs(mu[2]) > _NEAR_ZERO:
+    _, _, c22 = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, mu[2], lowpass_sigma)
+    if c22 != 0.0:
+        e = -1.0 / (lowpass_sigma * lowpass_sigma)
+        gx0 += g_cx * tw0 / c22
+        gx1 += g_cx * tw1 / c22
+        gx2 += g_cx * e * tw2 / c22
+        gy0 += g_cy * tw0 / c22
+        gy1 += g_cy * tw1 / c22
+        gy2 += g_cy * e * tw2 / c22
+        gw0 += (g_cx * (tx0 - 2.0 * lx * tw0) + g_cy * (ty0 - 2.0 * ly * tw0)) / c22
+        gw1 += (g_cx * (tx1 - 2.0 * lx * tw1) + g_cy * (ty1 - 2.0 * ly * tw1)) / c22
+        gw2 += e * (g_cx * (tx2 - 2.0 * lx * tw2) + g_cy * (ty2 - 2.0 * ly * tw2)) / c22
+    elif abs(mu[2]) > _NEAR_ZERO:
         gx2 += g_cx / mu[2]
         gy2 += g_cy / mu[2]
         g_mu_z = -(g_cx * cx + g_cy * cy) / mu[2]
@@ -885,13 +973,13 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, g_rot, g_scale):
 
 
 @njit(cache=True, error_model="numpy")
-def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
+def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov):
     """Chain rule of the EWA projection: writes dL/dSigma (world) into g_cov, returns dL/dmu.
 
     As in the torch backend, the 2D covariance's off-diagonal is its (0, 1) entry, so dL/dSigma =
     X^T [[g_a, g_b], [0, g_c]] X with X = J W; its antisymmetric part is harmless for a symmetric Sigma.
     """
-    a, b, c, p0, p1, p2, q0, q1, q2, z = _ewa_cov2d(mu, cov, R_cw, K)
+    a, b, c, p0, p1, p2, q0, q1, q2, z = _ewa_cov2d(mu, cov, R_cw, K, lim_x, lim_y)
     a += EWA_DILATION
     c += EWA_DILATION
     det_raw = a * c - b * b
@@ -938,12 +1026,17 @@ def _ewa_backward(mu, cov, R_cw, K, gr, g_cov):
     fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
     m0, m1 = mu[0], mu[1]
     z2, z3 = z * z, z * z * z
-    g0 = -gj02 * fx / z2
-    g1 = -gj02 * skew / z2 - gj12 * fy / z2
+    # J's x = m0 / z and y = m1 / z are clamped: a clamped one carries no gradient.
+    x, y = m0 / z, m1 / z
+    xc, yc = min(max(x, -lim_x), lim_x), min(max(y, -lim_y), lim_y)
+    ix = 1.0 if xc == x else 0.0
+    iy = 1.0 if yc == y else 0.0
+    g0 = -gj02 * fx * ix / z2
+    g1 = -gj02 * skew * iy / z2 - gj12 * fy * iy / z2
     g2 = (
         -(gj00 * fx + gj01 * skew + gj11 * fy) / z2
-        + 2.0 * gj02 * (fx * m0 + skew * m1) / z3
-        + 2.0 * gj12 * fy * m1 / z3
+        + gj02 * ((fx * xc + skew * yc) / z2 + (fx * ix * m0 + skew * iy * m1) / z3)
+        + gj12 * fy * (yc / z2 + iy * m1 / z3)
     )
     # Centre (fx m0 / z + s m1 / z + cx, fy m1 / z + cy).
     g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
@@ -970,6 +1063,10 @@ def project_backward(
     t_cw,
     cam_center,
     K,
+    width,
+    height,
+    lowpass_sigma,
+    jacobian_clamp,
     geom,
     flip,
     g_means,
@@ -994,6 +1091,8 @@ def project_backward(
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
+    lim_x = jacobian_clamp * width / (2.0 * K[0, 0])
+    lim_y = jacobian_clamp * height / (2.0 * K[1, 1])
     for i in prange(means.shape[0]):
         m = rank[i]
         if m < 0:
@@ -1018,16 +1117,19 @@ def project_backward(
                 gr,
                 geom[m, GEOM_CX],
                 geom[m, GEOM_CY],
+                geom[m, GEOM_LP],
+                geom[m, GEOM_LP + 1],
+                lowpass_sigma,
                 g_rotations[i],
                 g_scales[i],
             )
         else:
             if explicit:
-                gm0, gm1, gm2 = _ewa_backward(mu, covariances[i], R_cw, K, gr, g_covariances[i])
+                gm0, gm1, gm2 = _ewa_backward(mu, covariances[i], R_cw, K, lim_x, lim_y, gr, g_covariances[i])
             else:
                 cov, g_cov = cov_scratch[tid, 0], cov_scratch[tid, 1]
                 _thin_covariance(R, scales[i, 0], scales[i, 1], cov)
-                gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, gr, g_cov)
+                gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov)
                 # Sigma = R D R^T, D = diag(s0^2, s1^2, thin^2): dL/dR = (G + G^T) R D,
                 # dL/ds_j = 2 s_j (R^T G R)_jj.
                 var = (scales[i, 0] * scales[i, 0], scales[i, 1] * scales[i, 1], THIN_SCALE * THIN_SCALE)

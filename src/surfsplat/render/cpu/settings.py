@@ -5,16 +5,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ...checks import SurfSplatInputError
+from ..types import RenderConventions
 
 
 @dataclass
-class CpuRenderSettings:
+class CpuRenderSettings(RenderConventions):
     tile_size: int = 16  # tile edge in pixels: the unit of parallel work and of early termination
     near_plane: float = 0.01  # Gaussians closer than this (camera z) are culled, as in the torch backend
     far_plane: float = 1e10  # Gaussians farther than this are culled
     parallel_chunk: int = 4  # tiles a thread takes at a time (small chunks balance uneven tiles)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not isinstance(self.tile_size, int) or isinstance(self.tile_size, bool) or self.tile_size <= 0:
             raise SurfSplatInputError(f"settings.tile_size: expected a positive int, got {self.tile_size!r}")
         if not 0 <= self.near_plane < self.far_plane:

@@ -1,0 +1,273 @@
+"""gsplat's own pure-PyTorch reference of 2DGS and 3DGS rasterization, runnable on a CPU.
+
+gsplat (pinned in the test extra) ships `gsplat.cuda._torch_impl` and `_torch_impl_2dgs`: the
+functions its CUDA kernels are tested against. Two pieces they call are not pure PyTorch: the
+pair selection `rasterize_to_indices_in_range[_2dgs]` (a CUDA kernel) and nerfacc's compositing
+scans. `stand_ins()` replaces them, for the duration of a `with` block, by the small torch
+versions below, written from the kernel's and nerfacc's definitions:
+
+* pair selection: per tile, per pixel, the tile's Gaussians front to back whose alpha reaches
+  1/255, stopping (exclusively) where transmittance would fall to 1e-4 or below;
+* `render_weight_from_alpha`: w_i = a_i prod_{j<i} (1 - a_j) along each ray (rays sorted);
+* `accumulate_along_rays`: the per-ray sum of w_i v_i.
+
+`render_2dgs` and `render_3dgs` then run gsplat's reference pipeline (projection, SH, tile
+intersection, rasterization) and return the maps in this project's layout: colour [C, 3, H, W],
+alpha [C, 1, H, W], centre depth [C, 1, H, W] and (2DGS) world-frame normals [C, 3, H, W].
+With `full_coverage` every Gaussian is listed in every tile, so gsplat's tile boxes (3.33 sigma
+around its own centre) cannot truncate a footprint and the result is the rasterized function itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import sys
+import types
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+gsplat = __import__("gsplat")
+from gsplat.cuda import _torch_impl as ref  # noqa: E402
+from gsplat.cuda import _torch_impl_2dgs as ref2d  # noqa: E402
+from gsplat.cuda import _wrapper  # noqa: E402
+
+ALPHA_THRESHOLD = 1.0 / 255.0  # gsplat's ALPHA_THRESHOLD
+ALPHA_CAP = 0.999  # gsplat's alpha cap (2DGS and 3DGS)
+TILE = 16
+
+
+def _select_pairs(
+    pair_alpha, range_start, range_end, transmittances, image_width, image_height, tile_size, offsets, flat
+):
+    """Torch twin of gsplat's rasterize_to_indices kernels; pair_alpha(image, ids, px, py) -> [P, K] alpha."""
+    n_images, tiles_h, tiles_w = offsets.shape
+    n_isects = flat.shape[0]
+    starts = offsets.reshape(-1).tolist() + [n_isects]
+    block = tile_size * tile_size
+    gauss, pixels, images = [], [], []
+    for image in range(n_images):
+        for ty in range(tiles_h):
+            for tx in range(tiles_w):
+                t = (image * tiles_h + ty) * tiles_w + tx
+                lo, hi = starts[t], starts[t + 1]
+                lo, hi = lo + block * range_start, min(hi, lo + block * range_end)
+                if hi <= lo:
+                    continue
+                rows = torch.arange(ty * tile_size, min((ty + 1) * tile_size, image_height))
+                cols = torch.arange(tx * tile_size, min((tx + 1) * tile_size, image_width))
+                ii, jj = torch.meshgrid(rows, cols, indexing="ij")
+                pix = (ii * image_width + jj).reshape(-1)
+                ids = flat[lo:hi].long()
+                alpha = pair_alpha(image, ids, jj.reshape(-1), ii.reshape(-1)).detach()
+                take = alpha >= ALPHA_THRESHOLD
+                trans = transmittances[image].reshape(-1)[pix].detach()
+                t_incl = trans[:, None] * torch.cumprod(1 - torch.where(take, alpha, 0.0), dim=1)
+                keep = take & (t_incl > 1e-4)
+                p_idx, k_idx = keep.nonzero(as_tuple=True)  # row-major: by pixel, then front to back
+                gauss.append(ids[k_idx])
+                pixels.append(pix[p_idx])
+                images.append(torch.full_like(p_idx, image))
+    if not gauss:
+        empty = torch.zeros(0, dtype=torch.long)
+        return empty, empty, empty
+    g, p, i = torch.cat(gauss), torch.cat(pixels), torch.cat(images)
+    order = torch.argsort(i * image_width * image_height + p, stable=True)  # the kernel's per-pixel chunks
+    return g[order], p[order], i[order]
+
+
+def _flat_to_gaussian(flat_ids: Tensor, n: int) -> Tensor:
+    return flat_ids % n
+
+
+def _indices_3dgs(range_start, range_end, transmittances, means2d, conics, opacities, W, H, tile_size, offsets, flat):
+    n = means2d.shape[-2]
+    means2d, conics, opacities = means2d.reshape(-1, n, 2), conics.reshape(-1, n, 3), opacities.reshape(-1, n)
+
+    def alpha(image, ids, px, py):
+        g = _flat_to_gaussian(ids, n)
+        dx = means2d[image, g, 0][None] - (px[:, None] + 0.5)
+        dy = means2d[image, g, 1][None] - (py[:, None] + 0.5)
+        c = conics[image, g]
+        sigma = 0.5 * (c[:, 0] * dx * dx + c[:, 2] * dy * dy) + c[:, 1] * dx * dy
+        a = torch.clamp_max(opacities[image, g][None] * torch.exp(-sigma), ALPHA_CAP)
+        return torch.where(sigma >= 0, a, 0.0)
+
+    g, p, i = _select_pairs(
+        alpha,
+        range_start,
+        range_end,
+        transmittances.reshape(-1, H, W),
+        W,
+        H,
+        tile_size,
+        offsets.reshape(-1, *offsets.shape[-2:]),
+        flat,
+    )
+    return _flat_to_gaussian(g, n), p, i
+
+
+def _indices_2dgs(
+    range_start, range_end, transmittances, means2d, ray_transforms, opacities, W, H, tile_size, offsets, flat
+):
+    n = means2d.shape[-2]
+    means2d, M, opacities = means2d.reshape(-1, n, 2), ray_transforms.reshape(-1, n, 3, 3), opacities.reshape(-1, n)
+
+    def alpha(image, ids, px, py):
+        g = _flat_to_gaussian(ids, n)
+        x, y = px[:, None] + 0.5, py[:, None] + 0.5
+        m = M[image, g]
+        h_u = -m[None, :, 0, :] + m[None, :, 2, :] * x[..., None]
+        h_v = -m[None, :, 1, :] + m[None, :, 2, :] * y[..., None]
+        cr = torch.linalg.cross(h_u, h_v)
+        ok = cr[..., 2] != 0
+        safe = torch.where(ok, cr[..., 2], 1.0)
+        s3 = (cr[..., 0] / safe) ** 2 + (cr[..., 1] / safe) ** 2
+        d = means2d[image, g][None] - torch.stack((x.expand(-1, g.shape[0]), y.expand(-1, g.shape[0])), -1)
+        s2 = 2 * (d**2).sum(-1)
+        sigma = 0.5 * torch.minimum(s3, s2)
+        a = torch.clamp_max(opacities[image, g][None] * torch.exp(-sigma), ALPHA_CAP)
+        return torch.where(ok & (sigma >= 0), a, 0.0)
+
+    g, p, i = _select_pairs(
+        alpha,
+        range_start,
+        range_end,
+        transmittances.reshape(-1, H, W),
+        W,
+        H,
+        tile_size,
+        offsets.reshape(-1, *offsets.shape[-2:]),
+        flat,
+    )
+    return _flat_to_gaussian(g, n), p, i
+
+
+def _render_weight_from_alpha(alphas: Tensor, ray_indices: Tensor, n_rays: int):
+    """nerfacc's weights along sorted rays: w_i = a_i T_i with T_i the exclusive product of (1 - a)."""
+    if alphas.numel() == 0:
+        return alphas, alphas
+    first = torch.ones_like(ray_indices, dtype=torch.bool)
+    first[1:] = ray_indices[1:] != ray_indices[:-1]
+    segment = torch.cumsum(first.long(), 0) - 1
+    starts = first.nonzero().squeeze(1)
+    position = torch.arange(alphas.shape[0]) - starts[segment]
+    dense = alphas.new_zeros(int(segment[-1]) + 1, int(position.max()) + 1)
+    dense = dense.index_put((segment, position), alphas)
+    trans_incl = torch.cumprod(1 - dense, dim=1)
+    trans = torch.cat((torch.ones_like(trans_incl[:, :1]), trans_incl[:, :-1]), dim=1)[segment, position]
+    return alphas * trans, trans
+
+
+def _accumulate_along_rays(weights: Tensor, values: Tensor | None, ray_indices: Tensor, n_rays: int) -> Tensor:
+    src = weights[:, None] if values is None else weights[:, None] * values
+    out = torch.zeros(n_rays, src.shape[1], dtype=src.dtype)
+    return out.index_add(0, ray_indices, src)
+
+
+@contextlib.contextmanager
+def stand_ins():
+    """Run gsplat's references on a CPU: the pair selection and nerfacc's scans in torch."""
+    nerfacc = types.ModuleType("nerfacc")
+    nerfacc.render_weight_from_alpha = _render_weight_from_alpha
+    nerfacc.accumulate_along_rays = _accumulate_along_rays
+    saved = {
+        name: getattr(_wrapper, name)
+        for name in ("rasterize_to_indices_in_range", "rasterize_to_indices_in_range_2dgs")
+    }
+    previous = sys.modules.get("nerfacc")
+    sys.modules["nerfacc"] = nerfacc
+    _wrapper.rasterize_to_indices_in_range = _indices_3dgs
+    _wrapper.rasterize_to_indices_in_range_2dgs = _indices_2dgs
+    try:
+        yield
+    finally:
+        for name, fn in saved.items():
+            setattr(_wrapper, name, fn)
+        if previous is None:
+            sys.modules.pop("nerfacc", None)
+        else:
+            sys.modules["nerfacc"] = previous
+
+
+def _colors(means: Tensor, sh: Tensor, campos: Tensor) -> Tensor:
+    """gsplat's SH colours for one camera: SH(means - camera centre) + 0.5, clamped at 0 ([N, 3])."""
+    degree = math.isqrt(sh.shape[-1]) - 1
+    return torch.clamp_min(ref._spherical_harmonics(degree, means - campos, sh.transpose(1, 2)) + 0.5, 0.0)
+
+
+def _tiles(means2d, radii, depths, width, height, full_coverage):
+    tiles_w, tiles_h = -(-width // TILE), -(-height // TILE)
+    if full_coverage:
+        reach = (radii > 0).any(-1, keepdim=True).expand_as(radii)
+        radii = torch.where(reach, width + height + 2 * TILE, 0).to(radii.dtype)
+    _, isect_ids, flatten_ids = ref._isect_tiles(means2d, radii, depths, TILE, tiles_w, tiles_h)
+    offsets = ref._isect_offset_encode(isect_ids, 1, tiles_w, tiles_h)
+    return offsets, flatten_ids
+
+
+def render_2dgs(g, w2c: Tensor, K: Tensor, campos: Tensor, width: int, height: int, full_coverage: bool = True):
+    """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals."""
+    # The third scale enters only gsplat's normal (R diag(s) e3): 1 gives unit normals.
+    scales = torch.cat((g.scales, torch.ones_like(g.scales[:, :1])), -1)
+    radii, means2d, depths, ray_transforms, normals = ref2d._fully_fused_projection_2dgs(
+        g.means, g.quats, scales, w2c[None], K[None], width, height, near_plane=0.01
+    )
+    valid = (depths > 0.01) & (depths < 1e10)
+    radii = torch.where(valid[..., None], radii.clamp_min(1), 0) if full_coverage else radii
+    offsets, flat = _tiles(means2d, radii, depths, width, height, full_coverage)
+    features = torch.cat((_colors(g.means, g.sh, campos)[None], depths[..., None]), -1)
+    with stand_ins():
+        color, alpha, normal = ref2d._rasterize_to_pixels_2dgs(
+            means2d,
+            ray_transforms,
+            features,
+            normals,
+            g.opacities[None],
+            width,
+            height,
+            TILE,
+            offsets,
+            flat,
+            batch_per_iter=1 << 20,
+        )
+    normal_world = normal[0] @ w2c[:3, :3].to(normal)  # rows n_cam^T R_cw = (R_cw^T n_cam)^T
+    return (
+        color[0, ..., :3].permute(2, 0, 1)[None],
+        alpha[0].permute(2, 0, 1)[None],
+        color[0, ..., 3:4].permute(2, 0, 1)[None],
+        normal_world.permute(2, 0, 1)[None],
+    )
+
+
+def render_3dgs(
+    g,
+    w2c: Tensor,
+    K: Tensor,
+    campos: Tensor,
+    width: int,
+    height: int,
+    full_coverage: bool = True,
+    extra: Tensor | None = None,
+):
+    """gsplat's 3DGS (EWA) reference for one camera: colour, alpha, centre depth and `extra` channels blended."""
+    from surfsplat.gaussians import THIN_SCALE
+
+    scales = torch.cat((g.scales, torch.full_like(g.scales[:, :1], THIN_SCALE)), -1)
+    covars, _ = ref._quat_scale_to_covar_preci(F.normalize(g.quats, dim=-1), scales, compute_preci=False)
+    radii, means2d, depths, conics, _ = ref._fully_fused_projection(
+        covars=covars, means=g.means, viewmats=w2c[None], Ks=K[None], width=width, height=height, eps2d=0.3
+    )
+    offsets, flat = _tiles(means2d, radii, depths, width, height, full_coverage)
+    parts = [_colors(g.means, g.sh, campos)[None], depths[..., None]]
+    if extra is not None:
+        parts.append(extra[None])
+    features = torch.cat(parts, -1)
+    with stand_ins():
+        out, alpha = ref._rasterize_to_pixels(
+            means2d, conics, features, g.opacities[None], width, height, TILE, offsets, flat, batch_per_iter=1 << 20
+        )
+    maps = out[0].permute(2, 0, 1)[None]
+    return maps[:, :3], alpha[0].permute(2, 0, 1)[None], maps[:, 3:4], maps[:, 4:]
