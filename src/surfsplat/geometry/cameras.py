@@ -114,12 +114,12 @@ class Cameras:
         column 4 = (H, W, focal) of the full-resolution images; `downscale` = 8 for images_8."""
         check_tensor("poses", poses, ("N", 3, 5))
         n = poses.shape[0]
-        c2w = torch.zeros(n, 4, 4, dtype=poses.dtype)
+        c2w = torch.zeros(n, 4, 4, dtype=poses.dtype, device=poses.device)
         c2w[:, :3, :3] = poses[:, :, :3] @ _LLFF_TO_OPENCV.to(poses)
         c2w[:, :3, 3] = poses[:, :, 3]
         c2w[:, 3, 3] = 1
         h, w, f = (poses[:, i, 4] / downscale for i in range(3))
-        K = torch.zeros(n, 3, 3, dtype=poses.dtype)
+        K = torch.zeros(n, 3, 3, dtype=poses.dtype, device=poses.device)
         K[:, 0, 0] = f
         K[:, 1, 1] = f
         K[:, 0, 2] = w / 2
@@ -129,7 +129,7 @@ class Cameras:
 
     def to_llff(self, width: int, height: int, downscale: float = 1.0) -> Tensor:
         """[C, 3, 5] LLFF poses (inverse of `from_llff`; needs fx == fy and a centred principal point)."""
-        out = torch.zeros(len(self), 3, 5, dtype=self.c2w.dtype)
+        out = torch.zeros(len(self), 3, 5, dtype=self.c2w.dtype, device=self.c2w.device)
         out[:, :, :3] = self.c2w[:, :3, :3] @ _LLFF_TO_OPENCV.to(self.c2w).T
         out[:, :, 3] = self.c2w[:, :3, 3]
         out[:, 0, 4] = height * downscale
@@ -144,20 +144,20 @@ class Cameras:
         check_tensor("cameras", rows, ("N", 18))
         n = rows.shape[0]
         fx, fy, cx, cy = rows[:, :4].unbind(-1)
-        K = torch.zeros(n, 3, 3, dtype=rows.dtype)
+        K = torch.zeros(n, 3, 3, dtype=rows.dtype, device=rows.device)
         K[:, 0, 0] = fx * width
         K[:, 1, 1] = fy * height
         K[:, 0, 2] = cx * width
         K[:, 1, 2] = cy * height
         K[:, 2, 2] = 1
-        w2c = torch.eye(4, dtype=rows.dtype).repeat(n, 1, 1)
+        w2c = torch.eye(4, dtype=rows.dtype, device=rows.device).repeat(n, 1, 1)
         w2c[:, :3, :] = rows[:, 6:].reshape(n, 3, 4)
         validate_c2w("cameras (world-to-camera rows)", w2c)
         return Cameras(rigid_inverse(w2c), K)
 
     def to_re10k(self, width: int, height: int) -> Tensor:
         """[C, 18] RealEstate10K rows (inverse of `from_re10k`)."""
-        out = torch.zeros(len(self), 18, dtype=self.c2w.dtype)
+        out = torch.zeros(len(self), 18, dtype=self.c2w.dtype, device=self.c2w.device)
         out[:, 0] = self.K[:, 0, 0] / width
         out[:, 1] = self.K[:, 1, 1] / height
         out[:, 2] = self.K[:, 0, 2] / width
@@ -182,11 +182,13 @@ def validate_c2w(name: str, c2w: Tensor, tol: float = 1e-3) -> None:
     check_tensor(name, c2w, (None, 4, 4))
     if c2w.shape[0] == 0:
         return
+    # Constants on the matrices' own device: a CPU constant would stop the first CUDA run here.
     R = c2w[:, :3, :3].to(torch.float64)
-    eye = torch.eye(3, dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64, device=c2w.device)
     orth_err = (R.transpose(1, 2) @ R - eye).abs().amax(dim=(1, 2))
     det = torch.linalg.det(R)
-    bottom_err = (c2w[:, 3, :].to(torch.float64) - torch.tensor([0, 0, 0, 1.0], dtype=torch.float64)).abs().amax(1)
+    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64, device=c2w.device)
+    bottom_err = (c2w[:, 3, :].to(torch.float64) - bottom).abs().amax(1)
     bad = (orth_err > tol) | ((det - 1).abs() > tol) | (bottom_err > tol)
     if bool(bad.any()):
         i = int(bad.nonzero()[0])
