@@ -182,13 +182,14 @@ def validate_c2w(name: str, c2w: Tensor, tol: float = 1e-3) -> None:
     check_tensor(name, c2w, (None, 4, 4))
     if c2w.shape[0] == 0:
         return
-    # Constants on the matrices' own device: a CPU constant would stop the first CUDA run here.
+    # Every constant is made on the matrices' device (a CPU one stops a CUDA run here) and none is
+    # copied from Python data (a blocking upload that waits for the device).
     R = c2w[:, :3, :3].to(torch.float64)
     eye = torch.eye(3, dtype=torch.float64, device=c2w.device)
     orth_err = (R.transpose(1, 2) @ R - eye).abs().amax(dim=(1, 2))
     det = torch.linalg.det(R)
-    bottom = torch.tensor([0, 0, 0, 1.0], dtype=torch.float64, device=c2w.device)
-    bottom_err = (c2w[:, 3, :].to(torch.float64) - bottom).abs().amax(1)
+    bottom = c2w[:, 3, :].to(torch.float64)  # expected (0, 0, 0, 1)
+    bottom_err = torch.cat((bottom[:, :3], bottom[:, 3:] - 1), dim=1).abs().amax(1)
     bad = (orth_err > tol) | ((det - 1).abs() > tol) | (bottom_err > tol)
     if bool(bad.any()):
         i = int(bad.nonzero()[0])
@@ -209,7 +210,7 @@ def validate_intrinsics(name: str, K: Tensor) -> None:
         raise SurfSplatInputError(
             f"{name}[{i}]: focal lengths must be positive, got fx={float(K[i, 0, 0]):.6g}, fy={float(K[i, 1, 1]):.6g}"
         )
-    last = K[:, 2, :] - torch.tensor([0, 0, 1.0], dtype=K.dtype, device=K.device)
+    last = torch.cat((K[:, 2, :2], K[:, 2, 2:] - 1), dim=1)  # expected (0, 0, 1)
     layout_bad = (last.abs().amax(1) > 1e-6) | (K[:, 1, 0].abs() > 1e-6)
     if bool(layout_bad.any()):
         i = int(layout_bad.nonzero()[0])
