@@ -1,4 +1,5 @@
-"""Training checkpoints: exact round trip, verification, atomic publication under SIGKILL."""
+"""Training checkpoints: exact round trip, verification, atomic publication under SIGKILL, and the
+environment a resume compares (thread count, precision, code and library versions)."""
 
 from __future__ import annotations
 
@@ -18,17 +19,24 @@ import torch
 
 from surfsplat.checks import SurfSplatInputError
 from surfsplat.model.surfsplat import SurfSplat
+from surfsplat.train import checkpoint as checkpoint_module
+from surfsplat.train import fit, train_preset
 from surfsplat.train.checkpoint import (
     CorruptCheckpoint,
     TrainingState,
+    capture_environment,
     capture_rng,
+    environment_changes,
     latest_checkpoint,
     list_checkpoints,
     load_training_checkpoint,
+    read_environment,
     restore_rng,
     save_training_checkpoint,
+    source_digest,
     verify_checkpoint,
 )
+from surfsplat.train.config import override
 
 
 def _trained_model_and_optimizer(seed: int = 0) -> tuple[SurfSplat, torch.optim.AdamW]:
@@ -51,6 +59,7 @@ def _state(step: int, optimizer: torch.optim.Optimizer) -> TrainingState:
         rng=[capture_rng()],
         data=[{"kind": "stream", "epoch": 3, "batches": 17}],
         extra={"validation": {"10": {"x1/psnr": 20.5}}},
+        environment=[capture_environment("fp32")],
     )
 
 
@@ -76,6 +85,8 @@ def test_round_trip_is_exact(tmp_path: Path) -> None:
             assert torch.equal(new_optimizer.state_dict()["state"][pid][key], value), (pid, key)
     assert new_optimizer.state_dict()["param_groups"] == json.loads(json.dumps(optimizer.state_dict()["param_groups"]))
     assert (loaded.step, loaded.data, loaded.extra) == (40, state.data, state.extra)
+    assert loaded.environment == state.environment == read_environment(path)
+    assert loaded.environment[0]["cpu_threads"] == torch.get_num_threads()
 
     restore_rng(loaded.rng[0])
     draws = (torch.rand(5), np.random.rand(3), random.random())
@@ -135,6 +146,66 @@ def test_missing_manifest_and_other_model(tmp_path: Path) -> None:
     (path / "manifest.json").unlink()
     with pytest.raises(CorruptCheckpoint, match="manifest.json: missing"):
         verify_checkpoint(path)
+
+
+def test_source_digest_sees_every_edit(tmp_path: Path) -> None:
+    """The digest stands for the code of a run: any edited, added or renamed source changes it."""
+    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+    (tmp_path / "pkg" / "a.py").write_text("x = 1\n")
+    (tmp_path / "pkg" / "sub" / "b.py").write_text("y = 2\n")
+    first = source_digest(tmp_path / "pkg")
+    (tmp_path / "pkg" / "notes.txt").write_text("not code")
+    assert source_digest(tmp_path / "pkg") == first
+    (tmp_path / "pkg" / "a.py").write_text("x = 1.0\n")
+    edited = source_digest(tmp_path / "pkg")
+    assert edited != first
+    (tmp_path / "pkg" / "sub" / "b.py").rename(tmp_path / "pkg" / "sub" / "c.py")
+    assert source_digest(tmp_path / "pkg") not in (first, edited)
+    identity = checkpoint_module.software_identity()
+    assert len(identity["surfsplat"]) == 16 and identity["torch"] == torch.__version__
+
+
+def test_environment_is_read_before_loading(tmp_path: Path) -> None:
+    model, optimizer = _trained_model_and_optimizer()
+    path = save_training_checkpoint(tmp_path, model, _state(5, optimizer))
+    assert read_environment(path) == [capture_environment("fp32")]
+    older = _state(10, optimizer)
+    older.environment = None  # written before checkpoints recorded it
+    assert read_environment(save_training_checkpoint(tmp_path, model, older)) == []
+    assert read_environment(tmp_path / "checkpoints" / "step-00000099") == []
+    saved = {"cpu_threads": 2, "precision": "bf16", "software": {"surfsplat": "a", "torch": "2.5"}}
+    current = {"cpu_threads": 1, "precision": "bf16", "software": {"surfsplat": "b", "torch": "2.5"}}
+    assert environment_changes(saved, current) == ["cpu_threads: 2 -> 1", "software.surfsplat: 'a' -> 'b'"]
+
+
+def test_resume_names_other_code(tmp_path: Path, monkeypatch, caplog) -> None:
+    """A resume with the code, libraries, threads and precision of the checkpoint says nothing;
+    with other code (an edited working tree, another release) it warns that the bits will differ."""
+    config = override(
+        train_preset("tiny"),
+        {
+            "out_dir": str(tmp_path / "run"),
+            "steps": 1,
+            "checkpoint_every": 1,
+            "val_every": 0,
+            "image_every": 0,
+            "progress": False,
+            "data.image_shape": [32, 32],
+            "data.num_target_views": 1,
+            "data.synthetic_length": 2,
+        },
+    )
+    fit(config)
+    with caplog.at_level("WARNING", logger="surfsplat.train"):
+        fit(override(config, {"steps": 2}), resume=True)
+    assert "another environment" not in caplog.text
+    edited = {**checkpoint_module.software_identity(), "surfsplat": "0123456789abcdef"}
+    monkeypatch.setattr(checkpoint_module, "software_identity", lambda: edited)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="surfsplat.train"):
+        fit(override(config, {"steps": 3}), resume=True)
+    assert "another environment (software.surfsplat:" in caplog.text
+    assert "-> '0123456789abcdef'" in caplog.text and "not bit-identical" in caplog.text
 
 
 _SAVER = textwrap.dedent(

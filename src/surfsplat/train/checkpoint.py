@@ -5,7 +5,7 @@ One checkpoint is one folder under `<out_dir>/checkpoints/`:
     step-00000200/
         model.safetensors, model.json   the network, in surfsplat.model.checkpoint's format (loads alone)
         train_state.safetensors         optimizer moments and every rank's RNG states
-        train_state.json                step, run config, optimizer groups, schedule, data positions
+        train_state.json                step, run config, optimizer groups, schedule, data positions, environment
         manifest.json                   size and SHA-256 of the four files above, written last
 
 Atomicity: the folder is assembled under a hidden temporary name, every file and the folder are
@@ -13,11 +13,18 @@ fsync'ed, then one rename publishes it. A process killed at any moment leaves ei
 folder or a temporary one that readers ignore (and the next writer removes); the newest published
 checkpoint is found by listing, so there is no pointer file that could disagree with the folders.
 Reading verifies the manifest, so a damaged checkpoint fails loudly instead of resuming wrongly.
+
+Bit-identical resume needs more than the state: the same code and libraries, and the same CPU
+thread count (float32 reductions split their sums per thread, so 1 and 2 threads give different
+gradients). Every checkpoint records that environment per rank (`capture_environment`); a resume
+reuses the thread count when the run left it to the defaults, and names whatever else differs.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib.metadata
 import json
 import os
 import random
@@ -65,6 +72,7 @@ class TrainingState:
     data: list[dict[str, Any]]  # per rank: position of the data stream (JSON-ready)
     grad_scaler: dict[str, Any] | None = None  # torch.amp.GradScaler state (fp16 runs)
     extra: dict[str, Any] | None = None  # JSON-ready bookkeeping (e.g. last validation metrics)
+    environment: list[dict[str, Any]] | None = None  # per rank: `capture_environment` (None: older checkpoints)
 
 
 def checkpoint_name(step: int) -> str:
@@ -101,6 +109,68 @@ def restore_rng(state: Mapping[str, Any]) -> None:
     np.random.set_state((name, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
     version, internal, gauss = state["python"]
     random.setstate((version, tuple(internal), gauss))
+
+
+# ------------------------------------------------------------------------------------------ environment
+def source_digest(root: str | Path) -> str:
+    """SHA-256 (16 hex digits) of the Python sources under `root`: relative names and contents, sorted."""
+    root = Path(root)
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py"), key=lambda p: p.relative_to(root).as_posix()):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0")
+        h.update(path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+@functools.cache
+def software_identity() -> dict[str, str | None]:
+    """The code that computes a training step: this package's sources (a digest, so an edited
+    working tree counts as other code) and the versions of the numeric libraries. Once per process."""
+    return {
+        "surfsplat": source_digest(Path(__file__).resolve().parents[1]),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "numba": _version("numba"),
+    }
+
+
+def capture_environment(precision: str) -> dict[str, Any]:
+    """What, besides the state, decides this process's steps bit for bit: torch's CPU thread count
+    (it splits float32 reductions), the precision the forward passes run in, and the software."""
+    return {"cpu_threads": torch.get_num_threads(), "precision": precision, "software": software_identity()}
+
+
+def environment_changes(saved: Mapping[str, Any], current: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """'key: saved -> current' for every entry that differs (nested keys dotted)."""
+    out = []
+    for key in sorted(set(saved) | set(current)):
+        a, b = saved.get(key), current.get(key)
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            out += environment_changes(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: {a!r} -> {b!r}")
+    return out
+
+
+def read_environment(path: str | Path) -> list[dict[str, Any]]:
+    """The per-rank environments a checkpoint folder records, read before it is loaded (to start
+    the resumed process with the same thread count); [] where there are none or the file is
+    unreadable (`load_training_checkpoint` reports damage)."""
+    try:
+        document = json.loads((Path(path) / STATE_FILES[1]).read_text())
+    except (OSError, ValueError):
+        return []
+    found = document.get("environment") if isinstance(document, dict) else None
+    if not isinstance(found, list) or not all(isinstance(e, dict) for e in found):
+        return []
+    return found
 
 
 # ------------------------------------------------------------------------------------------ writing
@@ -164,6 +234,7 @@ def _flatten_state(state: TrainingState) -> tuple[dict[str, Tensor], dict[str, A
         "data": state.data,
         "grad_scaler": state.grad_scaler,
         "extra": state.extra,
+        "environment": state.environment,
     }
     return tensors, document
 
@@ -336,4 +407,5 @@ def load_training_checkpoint(
         data=document["data"],
         grad_scaler=document.get("grad_scaler"),
         extra=document.get("extra"),
+        environment=document.get("environment"),
     )

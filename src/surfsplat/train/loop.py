@@ -65,11 +65,15 @@ from ..render.types import Backend, RenderMode
 from .cascade import intermediate_gaussians, num_intermediate_depths
 from .checkpoint import (
     TrainingState,
+    capture_environment,
     capture_rng,
+    environment_changes,
     latest_checkpoint,
     load_training_checkpoint,
+    read_environment,
     restore_rng,
     save_training_checkpoint,
+    software_identity,
 )
 from .config import TrainConfig, config_from_dict
 from .data import TrainBatch, augment, build_train_batches, build_validation_samples
@@ -422,12 +426,36 @@ def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResul
     if not isinstance(config, TrainConfig):
         raise SurfSplatInputError(f"config: expected a TrainConfig, got {type(config).__name__}")
     config = config_from_dict(config.to_dict())  # validates every field
+    software_identity()  # digest the sources now, as this process imported them, not at the first checkpoint
     ctx = init_distributed(config.device)
     try:
-        with cpu_threads(config.cpu_threads):
-            return _fit(config, ctx, _resume_path(config, resume))
+        resume_from = _resume_path(config, resume)
+        with cpu_threads(config.cpu_threads or _recorded_cpu_threads(resume_from, ctx)):
+            return _fit(config, ctx, resume_from)
     finally:
         shutdown(ctx)
+
+
+def _recorded_cpu_threads(resume_from: Path | None, ctx: DistributedContext) -> int:
+    """The CPU thread count of the run that wrote `resume_from`, for this rank; 0 when there is none
+    or the run trains on a GPU (where the count does not decide the gradients).
+
+    A run left to the default thread count (cpu_threads 0) gets whatever the environment gives the
+    process (OMP_NUM_THREADS, the cores), and float32 reductions on the CPU split their sums per
+    thread: a resume in a shell or on a machine with another count would continue with other
+    gradients. So the resumed process takes the recorded count; setting cpu_threads chooses another.
+    """
+    if resume_from is None or ctx.device.type != "cpu":
+        return 0
+    recorded = read_environment(resume_from)
+    if len(recorded) != ctx.world_size:
+        return 0
+    threads = recorded[ctx.rank].get("cpu_threads")
+    if not isinstance(threads, int) or threads <= 0:
+        return 0
+    if threads != torch.get_num_threads() and ctx.is_main:
+        logger.info("resuming with %d CPU threads per rank, as the run that wrote %s", threads, resume_from)
+    return threads
 
 
 @contextmanager
@@ -462,6 +490,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     loss_fn = ImageLoss(config.loss).to(device)  # fails here, at start-up, without LPIPS weights
     optimizer = build_optimizer(model, config)
     amp_dtype = resolve_precision(config, device)
+    precision = {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[amp_dtype]
     scaler = torch.amp.GradScaler(device.type) if amp_dtype == torch.float16 else None
     mode = decoder_mode(model.cfg.adapter, config.model.render_mode)
     cascade = num_intermediate_depths(model) > 0
@@ -495,6 +524,20 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         if len(state.rng) == ctx.world_size:
             rng_state = state.rng[ctx.rank]
             data_state = state.data[ctx.rank]
+            if state.environment and len(state.environment) == ctx.world_size:
+                # Same state, other code, libraries, threads or precision: other bits from here on.
+                saved, current = dict(state.environment[ctx.rank]), capture_environment(precision)
+                if device.type != "cpu":  # the CPU thread count does not decide a GPU run's gradients
+                    saved.pop("cpu_threads", None)
+                    current.pop("cpu_threads", None)
+                differences = environment_changes(saved, current)
+                if differences:
+                    logger.warning(
+                        "resuming %s in another environment (%s): the run continues, but not bit-identical "
+                        "to an uninterrupted one",
+                        resume_from,
+                        "; ".join(differences),
+                    )
         elif ctx.is_main:
             logger.warning(
                 "resuming %d ranks from a checkpoint of %d: random generators reseeded, streams restart their epoch; "
@@ -553,7 +596,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
         start_step=start_step,
         step=start_step,
         checkpoint=resume_from,
-        precision={None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[amp_dtype],
+        precision=precision,
     )
     pending: list[Tensor] = []  # per-step [total, mse, lpips, depth, normal, highres, closure, grad norm] not reduced
     pending_steps: list[int] = []  # the (0-based) steps of `pending`; skipped steps have no row
@@ -681,6 +724,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                         f"last good checkpoint: {result.checkpoint or 'none'}"
                     )
                 rng = all_gather_objects(capture_rng(), ctx)
+                environments = all_gather_objects(capture_environment(precision), ctx)
                 positions = all_gather_objects(source.state(), ctx)
                 if ctx.is_main:
                     extra["validation"] = {str(k): v for k, v in result.validation.items()}
@@ -689,6 +733,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                         config=config.to_dict(),
                         optimizer=optimizer.state_dict(),
                         rng=rng,
+                        environment=environments,
                         data=positions,
                         grad_scaler=scaler.state_dict() if scaler is not None else None,
                         extra=extra,
