@@ -27,12 +27,10 @@ import types
 
 import torch
 import torch.nn.functional as F
+from gsplat.cuda import _torch_impl as ref
+from gsplat.cuda import _torch_impl_2dgs as ref2d
+from gsplat.cuda import _wrapper
 from torch import Tensor
-
-gsplat = __import__("gsplat")
-from gsplat.cuda import _torch_impl as ref  # noqa: E402
-from gsplat.cuda import _torch_impl_2dgs as ref2d  # noqa: E402
-from gsplat.cuda import _wrapper  # noqa: E402
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # gsplat's ALPHA_THRESHOLD
 ALPHA_CAP = 0.999  # gsplat's alpha cap (2DGS and 3DGS)
@@ -40,9 +38,15 @@ TILE = 16
 
 
 def _select_pairs(
-    pair_alpha, range_start, range_end, transmittances, image_width, image_height, tile_size, offsets, flat
+    pair_alpha, n, range_start, range_end, transmittances, image_width, image_height, tile_size, offsets, flat
 ):
-    """Torch twin of gsplat's rasterize_to_indices kernels; pair_alpha(image, ids, px, py) -> [P, K] alpha."""
+    """Torch twin of gsplat's rasterize_to_indices kernels, for n Gaussians per image.
+
+    pair_alpha(image, gaussians [K], px [P], py [P]) -> [P, K] alpha of a tile's pixels and Gaussians.
+    Returns (Gaussian ids, pixel ids, image ids) as the kernels do.
+    """
+    offsets = offsets.reshape(-1, *offsets.shape[-2:])
+    transmittances = transmittances.reshape(-1, image_height, image_width)
     n_images, tiles_h, tiles_w = offsets.shape
     n_isects = flat.shape[0]
     starts = offsets.reshape(-1).tolist() + [n_isects]
@@ -60,7 +64,7 @@ def _select_pairs(
                 cols = torch.arange(tx * tile_size, min((tx + 1) * tile_size, image_width))
                 ii, jj = torch.meshgrid(rows, cols, indexing="ij")
                 pix = (ii * image_width + jj).reshape(-1)
-                ids = flat[lo:hi].long()
+                ids = flat[lo:hi].long() % n  # flattened (image, Gaussian) index -> Gaussian
                 alpha = pair_alpha(image, ids, jj.reshape(-1), ii.reshape(-1)).detach()
                 take = alpha >= ALPHA_THRESHOLD
                 trans = transmittances[image].reshape(-1)[pix].detach()
@@ -78,16 +82,11 @@ def _select_pairs(
     return g[order], p[order], i[order]
 
 
-def _flat_to_gaussian(flat_ids: Tensor, n: int) -> Tensor:
-    return flat_ids % n
-
-
 def _indices_3dgs(range_start, range_end, transmittances, means2d, conics, opacities, W, H, tile_size, offsets, flat):
     n = means2d.shape[-2]
     means2d, conics, opacities = means2d.reshape(-1, n, 2), conics.reshape(-1, n, 3), opacities.reshape(-1, n)
 
-    def alpha(image, ids, px, py):
-        g = _flat_to_gaussian(ids, n)
+    def alpha(image, g, px, py):
         dx = means2d[image, g, 0][None] - (px[:, None] + 0.5)
         dy = means2d[image, g, 1][None] - (py[:, None] + 0.5)
         c = conics[image, g]
@@ -95,18 +94,7 @@ def _indices_3dgs(range_start, range_end, transmittances, means2d, conics, opaci
         a = torch.clamp_max(opacities[image, g][None] * torch.exp(-sigma), ALPHA_CAP)
         return torch.where(sigma >= 0, a, 0.0)
 
-    g, p, i = _select_pairs(
-        alpha,
-        range_start,
-        range_end,
-        transmittances.reshape(-1, H, W),
-        W,
-        H,
-        tile_size,
-        offsets.reshape(-1, *offsets.shape[-2:]),
-        flat,
-    )
-    return _flat_to_gaussian(g, n), p, i
+    return _select_pairs(alpha, n, range_start, range_end, transmittances, W, H, tile_size, offsets, flat)
 
 
 def _indices_2dgs(
@@ -115,8 +103,7 @@ def _indices_2dgs(
     n = means2d.shape[-2]
     means2d, M, opacities = means2d.reshape(-1, n, 2), ray_transforms.reshape(-1, n, 3, 3), opacities.reshape(-1, n)
 
-    def alpha(image, ids, px, py):
-        g = _flat_to_gaussian(ids, n)
+    def alpha(image, g, px, py):
         x, y = px[:, None] + 0.5, py[:, None] + 0.5
         m = M[image, g]
         h_u = -m[None, :, 0, :] + m[None, :, 2, :] * x[..., None]
@@ -131,18 +118,7 @@ def _indices_2dgs(
         a = torch.clamp_max(opacities[image, g][None] * torch.exp(-sigma), ALPHA_CAP)
         return torch.where(ok & (sigma >= 0), a, 0.0)
 
-    g, p, i = _select_pairs(
-        alpha,
-        range_start,
-        range_end,
-        transmittances.reshape(-1, H, W),
-        W,
-        H,
-        tile_size,
-        offsets.reshape(-1, *offsets.shape[-2:]),
-        flat,
-    )
-    return _flat_to_gaussian(g, n), p, i
+    return _select_pairs(alpha, n, range_start, range_end, transmittances, W, H, tile_size, offsets, flat)
 
 
 def _render_weight_from_alpha(alphas: Tensor, ray_indices: Tensor, n_rays: int):

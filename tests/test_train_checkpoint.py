@@ -26,7 +26,7 @@ from surfsplat.train.checkpoint import (
     TrainingState,
     capture_environment,
     capture_rng,
-    environment_changes,
+    changed_entries,
     latest_checkpoint,
     list_checkpoints,
     load_training_checkpoint,
@@ -175,7 +175,7 @@ def test_environment_is_read_before_loading(tmp_path: Path) -> None:
     assert read_environment(tmp_path / "checkpoints" / "step-00000099") == []
     saved = {"cpu_threads": 2, "precision": "bf16", "software": {"surfsplat": "a", "torch": "2.5"}}
     current = {"cpu_threads": 1, "precision": "bf16", "software": {"surfsplat": "b", "torch": "2.5"}}
-    assert environment_changes(saved, current) == ["cpu_threads: 2 -> 1", "software.surfsplat: 'a' -> 'b'"]
+    assert changed_entries(saved, current) == ["cpu_threads: 2 -> 1", "software.surfsplat: 'a' -> 'b'"]
 
 
 def test_resume_names_other_code(tmp_path: Path, monkeypatch, caplog) -> None:

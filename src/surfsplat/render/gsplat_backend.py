@@ -25,12 +25,14 @@ applied by the caller, identically for every backend.
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import torch
 from torch import Tensor
 
 from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
-from .torch_backend import Projected, TorchRenderSettings, project_ewa, project_surfels
+from .torch_backend import Projected, TorchRenderSettings, project
 from .types import RenderConventions, RenderMode
 
 TILE = 16  # gsplat's tile edge in pixels
@@ -66,11 +68,7 @@ def render_gsplat(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]."""
     rules = conventions or RenderConventions()
-    settings = TorchRenderSettings(
-        lowpass_center_sigma=rules.lowpass_center_sigma,
-        ewa_jacobian_clamp=rules.ewa_jacobian_clamp,
-        ewa_support=rules.ewa_support,
-    )
+    settings = TorchRenderSettings(**{f.name: getattr(rules, f.name) for f in fields(RenderConventions)})
     w2c = cameras.w2c.to(g.means)
     K = cameras.K.to(g.means)
     centers = cameras.centers.to(g.means)
@@ -78,24 +76,21 @@ def render_gsplat(
     covariances = g.covariances if mode == "ewa" else None
     maps = []
     for c in range(len(cameras)):
-        if mode == "surfel":
-            proj = project_surfels(
-                g.means, rotations, g.scales, g.opacities, g.sh, w2c[c], K[c], centers[c], width, height, settings
-            )
-        else:
-            proj = project_ewa(
-                g.means,
-                covariances,
-                rotations[:, :, 2],
-                g.opacities,
-                g.sh,
-                w2c[c],
-                K[c],
-                centers[c],
-                width,
-                height,
-                settings,
-            )
+        proj = project(
+            g.means,
+            rotations,
+            g.scales,
+            covariances,
+            g.opacities,
+            g.sh,
+            w2c[c],
+            K[c],
+            centers[c],
+            width,
+            height,
+            mode,
+            settings,
+        )
         maps.append(_rasterize(proj, mode, width, height))
     return tuple(torch.stack([m[i] for m in maps]) for i in range(4))
 

@@ -112,8 +112,7 @@ def _release_tile_box(center: Tensor, a: Tensor, b: Tensor, c: Tensor, width: in
     first = t0 * EWA_TILE
     last = torch.minimum(t1 * EWA_TILE, size) - 1
     last = torch.where(empty[:, None], first - 1, last)  # an empty range, culled below
-    box = torch.stack((first[:, 0], last[:, 0], first[:, 1], last[:, 1]), dim=-1)
-    return box.clamp(-1, max(width, height)).long()
+    return torch.stack((first[:, 0], last[:, 0], first[:, 1], last[:, 1]), dim=-1).long()
 
 
 def _cull_and_sort(depth: Tensor, box: Tensor, opacity: Tensor, settings: TorchRenderSettings) -> Tensor:
@@ -136,16 +135,20 @@ def _colors(sh: Tensor, means: Tensor, center: Tensor) -> Tensor:
     return sh_to_color(sh, dirs)
 
 
-def lowpass_center(Tx: Tensor, Ty: Tensor, Tw: Tensor, z: Tensor, sigma: float | None) -> Tensor:
+def projected_center(Tx: Tensor, Ty: Tensor, z: Tensor) -> Tensor:
+    """[N, 2] the surfel centre's pixel (T_x[2], T_y[2]) / z (z guarded away from 0)."""
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    return torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
+
+
+def lowpass_center(Tx: Tensor, Ty: Tensor, Tw: Tensor, projected: Tensor, sigma: float | None) -> Tensor:
     """[N, 2] centre c of the surfel low-pass term rho2d = 2 |p - c|^2 (see `RenderConventions`).
 
     With k = sigma, the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
     T diag(1, 1, -1/k^2) T^T; its box centre is (C02, C12) / C22 while C22 < 0 (an ellipse).
     This is 2DGS's `compute_aabb` point (t = (k^2, k^2, -1) there, the same ratio). Elsewhere,
-    and for sigma None, c is the projected surfel centre (T_x[2], T_y[2]) / z.
+    and for sigma None, c is the `projected` centre.
     """
-    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
-    projected = torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
     if sigma is None:
         return projected
     e = -1.0 / (sigma * sigma)
@@ -205,8 +208,8 @@ def project_surfels(
     z = mu[:, 2]
     # The cross product is expanded around the projected centre (always next to the surfel, so
     # tile offsets stay small); the low-pass term has its own centre (see `RenderConventions`).
-    center = lowpass_center(Tx, Ty, Tw, z, None)
-    lowpass = lowpass_center(Tx, Ty, Tw, z, settings.lowpass_center_sigma)
+    center = projected_center(Tx, Ty, z)
+    lowpass = lowpass_center(Tx, Ty, Tw, center, settings.lowpass_center_sigma)
     r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
     inf = torch.full_like(hx, math.inf)
     xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), lowpass[:, 0] - r_lp)
@@ -576,6 +579,30 @@ def composite(
     return untile(tile_feats), 1 - untile(tile_trans), untile(tile_depth)
 
 
+def project(
+    means: Tensor,
+    rotations: Tensor,
+    scales: Tensor,
+    covariances: Tensor | None,
+    opacities: Tensor,
+    sh: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    cam_center: Tensor,
+    width: int,
+    height: int,
+    mode: RenderMode,
+    settings: TorchRenderSettings,
+) -> Projected:
+    """One camera's projection in either mode (covariances: the EWA mode's, None for surfels)."""
+    if mode == "surfel":
+        return project_surfels(means, rotations, scales, opacities, sh, w2c, K, cam_center, width, height, settings)
+    assert covariances is not None
+    return project_ewa(
+        means, covariances, rotations[:, :, 2], opacities, sh, w2c, K, cam_center, width, height, settings
+    )
+
+
 def render_torch(
     means: Tensor,
     rotations: Tensor,
@@ -592,13 +619,9 @@ def render_torch(
     settings: TorchRenderSettings,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])."""
-    if mode == "surfel":
-        proj = project_surfels(means, rotations, scales, opacities, sh, w2c, K, cam_center, width, height, settings)
-    else:
-        assert covariances is not None
-        proj = project_ewa(
-            means, covariances, rotations[:, :, 2], opacities, sh, w2c, K, cam_center, width, height, settings
-        )
+    proj = project(
+        means, rotations, scales, covariances, opacities, sh, w2c, K, cam_center, width, height, mode, settings
+    )
     bins = bin_tiles(proj.pixel_box, width, height, settings.tile_size)
     feats, alpha, depth_sum = composite(mode, proj, bins, width, height, settings)
     color, normal = feats[..., 0:3], feats[..., 3:6]

@@ -147,13 +147,14 @@ def capture_environment(precision: str) -> dict[str, Any]:
     return {"cpu_threads": torch.get_num_threads(), "precision": precision, "software": software_identity()}
 
 
-def environment_changes(saved: Mapping[str, Any], current: Mapping[str, Any], prefix: str = "") -> list[str]:
-    """'key: saved -> current' for every entry that differs (nested keys dotted)."""
+def changed_entries(saved: Mapping[str, Any], current: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """'key: saved -> current' for every entry that differs (nested keys dotted): a checkpoint's
+    settings or environment against the resuming run's."""
     out = []
     for key in sorted(set(saved) | set(current)):
         a, b = saved.get(key), current.get(key)
         if isinstance(a, Mapping) and isinstance(b, Mapping):
-            out += environment_changes(a, b, f"{prefix}{key}.")
+            out += changed_entries(a, b, f"{prefix}{key}.")
         elif a != b:
             out.append(f"{prefix}{key}: {a!r} -> {b!r}")
     return out

@@ -67,7 +67,7 @@ from .checkpoint import (
     TrainingState,
     capture_environment,
     capture_rng,
-    environment_changes,
+    changed_entries,
     latest_checkpoint,
     load_training_checkpoint,
     read_environment,
@@ -278,17 +278,6 @@ def _first_nonfinite_parameter(model: nn.Module) -> str | None:
         if not bool(torch.isfinite(param.detach()).all()):
             return name
     return None
-
-
-def _changed_settings(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
-    out = []
-    for key in sorted(set(saved) | set(current)):
-        a, b = saved.get(key), current.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += _changed_settings(a, b, f"{prefix}{key}.")
-        elif a != b:
-            out.append(f"{prefix}{key}: {a!r} -> {b!r}")
-    return out
 
 
 # ------------------------------------------------------------------------------------------ one step
@@ -514,7 +503,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     random.seed(rank_seed)
     if resume_from is not None:
         state = load_training_checkpoint(resume_from, model, map_location=device)
-        changes = _changed_settings(state.config, json.loads(json.dumps(config.to_dict())))
+        changes = changed_entries(state.config, json.loads(json.dumps(config.to_dict())))
         if changes and ctx.is_main:
             logger.warning("resuming %s with changed settings: %s", resume_from, "; ".join(changes))
         optimizer.load_state_dict(state.optimizer)
@@ -530,7 +519,7 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
                 if device.type != "cpu":  # the CPU thread count does not decide a GPU run's gradients
                     saved.pop("cpu_threads", None)
                     current.pop("cpu_threads", None)
-                differences = environment_changes(saved, current)
+                differences = changed_entries(saved, current)
                 if differences:
                     logger.warning(
                         "resuming %s in another environment (%s): the run continues, but not bit-identical "

@@ -118,12 +118,12 @@ def _pixel_range(lo, hi, size):
 
 
 @njit(cache=True, error_model="numpy")
-def _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, z, sigma):
+def _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, cx, cy, sigma):
     """Centre of the surfel low-pass term and the C22 it came from (0: the projected centre).
 
     sigma > 0: the box centre of the projected sigma-ellipse, (C02, C12) / C22 of the dual conic
     T diag(1, 1, -1/sigma^2) T^T while C22 < 0; otherwise (or sigma <= 0, meaning none) the
-    projected centre (T_x[2], T_y[2]) / z. The torch backend's `lowpass_center`.
+    projected centre (cx, cy). The torch backend's `lowpass_center`.
     """
     if sigma > 0.0:
         e = -1.0 / (sigma * sigma)
@@ -132,8 +132,7 @@ def _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, z, sigma):
             c02 = tx0 * tw0 + tx1 * tw1 + e * tx2 * tw2
             c12 = ty0 * tw0 + ty1 * tw1 + e * ty2 * tw2
             return c02 / c22, c12 / c22, c22
-    safe_z = z if abs(z) > _NEAR_ZERO else 1.0
-    return tx2 / safe_z, ty2 / safe_z, 0.0
+    return cx, cy, 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -378,7 +377,7 @@ def project(
                 mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
             )
             cx, cy = tx2 / safe_z, ty2 / safe_z
-            lx, ly, _ = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, z, lowpass_sigma)
+            lx, ly, _ = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, cx, cy, lowpass_sigma)
             # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
             # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
             d2 = -1.0 / max(k2, 1e-12)
@@ -930,7 +929,7 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, 
     # or the projected centre (Tx[2], Ty[2]) / mu_z; filter-branch depth Tw[2].
     g_cx, g_cy = gr[GRAD_CX], gr[GRAD_CY]
     g_mu_z = 0.0
-    _, _, c22 = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, mu[2], lowpass_sigma)
+    _, _, c22 = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, cx, cy, lowpass_sigma)
     if c22 != 0.0:
         e = -1.0 / (lowpass_sigma * lowpass_sigma)
         gx0 += g_cx * tw0 / c22
