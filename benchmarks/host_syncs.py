@@ -8,7 +8,7 @@ One step is `surfsplat.train.loop.training_step` on the tiny preset: batch 1, 2 
 TARGETS target views of SIZE^2 procedural rooms, MSE + 0.05 LPIPS (random VGG weights: only the
 structure of the step matters here), the torch renderer (what a CUDA run without gsplat uses),
 backward, clipping, AdamW. Without a GPU the step runs on the stand-in device of
-tests/_standin_device.py: tensors that report a non-CPU device and keep their values on the CPU,
+surfsplat.testing.standin_device: tensors that report a non-CPU device and keep their values on the CPU,
 so every op that reads device values on the host is seen exactly as on CUDA. With --device cuda a
 dispatch mode records the same ops on the real device.
 
@@ -36,10 +36,9 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))  # the stand-in device lives with the tests that use it
+from surfsplat.testing.standin_device import HostSyncRecorder, StandinDevice
 
-from _standin_device import HostSyncRecorder, StandinDevice  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 
 def random_lpips():

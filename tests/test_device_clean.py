@@ -5,7 +5,7 @@ stops a user's first CUDA run with "Expected all tensors to be on the same devic
 forward and backward passes with every input, parameter and buffer on a device other than the CPU,
 so such a tensor fails here first, on any machine.
 
-Method (details in tests/_standin_device.py):
+Method (details in surfsplat/testing/standin_device.py):
 - Without a GPU, the "stand-in device": tensors that report device `meta`, keep their values on
   the CPU, and go through a dispatch mode that applies CUDA's same-device rule to every aten op,
   forward and backward (strictly: 0-dim CPU operands are refused too). Everything runs for real,
@@ -39,12 +39,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from _standin_device import STANDIN, UPLOAD, DeviceMixError, StandinDevice, StandinTensor, standin
 from surfsplat import Cameras
 from surfsplat.gaussians import Gaussians
 from surfsplat.geometry.cameras import rigid_inverse, validate_c2w, validate_intrinsics
 from surfsplat.model import SurfSplat
 from surfsplat.model.adapter import AdapterConfig, GaussianAdapter
+from surfsplat.testing.standin_device import STANDIN, UPLOAD, DeviceMixError, StandinDevice, StandinTensor, standin
 from surfsplat.train.cascade import intermediate_gaussians, num_intermediate_depths
 from surfsplat.train.losses import (
     ImageLoss,

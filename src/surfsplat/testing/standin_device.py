@@ -60,7 +60,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten, tree_map
 
 STANDIN = torch.device("meta")
-PACKAGE = Path(__file__).resolve().parents[1] / "src" / "surfsplat"
+PACKAGE = Path(__file__).resolve().parents[1]  # src/surfsplat: frames there name where an op came from
+TOOLS = Path(__file__).resolve().parent  # surfsplat/testing: this module's own frames, never named
 
 aten = torch.ops.aten
 # Ops that read device values on the host (CUDA: a device-to-host copy the host waits for).
@@ -144,7 +145,7 @@ def _surfsplat_frames(limit: int = 4) -> list[str]:
         path = Path(frame.f_code.co_filename)
         # Comprehensions and generator expressions count as the function that runs them.
         inner = frame.f_code.co_name.startswith("<") and frame.f_code.co_name != "<module>"
-        if PACKAGE in path.parents and not inner:
+        if PACKAGE in path.parents and TOOLS not in path.parents and not inner:
             frames.append(f"{path.relative_to(PACKAGE)}:{frame.f_lineno} ({frame.f_code.co_name})")
         frame = frame.f_back
     return frames
