@@ -6,8 +6,10 @@
 Steps, each recorded in the JSON (with its seconds, or why it was skipped):
 1. renderer: the torch backend on DEVICE against the compiled CPU renderer on the same surfels
    (131,072 from two 256^2 views; --quick: 2,048) at x1, x2 and x4: largest differences of colour,
-   alpha and depth, and the relative L2 difference of the gradients of a fixed random loss with
-   respect to means, quaternions, scales, opacities and SH. Times of both.
+   alpha and depth, how many colour values are more than 1e-4 off, and the relative L2 difference
+   of the gradients of a fixed random loss with respect to means, quaternions, scales, opacities
+   and SH (the means' error split by viewing angle). Times of both. The same in float64 on DEVICE,
+   and, as the float32 control, the torch backend in float32 on the CPU.
 2. gsplat: the same comparison for the gsplat backend when the package imports on a CUDA device
    (install its wheel first, e.g. `pip install gsplat`, or carry a built wheel and `pip install` it);
    otherwise the step is recorded as skipped with the reason.
@@ -75,10 +77,43 @@ def render_pass(
     }
 
 
+def grad_error_by_tilt(gaussians, cameras, got: torch.Tensor, ref: torch.Tensor) -> dict:
+    """Where a gradient's error lives: surfels binned by how obliquely the cameras see them
+    (|cos| of the angle between the surfel normal and the viewing ray, the smallest over cameras),
+    with each bin's share of the surfels and of the squared error, and its own relative L2."""
+    from surfsplat.geometry import quat_to_matrix
+
+    normals = quat_to_matrix(gaussians.quats.detach().double())[:, :, 2]
+    rays = gaussians.means.detach().double()[None] - cameras.centers.detach().double()[:, None]
+    cos = ((rays / rays.norm(dim=-1, keepdim=True)) * normals[None]).sum(-1).abs().amin(0)
+    err = (got.double() - ref.double()).pow(2).flatten(1).sum(1)
+    total = err.sum().clamp(min=1e-300)
+    rows = {}
+    for lo, hi in ((0.0, 0.05), (0.05, 0.2), (0.2, 1.01)):
+        inside = (cos >= lo) & (cos < hi)
+        ref_sq = ref.double()[inside].pow(2).sum().clamp(min=1e-300)
+        rows[f"cos_{lo:g}_{min(hi, 1.0):g}"] = {
+            "surfel_share": float(inside.double().mean()),
+            "error_share": float(err[inside].sum() / total),
+            "rel_l2": float((err[inside].sum() / ref_sq).sqrt()),
+        }
+    return rows
+
+
 def compare_renderers(
-    candidate: str, device: torch.device, resolution: int, factors: tuple[int, ...], mode: str = "surfel"
+    candidate: str,
+    device: torch.device,
+    resolution: int,
+    factors: tuple[int, ...],
+    mode: str = "surfel",
+    dtype: torch.dtype = torch.float32,
 ) -> dict:
-    """`candidate` backend on `device` against the compiled CPU renderer (float64 there), per factor.
+    """`candidate` backend on `device` in `dtype` against the compiled CPU renderer (float64 there), per factor.
+
+    Besides the largest differences, the number of colour values more than 1e-4 off says whether
+    an error is everywhere (a wrong formula) or at a few pixels (a threshold such as 1/255 or the
+    1e-4 transmittance cut falling the other way in float32), and the means gradient's error is
+    split by how obliquely each surfel is seen.
 
     For the gsplat backend in "surfel" mode the depth is the blended centre depth by design
     (`surfsplat.render.gsplat_backend`): its depth difference is reported, not a defect, and the
@@ -99,10 +134,20 @@ def compare_renderers(
             weights["depth"] = torch.zeros_like(weights["depth"])
         ref_scene = type(scene.gaussians)(**{k: getattr(scene.gaussians, k).double() for k in ATTRIBUTES})
         ref = render_pass(ref_scene, cams.to(torch.float64), size, "cpu", torch.device("cpu"), weights, mode)
-        got = render_pass(scene.gaussians, cams, size, candidate, device, weights, mode)
+        cand_scene = type(scene.gaussians)(**{k: getattr(scene.gaussians, k).to(dtype) for k in ATTRIBUTES})
+        got = render_pass(cand_scene, cams.to(dtype), size, candidate, device, weights, mode)
+        colour_diff = (got["outputs"]["color"].double() - ref["outputs"]["color"]).abs()
         rows[f"x{s}"] = {
             "size": size,
             "max_abs_diff": {k: float((got["outputs"][k] - ref["outputs"][k]).abs().max()) for k in ref["outputs"]},
+            "colour_values_over_1e-4": int((colour_diff > 1e-4).sum()),
+            "colour_values_over_1e-5": int((colour_diff > 1e-5).sum()),
+            "colour_values": colour_diff.numel(),
+            "colour_abs_diff_p99_9": float(torch.quantile(colour_diff.flatten()[::7].float(), 0.999)),
+            "grads_finite": {k: bool(v.isfinite().all()) for k, v in got["grads"].items()},
+            "means_grad_error_by_tilt": grad_error_by_tilt(
+                scene.gaussians, cams, got["grads"]["means"], ref["grads"]["means"]
+            ),
             "grad_rel_l2": {
                 k: float((got["grads"][k] - ref["grads"][k]).norm() / ref["grads"][k].norm().clamp(min=1e-30))
                 for k in ATTRIBUTES
@@ -114,7 +159,7 @@ def compare_renderers(
                 "cpu_backward": ref["seconds_backward"],
             },
         }
-    return {"surfels": len(scene.gaussians), "mode": mode, "factors": rows}
+    return {"surfels": len(scene.gaussians), "mode": mode, "dtype": str(dtype), "factors": rows}
 
 
 def encoder_timings(preset: str, size: int, device: torch.device, repeats: int) -> dict:
@@ -261,6 +306,27 @@ def main() -> int:
     wanted = set(args.steps.split(","))
     if "renderer" in wanted:
         run_step(report, "renderer_torch_vs_cpu", compare_renderers, "torch", device, resolution, factors)
+        run_step(
+            report,
+            "renderer_torch_float64_vs_cpu",
+            compare_renderers,
+            "torch",
+            device,
+            resolution,
+            factors,
+            "surfel",
+            torch.float64,
+        )
+        if device.type != "cpu":  # the float32 control: the same backend and dtype on the CPU
+            run_step(
+                report,
+                "renderer_torch_cpu_float32_vs_cpu",
+                compare_renderers,
+                "torch",
+                torch.device("cpu"),
+                resolution,
+                factors,
+            )
     if "gsplat" not in wanted:
         pass
     elif gsplat_available(device):

@@ -1,5 +1,5 @@
 """The project's gsplat backend, run on a CPU with gsplat's CUDA entry points replaced by gsplat's own
-pure-PyTorch references (`_gsplat_reference.stand_ins` supplies their pair selection and scans).
+pure-PyTorch references (`surfsplat.testing.gsplat_reference.cpu_kernels`).
 
 This proves the backend's glue - projection hand-over, tile boxes, channel layout, gradients - on
 the machine the suite runs on; the CUDA kernels themselves run in `scripts/gpu_check.py` on a GPU.
@@ -18,41 +18,15 @@ from surfsplat import Cameras, Gaussians
 from surfsplat.render import TorchRenderSettings, render
 
 pytest.importorskip("gsplat", reason="gsplat is part of the test extra: pip install -e '.[test]'")
-from gsplat.cuda import _wrapper  # noqa: E402
-
-from _gsplat_reference import ref, ref2d, stand_ins  # noqa: E402
 from surfsplat.render.gsplat_backend import render_gsplat  # noqa: E402
-from test_render_gsplat_reference import scene, with_intrinsics  # noqa: E402
-
-
-def _isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, **_):
-    return ref._isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
-
-
-def _isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
-    return ref._isect_offset_encode(isect_ids, n_images, tile_width, tile_height)
-
-
-def _rasterize_2dgs(means2d, transforms, colors, opacities, normals, densify, W, H, tile, offsets, flat, **_):
-    return ref2d._rasterize_to_pixels_2dgs(
-        means2d, transforms, colors, normals, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
-    )
-
-
-def _rasterize_3dgs(means2d, conics, colors, opacities, W, H, tile, offsets, flat, **_):
-    return ref._rasterize_to_pixels(
-        means2d, conics, colors, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
-    )
+from surfsplat.testing.gsplat_reference import cpu_kernels, with_intrinsics  # noqa: E402
+from surfsplat.testing.gsplat_reference import reference_scene as scene  # noqa: E402
 
 
 @pytest.fixture
-def cpu_gsplat(monkeypatch):
+def cpu_gsplat():
     """gsplat's CUDA entry points answered by its pure-PyTorch references, for this test only."""
-    monkeypatch.setattr(_wrapper, "isect_tiles", _isect_tiles)
-    monkeypatch.setattr(_wrapper, "isect_offset_encode", _isect_offset_encode)
-    monkeypatch.setattr(_wrapper, "rasterize_to_pixels_2dgs", _rasterize_2dgs)
-    monkeypatch.setattr(_wrapper, "rasterize_to_pixels", _rasterize_3dgs)
-    with stand_ins():
+    with cpu_kernels():
         yield
 
 

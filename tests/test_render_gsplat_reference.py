@@ -15,50 +15,18 @@ never bind. Differences that remain are by design, named and bounded below:
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
-from surfsplat import Cameras, Gaussians
+from surfsplat import Gaussians
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render
 
 pytest.importorskip("gsplat", reason="gsplat is part of the test extra: pip install -e '.[test]'")
-from _gsplat_reference import render_2dgs, render_3dgs  # noqa: E402
+from surfsplat.testing.gsplat_reference import reference_scene as scene  # noqa: E402
+from surfsplat.testing.gsplat_reference import render_2dgs, render_3dgs, with_intrinsics  # noqa: E402
 
 ALIGNED = {"lowpass_center_sigma": 1.0, "ewa_support": "alpha"}
 SIZES = [(64, 48), (128, 96)]
-
-
-def scene(n: int, seed: int, dtype: torch.dtype, sh_degree: int, fronto: bool = False) -> tuple[Gaussians, Cameras]:
-    """n surfels in a slab 2-4 units ahead of a camera posed off the axis, looking at the slab."""
-    g = torch.Generator().manual_seed(seed)
-    d = torch.float64
-    means = (torch.rand(n, 3, generator=g, dtype=d) - 0.5) * torch.tensor([2.4, 1.8, 2.0], dtype=d)
-    means[:, 2] += 3.0
-    quats = torch.randn(n, 4, generator=g, dtype=d)
-    if fronto:
-        angle = torch.rand(n, generator=g, dtype=d) * math.pi
-        quats = torch.stack((torch.cos(angle / 2), 0 * angle, 0 * angle, torch.sin(angle / 2)), -1)
-    # log-uniform sizes: from about a fifth of a pixel to about 30 pixels at 64 px wide
-    scales = torch.exp(torch.rand(n, 2, generator=g, dtype=d) * math.log(150.0)) * 0.0015
-    opacities = torch.rand(n, generator=g, dtype=d) * 0.94 + 0.05
-    sh = torch.randn(n, 3, (sh_degree + 1) ** 2, generator=g, dtype=d) * 0.3
-    c2w = torch.eye(4, dtype=d)
-    yaw = 0.15 if not fronto else 0.0
-    c2w[:3, :3] = torch.tensor(
-        [[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]], dtype=d
-    )
-    c2w[:3, 3] = torch.tensor([-0.3 if not fronto else 0.0, 0.1, -0.2], dtype=d)
-    gs = Gaussians(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh)
-    gs = Gaussians(**{k: getattr(gs, k).to(dtype) for k in ("means", "quats", "scales", "opacities", "sh")})
-    return gs, Cameras(c2w[None].to(dtype), torch.eye(3, dtype=dtype)[None])
-
-
-def with_intrinsics(cams: Cameras, width: int, height: int) -> Cameras:
-    f = 0.9 * width
-    K = torch.tensor([[[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]]], dtype=cams.c2w.dtype)
-    return Cameras(cams.c2w, K)
 
 
 def ours(g, cams, width, height, mode, backend):

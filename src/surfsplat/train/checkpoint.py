@@ -353,7 +353,7 @@ def _restore_tensors(node: Any, tensors: Mapping[str, Tensor], where: str) -> An
         key = node["tensor"]
         if key not in tensors:
             raise CorruptCheckpoint(f"{where}: tensor {key} missing from {STATE_FILES[0]}")
-        return tensors[key]
+        return tensors[key].clone()  # owned memory: nothing refers to the checkpoint file after loading
     return node
 
 

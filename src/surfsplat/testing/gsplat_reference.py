@@ -16,6 +16,9 @@ intersection, rasterization) and return the maps in this project's layout: colou
 alpha [C, 1, H, W], centre depth [C, 1, H, W] and (2DGS) world-frame normals [C, 3, H, W].
 With `full_coverage` every Gaussian is listed in every tile, so gsplat's tile boxes (3.33 sigma
 around its own centre) cannot truncate a footprint and the result is the rasterized function itself.
+
+`reference_scene` and `with_intrinsics` build the seeded scenes that the test suite and
+`benchmarks/renderer_agreement.py` compare on. Importing this module needs gsplat (the test extra).
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ from gsplat.cuda import _torch_impl as ref
 from gsplat.cuda import _torch_impl_2dgs as ref2d
 from gsplat.cuda import _wrapper
 from torch import Tensor
+
+from surfsplat import Cameras, Gaussians
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # gsplat's ALPHA_THRESHOLD
 ALPHA_CAP = 0.999  # gsplat's alpha cap (2DGS and 3DGS)
@@ -247,3 +252,77 @@ def render_3dgs(
         )
     maps = out[0].permute(2, 0, 1)[None]
     return maps[:, :3], alpha[0].permute(2, 0, 1)[None], maps[:, 3:4], maps[:, 4:]
+
+
+def _isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, **_):
+    return ref._isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+
+
+def _isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
+    return ref._isect_offset_encode(isect_ids, n_images, tile_width, tile_height)
+
+
+def _rasterize_2dgs(means2d, transforms, colors, opacities, normals, densify, W, H, tile, offsets, flat, **_):
+    return ref2d._rasterize_to_pixels_2dgs(
+        means2d, transforms, colors, normals, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
+    )
+
+
+def _rasterize_3dgs(means2d, conics, colors, opacities, W, H, tile, offsets, flat, **_):
+    return ref._rasterize_to_pixels(
+        means2d, conics, colors, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
+    )
+
+
+@contextlib.contextmanager
+def cpu_kernels():
+    """gsplat's CUDA entry points (tile intersection, 2DGS and 3DGS rasterization) answered by its
+    pure-PyTorch references, inside the block: the project's gsplat backend then runs on a CPU."""
+    patched = {
+        "isect_tiles": _isect_tiles,
+        "isect_offset_encode": _isect_offset_encode,
+        "rasterize_to_pixels_2dgs": _rasterize_2dgs,
+        "rasterize_to_pixels": _rasterize_3dgs,
+    }
+    saved = {name: getattr(_wrapper, name) for name in patched}
+    try:
+        for name, fn in patched.items():
+            setattr(_wrapper, name, fn)
+        with stand_ins():
+            yield
+    finally:
+        for name, fn in saved.items():
+            setattr(_wrapper, name, fn)
+
+
+def reference_scene(
+    n: int, seed: int, dtype: torch.dtype, sh_degree: int, fronto: bool = False
+) -> tuple[Gaussians, Cameras]:
+    """n surfels in a slab 2-4 units ahead of a camera posed off the axis, looking at the slab."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.float64
+    means = (torch.rand(n, 3, generator=g, dtype=d) - 0.5) * torch.tensor([2.4, 1.8, 2.0], dtype=d)
+    means[:, 2] += 3.0
+    quats = torch.randn(n, 4, generator=g, dtype=d)
+    if fronto:
+        angle = torch.rand(n, generator=g, dtype=d) * math.pi
+        quats = torch.stack((torch.cos(angle / 2), 0 * angle, 0 * angle, torch.sin(angle / 2)), -1)
+    # log-uniform sizes: from about a fifth of a pixel to about 30 pixels at 64 px wide
+    scales = torch.exp(torch.rand(n, 2, generator=g, dtype=d) * math.log(150.0)) * 0.0015
+    opacities = torch.rand(n, generator=g, dtype=d) * 0.94 + 0.05
+    sh = torch.randn(n, 3, (sh_degree + 1) ** 2, generator=g, dtype=d) * 0.3
+    c2w = torch.eye(4, dtype=d)
+    yaw = 0.15 if not fronto else 0.0
+    c2w[:3, :3] = torch.tensor(
+        [[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]], dtype=d
+    )
+    c2w[:3, 3] = torch.tensor([-0.3 if not fronto else 0.0, 0.1, -0.2], dtype=d)
+    gs = Gaussians(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh)
+    gs = Gaussians(**{k: getattr(gs, k).to(dtype) for k in ("means", "quats", "scales", "opacities", "sh")})
+    return gs, Cameras(c2w[None].to(dtype), torch.eye(3, dtype=dtype)[None])
+
+
+def with_intrinsics(cams: Cameras, width: int, height: int) -> Cameras:
+    f = 0.9 * width
+    K = torch.tensor([[[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]]], dtype=cams.c2w.dtype)
+    return Cameras(cams.c2w, K)
