@@ -35,6 +35,16 @@ sys.path.insert(0, str(ROOT))
 from compact import REAL, real_scenes  # noqa: E402  (the same captures and views)
 
 FACTORS = (1, 2)
+GRID = [  # --grid: (steps, factors, nearby views, jittered views), the export's default first
+    (60, (1, 2), 2, 1),
+    (0, (1,), 0, 0),
+    (15, (1,), 0, 0),
+    (30, (1,), 0, 0),
+    (15, (1,), 2, 1),
+    (30, (1,), 2, 1),
+    (60, (1,), 2, 1),
+    (30, (1, 2), 2, 1),
+]
 
 
 def main() -> None:
@@ -46,6 +56,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=BakeConfig().steps, help="Adam steps of the bake")
     parser.add_argument("--scenes", nargs="+", default=sorted(REAL), choices=sorted(REAL))
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "bake.json")
+    parser.add_argument(
+        "--grid", action="store_true", help="the cost curve: every GRID setting (steps, factors, fitted views) in turn"
+    )
     args = parser.parse_args()
     checkpoints = {}
     for item in args.capture_checkpoint:
@@ -54,6 +67,12 @@ def main() -> None:
             parser.error(f"--capture-checkpoint: expected NAME=CKPT with NAME in {sorted(REAL)}, got {item!r}")
         checkpoints[name] = path
     config = dataclasses.replace(BakeConfig(), steps=args.steps)
+    configs = [config]
+    if args.grid:
+        configs = [
+            dataclasses.replace(BakeConfig(), steps=n, factors=f, nearby_views=a, jittered_views=b)
+            for n, f, a, b in GRID
+        ]
 
     rows = []
     for scene in real_scenes(args.data, tuple(args.real_size)):
@@ -61,8 +80,9 @@ def main() -> None:
             continue
         model, label = load_model(ModelSpec(checkpoints.get(scene["name"], args.checkpoint)), "cpu")
         model.eval()
-        rows.append(measure(model, label, scene, config))
-        write_document(args, config, rows)
+        for each in configs:
+            rows.append(measure(model, label, scene, each))
+            write_document(args, config, rows)
     print(table(rows))
     print(f"wrote {args.out}")
 
@@ -82,6 +102,11 @@ def measure(model, label: str, scene: dict, config: BakeConfig) -> dict:
         "surfels": len(g),
         "size": [H, W],
         "seconds_bake": report.seconds,
+        "bake": {
+            k: v
+            for k, v in dataclasses.asdict(config).items()
+            if k in ("steps", "factors", "nearby_views", "jittered_views")
+        },
         "best_step": report.best_step,
         "fit_views": report.fit_views,
         "figures": {},
@@ -131,15 +156,18 @@ def _load() -> tuple[float, ...]:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| scene | views | alpha before | alpha after | PSNR before | PSNR after | bake time |",
-        "|---|---|---|---|---|---|---|",
+        "| scene | steps | factors | fitted views | views | alpha before | alpha after | PSNR before | PSNR after "
+        "| bake time |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
+        bake = row["bake"]
+        setting = f"{bake['steps']} | {','.join(map(str, bake['factors']))} | {row['fit_views']}"
         for key, fig in row["figures"].items():
             b, a = fig["before"], fig["after"]
             lines.append(
-                f"| {row['scene']} | {key} | {b['alpha']:.3f} | {a['alpha']:.3f} | {b['psnr']:.1f} dB | "
-                f"{a['psnr']:.1f} dB | {row['seconds_bake']:.0f} s |"
+                f"| {row['scene']} | {setting} | {key} | {b['alpha']:.3f} | {a['alpha']:.3f} | {b['psnr']:.1f} dB | "
+                f"{a['psnr']:.1f} dB | {row['seconds_bake']:.1f} s |"
             )
     return "\n".join(lines)
 

@@ -240,6 +240,97 @@ def real_scene(args, model, name: str, folder: Path, images: str, size: tuple[in
     return result
 
 
+# ----------------------------------------------------------------------------------------- refinement
+REFINE_GRID = [  # (max steps, views per step, scale, patience): today's default first
+    (100, 16, 1.0, None),
+    (0, 16, 1.0, None),
+    (25, 16, 1.0, None),
+    (50, 16, 1.0, None),
+    (100, 4, 1.0, None),
+    (50, 4, 1.0, None),
+    (100, 16, 0.5, None),
+    (50, 16, 0.5, None),
+    (25, 16, 0.5, None),
+    (50, 4, 0.5, None),
+    (100, 16, 0.5, 10),
+    (100, 4, 0.5, 10),
+]
+
+
+def views_at(folder: Path, images: str, indices: list[int], shape: tuple[int, int]):
+    """Calibrated views of a scene folder at the network's working size, as `reconstruct` gives them
+    to the network: (Cameras with K in working-size pixels, images [V, 3, H, W])."""
+    import imageio.v3 as iio
+
+    from surfsplat import Cameras
+    from surfsplat.data.images import list_images
+    from surfsplat.data.transforms import rescale_and_crop
+    from surfsplat.export.paths import load_cameras
+
+    paths = [list_images(folder / images)[i] for i in indices]
+    stack = torch.stack([torch.from_numpy(iio.imread(p)[..., :3].copy()).permute(2, 0, 1).float() / 255 for p in paths])
+    calibrated = load_cameras(folder, images=images).select([p.name for p in paths], str(folder))
+    K = calibrated.resized(stack.shape[-1], stack.shape[-2], str(folder)).K
+    stack, K_net, _ = rescale_and_crop(stack, K.to(torch.float32), shape)
+    return Cameras(calibrated.cameras.c2w.to(torch.float32), K_net), stack.clamp(0, 1), paths
+
+
+def refine_curve(model, name: str, folder: Path, images: str, context: list[int], held: list[int], size) -> dict:
+    """Held-out PSNR against refinement seconds over REFINE_GRID, on one fused scene of the
+    `context` views (cameras given), scored on the `held` views."""
+    import surfsplat
+    from surfsplat.capture import RefineConfig, refine_on_views
+    from surfsplat.export.paths import load_cameras
+    from surfsplat.metrics import psnr
+    from surfsplat.render import render
+
+    context_cams, context_images, paths = views_at(folder, images, context, size)
+    held_cams, held_images, _ = views_at(folder, images, held, size)
+    options = surfsplat.CaptureOptions(refine=RefineConfig(steps=0))
+    cameras = load_cameras(folder, images=images)
+    start = time.perf_counter()
+    fused = surfsplat.reconstruct(paths, model, cameras=cameras, size=size, capture=options, progress=False)
+    seconds_unrefined = time.perf_counter() - start
+    assert torch.allclose(fused.cameras.K, context_cams.K) and fused.names == [p.name for p in paths]
+    rows = []
+    for steps, per_step, scale, patience in REFINE_GRID:
+        config = RefineConfig(steps=steps, views_per_step=per_step, scale=scale, patience=patience)
+        refined, stats = refine_on_views(
+            fused.gaussians,
+            fused.cameras,
+            context_images,
+            fused.width,
+            fused.height,
+            config,
+            mode=fused.mode,
+            alpha_threshold=fused.alpha_threshold,
+        )
+        out = render(
+            refined, held_cams, fused.width, fused.height, mode=fused.mode, alpha_threshold=fused.alpha_threshold
+        )
+        rows.append(
+            {
+                "steps": steps,
+                "views_per_step": per_step,
+                "scale": scale,
+                "patience": patience,
+                "steps_run": stats["steps"],
+                "seconds": stats["seconds"],
+                "held_out_psnr": float(psnr(out.color.clamp(0, 1), held_images).mean()),
+                "kept": stats["kept"],
+            }
+        )
+        print(f"{name} refine {json.dumps(rows[-1])}", flush=True)
+    return {
+        "context": [p.name for p in paths],
+        "held_out": held,
+        "surfels": len(fused.gaussians),
+        "size": list(size),
+        "seconds_without_refinement": seconds_unrefined,
+        "rows": rows,
+    }
+
+
 # ----------------------------------------------------------------------------------------- video cost
 def write_1080p_video(path: Path, frames: int) -> None:
     """The room along a 2 m path, ray-cast at 480x270 and upscaled by ffmpeg to 1920x1080 (H.264)."""
@@ -301,6 +392,77 @@ def video_cost(frames: int, min_motion: float | None) -> dict:
     }
 
 
+# ----------------------------------------------------------------------------------------- end to end
+CLIP_VIEWS = list(range(14, 27, 2))  # seven neighbouring DTU views, each held for 4 frames at 10 fps
+
+
+def write_dtu_clip(data: Path, path: Path, views: list[int] = CLIP_VIEWS, hold: int = 4, fps: int = 10) -> None:
+    """A short clip of a DTU scan as a person with a phone makes one: each view held for `hold` frames."""
+    import imageio.v3 as iio
+    import imageio_ffmpeg
+    import numpy as np
+
+    from surfsplat.data.images import list_images
+
+    photos = [list_images(data / "dtu_scan24" / "images_4")[i] for i in views]
+    frames = [np.ascontiguousarray(iio.imread(p)[..., :3]) for p in photos]
+    height, width = frames[0].shape[:2]
+    writer = imageio_ffmpeg.write_frames(str(path), (width, height), fps=fps, codec="libx264", quality=8)
+    writer.send(None)
+    for frame in frames:
+        for _ in range(hold):
+            writer.send(frame)
+    writer.close()
+
+
+def run_cli(arguments: list[str], out: Path) -> dict:
+    """`surfsplat reconstruct ARGUMENTS --out OUT` in a fresh process: wall seconds, exit code and the
+    stage times `reconstruction.json` records."""
+    start = time.perf_counter()
+    child = subprocess.run(
+        [sys.executable, "-m", "surfsplat", "reconstruct", *arguments, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    seconds = time.perf_counter() - start
+    record = {"arguments": arguments, "seconds": seconds, "exit_code": child.returncode}
+    summary = out / "reconstruction.json"
+    if child.returncode != 0 or not summary.is_file():
+        record["error"] = (child.stderr.strip().splitlines() or ["no output"])[-1]
+        return record
+    document = json.loads(summary.read_text())
+    record["stages"] = document.get("seconds", {})
+    record["surfels"] = document.get("surfels")
+    record["outputs"] = sorted(p.name for p in out.iterdir())
+    return record
+
+
+def end_to_end(args) -> dict:
+    """Default settings, every default output: the DTU clip, two DTU photos, a 10-second 1080p video."""
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        if "clip" in args.e2e:
+            clip = tmp / "clip.mp4"
+            write_dtu_clip(args.data, clip)
+            results["clip"] = run_cli(["--video", str(clip), "--checkpoint", "tiny-synthetic"], tmp / "clip")
+            print(f"clip: {json.dumps(results['clip'])}", flush=True)
+        if "photos" in args.e2e:
+            from surfsplat.data.images import list_images
+
+            every = list_images(args.data / "dtu_scan24" / "images_4")
+            photos = [str(every[33]), str(every[31])]
+            results["photos"] = run_cli(["--images", *photos, "--checkpoint", "tiny-synthetic"], tmp / "photos")
+            print(f"photos: {json.dumps(results['photos'])}", flush=True)
+        if "video" in args.e2e:
+            video = tmp / "phone.mp4"
+            write_1080p_video(video, 300)
+            results["video_1080p_10s"] = run_cli(["--video", str(video), "--checkpoint", "tiny-synthetic"], tmp / "v")
+            print(f"video: {json.dumps(results['video_1080p_10s'])}", flush=True)
+    return results
+
+
 # ----------------------------------------------------------------------------------------- main
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -314,6 +476,7 @@ def main() -> None:
     parser.add_argument(
         "--min-motion", type=float, default=None, help="video frame filter's motion threshold (0: every frame)"
     )
+    parser.add_argument("--e2e", nargs="+", default=["clip", "photos", "video"], help="end-to-end runs of the e2e part")
     parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
     args = parser.parse_args()
     if args.one_video is not None:
@@ -340,6 +503,15 @@ def main() -> None:
         save()
     if "fern" in args.parts:
         results["llff_fern"] = real_scene(args, model, "LLFF fern", args.data / "llff_fern", "images_8", (64, 80))
+        save()
+    if "refine" in args.parts:
+        dtu = args.data / "dtu_scan24"
+        results["refine_dtu"] = refine_curve(
+            model, "DTU scan 24", dtu, "images_4", list(range(14, 27, 2)), list(range(15, 26, 2)), (288, 400)
+        )
+        save()
+    if "e2e" in args.parts:
+        results["end_to_end"] = end_to_end(args)
         save()
     if "video" in args.parts:
         results["video"] = []

@@ -11,7 +11,7 @@ idle over the last second (Linux /proc/stat); each sample records the idle fract
 
 Each preset and precision runs in a fresh subprocess so that its peak resident memory (CPU) or
 peak allocated memory (CUDA) is its own. bf16 is `torch.autocast(device, dtype=torch.bfloat16)`
-around the call (surfsplat.precision); the table gives its time as a fraction of fp32's. The timed call is one full `SurfSplat` forward (encoder + official
+around the call (surfsplat.precision); the table gives its time as a fraction of fp32 without levers. The timed call is one full `SurfSplat` forward (encoder + official
 adapter, as the release's encoder call) under `no_grad` in eval mode, after one warm-up call; the
 encoder alone is timed as well. Results go to benchmarks/results/encoder_<device>.json and a table
 is printed.
@@ -30,6 +30,13 @@ import time
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
+LEVERS = {  # --levers: the standard CPU levers, each alone and together, against today's no_grad forward
+    "none": (),
+    "inference_mode": ("inference_mode",),
+    "channels_last": ("channels_last",),
+    "compile": ("compile",),
+    "all": ("inference_mode", "channels_last", "compile"),
+}
 
 
 def idle_fraction(seconds: float = 1.0) -> float | None:
@@ -68,6 +75,7 @@ def run_one(
     min_idle: float,
     idle_timeout: float,
     precision: str = "fp32",
+    lever: str = "none",
 ) -> dict:
     import torch
 
@@ -79,6 +87,12 @@ def run_one(
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     model = SurfSplat.from_preset(preset, adapter="official").eval().to(device)
+    levers = set(LEVERS[lever])
+    if "channels_last" in levers:
+        model = model.to(memory_format=torch.channels_last)
+    if "compile" in levers:
+        model.encoder = torch.compile(model.encoder)
+    grad_off = torch.inference_mode if "inference_mode" in levers else torch.no_grad
     images = torch.rand(1, views, 3, size, size, device=device)
     K = torch.tensor([[0.9 * size, 0, size / 2], [0, 0.9 * size, size / 2], [0, 0, 1.0]]).repeat(views, 1, 1)
     c2w = torch.eye(4).repeat(views, 1, 1)
@@ -93,9 +107,11 @@ def run_one(
             torch.cuda.synchronize()
 
     full, encoder_only, idle = [], [], []
-    with torch.no_grad(), autocast(precision, device) as ran:
-        model(images, cameras, near, far)  # warm-up: allocator, kernel selection
+    with grad_off(), autocast(precision, device) as ran:
+        t = time.perf_counter()
+        reference = model(images, cameras, near, far).depths  # warm-up: allocator, kernel selection, compilation
         sync()
+        first_call = time.perf_counter() - t
         if device.startswith("cuda"):
             torch.cuda.reset_peak_memory_stats()
         for _ in range(repeats):
@@ -116,6 +132,9 @@ def run_one(
         "size": size,
         "threads": threads,
         "precision": ran,
+        "lever": lever,
+        "first_call_s": first_call,
+        "depth_checksum": float(reference.double().sum()),
         "parameters": sum(p.numel() for p in model.parameters()),
         "forward_s": full,
         "forward_median_s": statistics.median(full),
@@ -138,6 +157,13 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--min-idle", type=float, default=0.0, help="wait for this idle CPU share before each call")
     parser.add_argument("--idle-timeout", type=float, default=1800.0, help="longest wait for --min-idle, seconds")
+    parser.add_argument(
+        "--levers",
+        nargs="+",
+        choices=tuple(LEVERS),
+        default=["none"],
+        help="inference_mode, channels_last, torch.compile (inductor), all: each measured beside none",
+    )
     parser.add_argument("--single", help=argparse.SUPPRESS)  # internal: run one preset, print JSON
     args = parser.parse_args()
 
@@ -152,23 +178,23 @@ def main() -> int:
             args.min_idle,
             args.idle_timeout,
             args.precisions[0],
+            args.levers[0],
         )
         print(json.dumps(result))
         return 0
 
     rows = []
-    for preset in args.presets:
-        for precision in args.precisions:
-            cmd = [sys.executable, __file__, "--single", preset, "--views", str(args.views), "--size", str(args.size)]
-            cmd += ["--device", args.device, "--repeats", str(args.repeats), "--threads", str(args.threads)]
-            cmd += ["--min-idle", str(args.min_idle), "--idle-timeout", str(args.idle_timeout)]
-            cmd += ["--precisions", precision]
-            done = subprocess.run(cmd, capture_output=True, text=True)
-            if done.returncode != 0:
-                print(f"{preset} {precision}: failed\n{done.stderr.strip()}", file=sys.stderr)
-                return 1
-            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    fp32 = {r["preset"]: r["forward_median_s"] for r in rows if r["precision"] == "fp32"}
+    for preset, precision, lever in [(p, q, v) for p in args.presets for q in args.precisions for v in args.levers]:
+        cmd = [sys.executable, __file__, "--single", preset, "--views", str(args.views), "--size", str(args.size)]
+        cmd += ["--device", args.device, "--repeats", str(args.repeats), "--threads", str(args.threads)]
+        cmd += ["--min-idle", str(args.min_idle), "--idle-timeout", str(args.idle_timeout)]
+        cmd += ["--precisions", precision, "--levers", lever]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            print(f"{preset} {precision} {lever}: failed\n{done.stderr.strip()}", file=sys.stderr)
+            return 1
+        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    fp32 = {r["preset"]: r["forward_median_s"] for r in rows if r["precision"] == "fp32" and r["lever"] == "none"}
     for r in rows:
         r["forward_vs_fp32"] = r["forward_median_s"] / fp32[r["preset"]] if r["preset"] in fp32 else None
 
@@ -191,15 +217,15 @@ def main() -> int:
     out.write_text(json.dumps(report, indent=2))
 
     print(
-        f"{'preset':<7} {'precision':>9} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
-        f"{'x fp32':>7} {'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
+        f"{'preset':<7} {'precision':>9} {'lever':>14} {'first call s':>12} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
+        f"{'x base':>7} {'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
     )
     for r in rows:
         idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
         timing = f"{r['forward_median_s']:.3f}, {min(r['forward_s']):.3f}"
         ratio = "-" if r["forward_vs_fp32"] is None else f"{r['forward_vs_fp32']:.2f}"
         print(
-            f"{r['preset']:<7} {r['precision']:>9} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
+            f"{r['preset']:<7} {r['precision']:>9} {r['lever']:>14} {r['first_call_s']:>12.2f} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
             f"{ratio:>7} {r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}"
         )
     print(f"({rows[0]['peak_kind']}; load average at the end {os.getloadavg()[0]:.2f}; written to {out})")

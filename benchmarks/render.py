@@ -8,6 +8,11 @@ shared machine wall time alone says little.
 
     python benchmarks/render.py                       # every backend that runs here, surfel + ewa, 256/512/1024
     python benchmarks/render.py --backends cpu --modes surfel --resolutions 256
+    python benchmarks/render.py --multiview 16 --resolutions 64 128 256   # one 16-view call vs 16 calls
+
+`--multiview V`: the compiled CPU backend's forward+backward of one call rendering V cameras (a
+fan of views around the target) against V calls of one camera each, in the same process, at each
+resolution: seconds of both and their ratio.
 """
 
 from __future__ import annotations
@@ -134,6 +139,60 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict
     }
 
 
+def camera_fan(cameras, views: int):
+    """`views` cameras around the first of `cameras`: shifted sideways and up by up to 5 cm."""
+    from surfsplat import Cameras
+
+    c2w = cameras.c2w[:1].repeat(views, 1, 1)
+    angle = torch.linspace(0, 2 * torch.pi, views + 1, dtype=c2w.dtype)[:-1]
+    c2w[:, :3, 3] += 0.05 * torch.stack((angle.cos(), angle.sin(), torch.zeros_like(angle)), -1) @ c2w[0, :3, :3].T
+    return Cameras(c2w, cameras.K[:1].repeat(views, 1, 1))
+
+
+def multiview_worker(views: int, res: int, repeats: int) -> dict:
+    """One V-camera forward+backward call against V one-camera calls (compiled CPU backend)."""
+    from surfsplat import Gaussians
+    from surfsplat.render import render
+
+    scene = _scene()
+    g = scene.gaussians
+    cams = camera_fan(scene.target.scaled(res / 256), views)
+    params = {
+        k: getattr(g, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")
+    }
+    gaussians = Gaussians(**params)
+
+    def together() -> None:
+        out = render(gaussians, cams, res, res, backend="cpu")
+        (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+
+    def one_by_one() -> None:
+        for c in range(views):
+            out = render(gaussians, cams[c : c + 1], res, res, backend="cpu")
+            (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+
+    timings = {}
+    for name, fn in (("one_call", together), ("separate_calls", one_by_one)):
+        fn()  # warm-up
+        times = []
+        for _ in range(repeats):
+            for p in params.values():
+                p.grad = None
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        timings[name] = statistics.median(times)
+    return {
+        "views": views,
+        "resolution": res,
+        "seconds_one_call": timings["one_call"],
+        "seconds_separate_calls": timings["separate_calls"],
+        "speedup": timings["separate_calls"] / timings["one_call"],
+        "threads": torch.get_num_threads(),
+        "load_average": os.getloadavg()[0],
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backends", nargs="+", default=None, help="default: every backend that runs here")
@@ -144,7 +203,27 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS / "render.json")
     parser.add_argument("--worker", nargs=4, metavar=("BACKEND", "MODE", "RES", "PASSES"), help=argparse.SUPPRESS)
+    parser.add_argument("--multiview", type=int, default=None, metavar="V", help="one V-camera call vs V calls")
     args = parser.parse_args()
+
+    if args.multiview:
+        from surfsplat.train.loop import cpu_threads
+
+        rows = []
+        with cpu_threads(args.threads):
+            for res in args.resolutions:
+                rows.append(multiview_worker(args.multiview, res, args.repeats))
+                r = rows[-1]
+                print(
+                    f"{r['views']} views at {res}^2: one call {r['seconds_one_call']:.3f} s, "
+                    f"{r['views']} calls {r['seconds_separate_calls']:.3f} s, x{r['speedup']:.2f}",
+                    flush=True,
+                )
+        out = args.out.with_name("render_multiview.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows}, indent=2))
+        print(f"wrote {out}")
+        return
 
     if args.worker:
         from surfsplat.train.loop import cpu_threads

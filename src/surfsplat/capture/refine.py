@@ -17,6 +17,12 @@ surface is the one predicted. Loss: the mean squared colour error of the renders
 blending, as the reconstruction renders) against the photos. A step renders at most
 `views_per_step` context views, drawn by a seeded generator without replacement, so the cost per
 step is bounded for hundreds of views and the result is the same on every run.
+
+What it costs: the fit renders at `scale` of the working size (the photos area-averaged to it), a
+quarter of the pixels at 0.5, and stops early once the loss of a window of `patience` steps has
+fallen by less than `min_improvement` of the previous window's. The defaults were chosen on the
+held-out PSNR against time curve of `benchmarks/capture.py --parts refine`. The colour error before
+and after is measured on every view at the full working size; a fit that raised it is not kept.
 """
 
 from __future__ import annotations
@@ -39,10 +45,13 @@ logger = logging.getLogger(__name__)
 class RefineConfig:
     """How a fused scene is refined on its context photos (steps 0: not at all)."""
 
-    steps: int = 100  # Adam steps
+    steps: int = 100  # Adam steps at most
     lr: float = 0.01  # rate of the SH coefficients and log scales; opacity logits at 4x
     views_per_step: int = 16  # context views rendered in one step (all of them when fewer)
     seed: int = 0  # which views each step renders
+    scale: float = 1.0  # the fit's renders at this fraction of the working size (photos area-averaged)
+    patience: int | None = None  # steps per window of the early stop (None: every step runs)
+    min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -51,6 +60,12 @@ class RefineConfig:
             raise SurfSplatInputError(f"refine.lr: expected a positive rate, got {self.lr}")
         if self.views_per_step < 1:
             raise SurfSplatInputError(f"refine.views_per_step: expected at least 1, got {self.views_per_step}")
+        if not (math.isfinite(self.scale) and 0 < self.scale <= 1):
+            raise SurfSplatInputError(f"refine.scale: expected a fraction in (0, 1], got {self.scale}")
+        if self.patience is not None and self.patience < 1:
+            raise SurfSplatInputError(f"refine.patience: expected at least 1 step or None, got {self.patience}")
+        if not (math.isfinite(self.min_improvement) and 0 <= self.min_improvement < 1):
+            raise SurfSplatInputError(f"refine.min_improvement: expected a share in [0, 1), got {self.min_improvement}")
 
 
 def refine_on_views(
@@ -64,11 +79,21 @@ def refine_on_views(
     mode: str = "surfel",
     alpha_threshold: float | None = 0.001,
     backend: str = "auto",
+    progress: bool = False,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels with SH, opacities and tangent scales fitted to the photos, and the fit's figures:
-    the mean squared colour error over every view before and after it, and whether it was kept
-    ({"steps", "mse_before", "mse_after", "kept"}: a fit that raised the error is not used)."""
+    the mean squared colour error over every view before and after it, whether it was kept (a fit
+    that raised the error is not used), the steps run, the render size and the seconds
+    ({"steps", "max_steps", "mse_before", "mse_after", "kept", "scale", "width", "height", "seconds"}).
+    `progress`: a progress bar over the steps."""
+    import time
+
+    import torch.nn.functional as F
+
+    from ..log import progress as progress_bar
     from ..render import render
+
+    start = time.perf_counter()
 
     config = config or RefineConfig()
     v = len(cameras)
@@ -82,19 +107,25 @@ def refine_on_views(
     images = images.to(g0.means.device, g0.means.dtype)
     cameras = cameras.to(device=g0.means.device, dtype=g0.means.dtype)
 
-    def draw(g: Gaussians, which: Tensor) -> Tensor:
-        out = render(g, cameras[which], width, height, mode=mode, backend=backend, alpha_threshold=alpha_threshold)
-        return out.color
+    fit_w, fit_h = max(1, round(width * config.scale)), max(1, round(height * config.scale))
+    resize = torch.tensor([fit_w / width, fit_h / height, 1.0], dtype=cameras.K.dtype, device=cameras.K.device)
+    fit_cameras = Cameras(cameras.c2w, cameras.K * resize[:, None], validate=False)
+    fit_images = images if config.scale == 1 else F.interpolate(images, size=(fit_h, fit_w), mode="area")
+
+    def draw(g: Gaussians, cams: Cameras, w: int, h: int) -> Tensor:
+        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold).color
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
             chunks = torch.arange(v).split(config.views_per_step)
-            total = sum(float((draw(g, c) - images[c]).square().sum()) for c in chunks)
+            total = sum(float((draw(g, cameras[c], width, height) - images[c]).square().sum()) for c in chunks)
         return total / images.numel()
 
+    figures = {"max_steps": config.steps, "scale": config.scale, "width": fit_w, "height": fit_h}
     before = mse(g0)
     if config.steps == 0:
-        return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0}
+        seconds = time.perf_counter() - start
+        return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
     sh = g0.sh.clone().requires_grad_(True)
     logits = torch.logit(g0.opacities.clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
     log_scales = g0.scales[:, :2].log().requires_grad_(True)
@@ -108,19 +139,26 @@ def refine_on_views(
         return replace(g0, sh=sh, opacities=torch.sigmoid(logits), scales=scales, validate=False)
 
     generator = torch.Generator().manual_seed(config.seed)
-    for _ in range(config.steps):
-        which = torch.randperm(v, generator=generator)[: config.views_per_step].sort().values
-        loss = (draw(current(), which) - images[which]).square().mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+    losses: list[float] = []
+    with progress_bar(total=config.steps, desc="refine", unit="step", enabled=progress) as bar:
+        for _ in range(config.steps):
+            which = torch.randperm(v, generator=generator)[: config.views_per_step].sort().values
+            loss = (draw(current(), fit_cameras[which], fit_w, fit_h) - fit_images[which]).square().mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            bar.update(1)
+            if _stalled(losses, config.patience, config.min_improvement):
+                break
     with torch.no_grad():
         fitted = current()
         fitted = replace(
             fitted, sh=fitted.sh.detach(), opacities=fitted.opacities.detach(), scales=fitted.scales.detach()
         )
     after = mse(fitted)
-    stats = {"steps": config.steps, "mse_before": before, "mse_after": after, "kept": float(after <= before)}
+    stats = {"steps": len(losses), "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
+    stats["seconds"] = time.perf_counter() - start
     if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
         logger.warning(
             "refine: the fit raised the context views' colour error (%.3g -> %.3g); the fused surfels are kept "
@@ -132,10 +170,25 @@ def refine_on_views(
     return fitted, stats
 
 
+def _stalled(losses: list[float], patience: int | None, min_improvement: float) -> bool:
+    """Whether the last window of `patience` steps lowered the mean loss by less than
+    `min_improvement` of the window before it (windows end at the current step)."""
+    if patience is None or len(losses) < 2 * patience or len(losses) % patience:
+        return False
+    last = sum(losses[-patience:]) / patience
+    previous = sum(losses[-2 * patience : -patience]) / patience
+    return last > previous * (1 - min_improvement)
+
+
 def refine_summary(stats: dict[str, float]) -> str:
     """One line for the reconstruct summary and the capture report, from `refine_on_views`'s figures."""
     before, after = (-10 * math.log10(max(stats[k], 1e-12)) for k in ("mse_before", "mse_after"))
-    line = (
-        f"refined on the context views: {int(stats['steps'])} steps, colour PSNR there {before:.2f} -> {after:.2f} dB"
-    )
+    steps = f"{int(stats['steps'])} steps"
+    if "max_steps" in stats and stats["steps"] < stats["max_steps"]:
+        steps += f" of {int(stats['max_steps'])} (the loss stopped falling)"
+    if "width" in stats:
+        steps += f" at {int(stats['width'])}x{int(stats['height'])}"
+    if "seconds" in stats:
+        steps += f" in {stats['seconds']:.1f} s"
+    line = f"refined on the context views: {steps}, colour PSNR there {before:.2f} -> {after:.2f} dB"
     return line + ("" if stats["kept"] else " (not kept: the fit made it worse)")

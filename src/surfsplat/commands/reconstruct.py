@@ -99,12 +99,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.02,
         help="video: a frame is used when it differs from the last used one by this much (mean grey, 0..1)",
     )
+    from ..capture import RefineConfig
+
+    refine = RefineConfig()
     group.add_argument(
         "--refine-steps",
         type=int,
-        default=100,
+        default=refine.steps,
         metavar="N",
-        help="steps fitting a fused scene's colours, opacities and sizes to its context views (0: none; default 100)",
+        help="at most this many steps fitting a fused scene's colours, opacities and sizes to its context views "
+        f"(0: none; default {refine.steps}; they stop early once the loss stops falling)",
+    )
+    group.add_argument(
+        "--refine-scale",
+        type=float,
+        default=refine.scale,
+        metavar="S",
+        help=f"the refinement renders at this fraction of the working size (default {refine.scale:g})",
     )
 
 
@@ -129,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         views_per_pass=args.views_per_pass,
         holdout_every=args.holdout_every,
         frames=FrameConfig(max_size=min(args.max_size, 960), min_motion=args.min_motion, max_frames=args.max_frames),
-        refine=RefineConfig(steps=args.refine_steps),
+        refine=dataclasses.replace(RefineConfig(), steps=args.refine_steps, scale=args.refine_scale),
     )
     scene = reconstruct(
         images,

@@ -209,6 +209,7 @@ def reconstruct(
             capture.refine,
             mode=mode,
             alpha_threshold=alpha_threshold,
+            progress=progress,
         )
         seconds["refine"] = time.perf_counter() - tick
     logger.info(

@@ -1,9 +1,12 @@
-"""Torch-facing side of the compiled CPU renderer: one autograd function per camera.
+"""Torch-facing side of the compiled CPU renderer: one autograd function for all cameras of a call.
 
 No torch op runs per Gaussian: quaternion to rotation, camera transform, SH colour, normal
 orientation, projection, culling, sorting, binning, compositing and all their gradients run in the
 kernels of `kernels.py`, in float64, on every core. Torch only hands tensors over (a NumPy view
-or one cast) - which also keeps torch's own thread pool out of the way of the kernels'.
+or one cast) - which also keeps torch's own thread pool out of the way of the kernels'. The inputs
+are converted and the rotations built once per call, whatever the number of cameras; the
+backward sums every camera's gradients into one set of buffers, camera after camera, so the
+result is the same for any number of threads and no per-camera gradient is ever materialised.
 """
 
 from __future__ import annotations
@@ -109,13 +112,17 @@ def _convention_args(settings: CpuRenderSettings) -> tuple[float, float, bool]:
     )
 
 
-def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSettings) -> _Plan:
-    """Rotations, projection, culling, depth sort and tile lists (the kernels' first half)."""
+def _rotations(quats: np.ndarray) -> np.ndarray:
+    rot = np.empty((quats.shape[0], 3, 3))
+    kernels.quats_to_rotations(quats, rot)
+    return rot
+
+
+def _prepare(surfel: bool, inputs: tuple, rot: np.ndarray, camera: _Camera, settings: CpuRenderSettings) -> _Plan:
+    """Projection, culling, depth sort and tile lists of one camera (the kernels' first half)."""
     x, q, sc, op, shc, cov = inputs
     n = x.shape[0]
     threads = numba.get_num_threads()
-    rot = np.empty((n, 3, 3))
-    kernels.quats_to_rotations(q, rot)
     geom = np.empty((n, kernels.GEOM_SIZE))
     box = np.empty((n, 4), dtype=np.int64)
     keep = np.empty(n, dtype=np.bool_)
@@ -171,12 +178,13 @@ def _prepare(surfel: bool, inputs: tuple, camera: _Camera, settings: CpuRenderSe
 
 
 class _Rasterize(torch.autograd.Function):
-    """Render one camera; backward = compositing backward then the projection's chain rule.
+    """Render every camera; backward = per camera the compositing backward then the projection's
+    chain rule, added into one set of gradient buffers in camera order.
 
     Inputs: means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, 3, B],
     covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
-    Outputs (un-normalized, the means' dtype): colour [3, H, W], alpha [1, H, W], depth [1, H, W],
-    normal [3, H, W].
+    Outputs (un-normalized, the means' dtype): colour [C, 3, H, W], alpha [C, 1, H, W],
+    depth [C, 1, H, W], normal [C, 3, H, W].
     """
 
     @staticmethod
@@ -189,116 +197,129 @@ class _Rasterize(torch.autograd.Function):
         sh,
         covariances,
         surfel: bool,
-        camera: _Camera,
+        cameras: list[_Camera],
         settings: CpuRenderSettings,
     ):
-        plan = _prepare(surfel, _inputs(means, quats, scales, opacities, sh, covariances), camera, settings)
-        W, H = camera.width, camera.height
-        color, normal = np.empty((3, H, W)), np.empty((3, H, W))
-        depth, trans = np.empty((1, H, W)), np.empty((1, H, W))
-        last = np.empty((H, W), dtype=np.int64)
-        with numba.parallel_chunksize(settings.parallel_chunk):
-            kernels.composite_forward(
-                surfel,
-                plan.geom,
-                plan.features,
-                plan.box,
-                plan.tile_start,
-                plan.tile_ids,
-                W,
-                H,
-                settings.tile_size,
-                plan.tiles_x,
-                color,
-                normal,
-                depth[0],
-                trans[0],
-                last,
-            )
-        ctx.surfel, ctx.camera, ctx.settings = surfel, camera, settings
-        ctx.plan, ctx.trans, ctx.last = plan, trans[0], last
-        ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)
+        inputs = _inputs(means, quats, scales, opacities, sh, covariances)
+        rot = _rotations(inputs[1])
+        C, W, H = len(cameras), cameras[0].width, cameras[0].height
+        color, normal = np.empty((C, 3, H, W)), np.empty((C, 3, H, W))
+        depth, trans = np.empty((C, 1, H, W)), np.empty((C, 1, H, W))
+        last = np.empty((C, H, W), dtype=np.int64)
+        plans = []
+        for c, camera in enumerate(cameras):
+            plan = _prepare(surfel, inputs, rot, camera, settings)
+            with numba.parallel_chunksize(settings.parallel_chunk):
+                kernels.composite_forward(
+                    surfel,
+                    plan.geom,
+                    plan.features,
+                    plan.box,
+                    plan.tile_start,
+                    plan.tile_ids,
+                    W,
+                    H,
+                    settings.tile_size,
+                    plan.tiles_x,
+                    color[c],
+                    normal[c],
+                    depth[c, 0],
+                    trans[c, 0],
+                    last[c],
+                )
+            plans.append(plan)
+        ctx.surfel, ctx.cameras, ctx.settings = surfel, cameras, settings
+        ctx.plans, ctx.trans, ctx.last, ctx.inputs, ctx.rot = plans, trans, last, inputs, rot
+        ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)  # autograd's in-place checks
+        ctx.covariance_dtype = None if covariances is None else covariances.dtype
+        ctx.dtypes = tuple(t.dtype for t in (means, quats, scales, opacities, sh))
         dtype = means.dtype
         return _tensor(color, dtype), _tensor(1.0 - trans, dtype), _tensor(depth, dtype), _tensor(normal, dtype)
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_normal):
-        plan: _Plan = ctx.plan
-        camera: _Camera = ctx.camera
         settings: CpuRenderSettings = ctx.settings
-        means, quats, scales, opacities, sh, covariances = ctx.saved_tensors
-        W, H = camera.width, camera.height
-        threads = numba.get_num_threads()
-        pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE))  # every row gets written
-        with numba.parallel_chunksize(settings.parallel_chunk):
-            kernels.composite_backward(
-                ctx.surfel,
-                plan.geom,
-                plan.features,
-                plan.box,
-                plan.tile_start,
-                plan.tile_ids,
-                W,
-                H,
-                settings.tile_size,
-                plan.tiles_x,
-                ctx.trans,
-                ctx.last,
-                np.zeros((3, H, W)) if g_color is None else _np64(g_color),
-                np.zeros((3, H, W)) if g_normal is None else _np64(g_normal),
-                np.zeros((H, W)) if g_alpha is None else _np64(g_alpha[0]),
-                np.zeros((H, W)) if g_depth is None else _np64(g_depth[0]),
-                pair_grads,
-            )
-        x, q, sc, op, shc, cov = _inputs(means, quats, scales, opacities, sh, covariances)
+        _ = ctx.saved_tensors  # raises if an input was modified in place since the forward
+        x, q, sc, op, shc, cov = ctx.inputs  # the forward's float64 copies (or views of float64 inputs)
+        C, H, W = ctx.last.shape
         n = x.shape[0]
+        threads = numba.get_num_threads()
+        upstream = [
+            np.zeros(shape) if g is None else _np64(g)
+            for g, shape in (
+                (g_color, (C, 3, H, W)),
+                (g_normal, (C, 3, H, W)),
+                (g_alpha, (C, 1, H, W)),
+                (g_depth, (C, 1, H, W)),
+            )
+        ]
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
-        kernels.project_backward(
-            ctx.surfel,
-            plan.rank,
-            plan.pair_start,
-            plan.pair_of,
-            pair_grads,
-            x,
-            plan.rotations,
-            sc,
-            op,
-            shc,
-            cov,
-            camera.R_cw,
-            camera.t_cw,
-            camera.center,
-            camera.K,
-            camera.width,
-            camera.height,
-            *_convention_args(settings)[:2],
-            plan.geom,
-            plan.flip,
-            g_means,
-            g_rot,
-            g_scales,
-            g_opac,
-            g_sh,
-            g_cov,
-            np.empty((threads, _SCRATCH)),
-            np.empty((threads, 2, 3, 3)),
-        )
+        scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
+        for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
+            pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE))  # every row gets written
+            with numba.parallel_chunksize(settings.parallel_chunk):
+                kernels.composite_backward(
+                    ctx.surfel,
+                    plan.geom,
+                    plan.features,
+                    plan.box,
+                    plan.tile_start,
+                    plan.tile_ids,
+                    W,
+                    H,
+                    settings.tile_size,
+                    plan.tiles_x,
+                    ctx.trans[c, 0],
+                    ctx.last[c],
+                    upstream[0][c],
+                    upstream[1][c],
+                    upstream[2][c, 0],
+                    upstream[3][c, 0],
+                    pair_grads,
+                )
+            kernels.project_backward(
+                ctx.surfel,
+                plan.rank,
+                plan.pair_start,
+                plan.pair_of,
+                pair_grads,
+                x,
+                ctx.rot,
+                sc,
+                op,
+                shc,
+                cov,
+                camera.R_cw,
+                camera.t_cw,
+                camera.center,
+                camera.K,
+                camera.width,
+                camera.height,
+                *_convention_args(settings)[:2],
+                plan.geom,
+                plan.flip,
+                g_means,
+                g_rot,
+                g_scales,
+                g_opac,
+                g_sh,
+                g_cov,
+                scratch,
+                cov_scratch,
+            )
         g_quats = np.empty((n, 4))
         kernels.quats_backward(q, g_rot, g_quats)
 
-        def out(grad: np.ndarray, like: Tensor | None, index: int) -> Tensor | None:
-            if like is None or not ctx.needs_input_grad[index]:
+        def out(grad: np.ndarray, dtype: torch.dtype | None, index: int) -> Tensor | None:
+            if dtype is None or not ctx.needs_input_grad[index]:
                 return None
-            return _tensor(grad, like.dtype)
+            return _tensor(grad, dtype)
 
+        grads = (g_means, g_quats, g_scales, g_opac, g_sh)
         return (
-            out(g_means, means, 0),
-            out(g_quats, quats, 1),
-            out(g_scales, scales, 2),
-            out(g_opac, opacities, 3),
-            out(g_sh, sh, 4),
-            out(g_cov, covariances, 5),
+            *(out(g, dtype, i) for i, (g, dtype) in enumerate(zip(grads, ctx.dtypes))),
+            out(g_cov, ctx.covariance_dtype, 5),
             None,
             None,
             None,
@@ -331,13 +352,17 @@ def render_cpu(
     g = gaussians
     _check(g, cameras)
     covariances = g.explicit_covariances if mode == "ewa" else None
-    outs = [
-        _Rasterize.apply(g.means, g.quats, g.scales, g.opacities, g.sh, covariances, mode == "surfel", cam, settings)
-        for cam in _cameras(cameras, width, height)
-    ]
-    if len(outs) == 1:  # the common case: views, no copy
-        return tuple(o[None] for o in outs[0])
-    return tuple(torch.stack(maps) for maps in zip(*outs))
+    return _Rasterize.apply(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh,
+        covariances,
+        mode == "surfel",
+        _cameras(cameras, width, height),
+        settings,
+    )
 
 
 def contributing_pairs(
@@ -356,9 +381,10 @@ def contributing_pairs(
     g = gaussians
     _check(g, cameras)
     inputs = _inputs(g.means, g.quats, g.scales, g.opacities, g.sh, g.explicit_covariances if mode == "ewa" else None)
+    rot = _rotations(inputs[1])
     counts = []
     for cam in _cameras(cameras, width, height):
-        plan = _prepare(mode == "surfel", inputs, cam, settings)
+        plan = _prepare(mode == "surfel", inputs, rot, cam, settings)
         counts.append(
             int(
                 kernels.count_contributing_pairs(

@@ -900,7 +900,7 @@ def composite_backward(
 
 @njit(cache=True, error_model="numpy")
 def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, g_rot, g_scale):
-    """Chain rule of the surfel projection: writes dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
+    """Chain rule of the surfel projection: adds dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
 
     gr is the survivor's gradient row from the compositing (GRAD_* columns); (cx, cy) the
     projected centre the cross product was expanded around, (lx, ly) the low-pass centre.
@@ -965,15 +965,15 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, 
         cam0 = R_cw[0, 0] * R[0, col] + R_cw[0, 1] * R[1, col] + R_cw[0, 2] * R[2, col]
         cam1 = R_cw[1, 0] * R[0, col] + R_cw[1, 1] * R[1, col] + R_cw[1, 2] * R[2, col]
         cam2 = R_cw[2, 0] * R[0, col] + R_cw[2, 1] * R[1, col] + R_cw[2, 2] * R[2, col]
-        g_scale[col] = cam0 * gc0 + cam1 * gc1 + cam2 * gc2
+        g_scale[col] += cam0 * gc0 + cam1 * gc1 + cam2 * gc2
         for row in range(3):
-            g_rot[row, col] = s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
+            g_rot[row, col] += s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
     return gm02, gm12, gm22 + g_mu_z
 
 
 @njit(cache=True, error_model="numpy")
 def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov):
-    """Chain rule of the EWA projection: writes dL/dSigma (world) into g_cov, returns dL/dmu.
+    """Chain rule of the EWA projection: adds dL/dSigma (world) to g_cov, returns dL/dmu.
 
     As in the torch backend, the 2D covariance's off-diagonal is its (0, 1) entry, so dL/dSigma =
     X^T [[g_a, g_b], [0, g_c]] X with X = J W; its antisymmetric part is harmless for a symmetric Sigma.
@@ -1013,7 +1013,7 @@ def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov):
     qq = (q0, q1, q2)
     for r in range(3):
         for s in range(3):
-            g_cov[r, s] = g_a * pp[r] * pp[s] + g_b * pp[r] * qq[s] + g_c * qq[r] * qq[s]
+            g_cov[r, s] += g_a * pp[r] * pp[s] + g_b * pp[r] * qq[s] + g_c * qq[r] * qq[s]
     # X = J W: dL/dJ = dL/dX W^T.
     gj00 = gp0 * R_cw[0, 0] + gp1 * R_cw[0, 1] + gp2 * R_cw[0, 2]
     gj01 = gp0 * R_cw[1, 0] + gp1 * R_cw[1, 1] + gp2 * R_cw[1, 2]
@@ -1083,7 +1083,8 @@ def project_backward(
     gradient row is the sum of its per-tile rows pair_grads[pair_of[pair_start[m]:pair_start[m + 1]]]
     (from `composite_backward`), added in that fixed order so gradients are bit-identical for any
     number of threads. The loop runs in input order, so parameters and outputs are read and written
-    sequentially. Outputs (zero on entry, culled Gaussians stay zero): g_means [N, 3],
+    sequentially. Outputs, to which this camera's gradients are added (culled Gaussians get nothing),
+    so that one set of buffers, zeroed once, sums the cameras of a call in their order: g_means [N, 3],
     g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
@@ -1128,6 +1129,7 @@ def project_backward(
             else:
                 cov, g_cov = cov_scratch[tid, 0], cov_scratch[tid, 1]
                 _thin_covariance(R, scales[i, 0], scales[i, 1], cov)
+                g_cov[:] = 0.0
                 gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov)
                 # Sigma = R D R^T, D = diag(s0^2, s1^2, thin^2): dL/dR = (G + G^T) R D,
                 # dL/ds_j = 2 s_j (R^T G R)_jj.
@@ -1137,17 +1139,17 @@ def project_backward(
                         acc = 0.0
                         for k in range(3):
                             acc += (g_cov[r, k] + g_cov[k, r]) * R[k, j]
-                        g_rotations[i, r, j] = acc * var[j]
+                        g_rotations[i, r, j] += acc * var[j]
                 for j in range(2):
                     acc = 0.0
                     for r in range(3):
                         for k in range(3):
                             acc += R[r, j] * g_cov[r, k] * R[k, j]
-                    g_scales[i, j] = 2.0 * scales[i, j] * acc
+                    g_scales[i, j] += 2.0 * scales[i, j] * acc
         # mu = R_cw x + t
         for r in range(3):
-            g_means[i, r] = R_cw[0, r] * gm0 + R_cw[1, r] * gm1 + R_cw[2, r] * gm2
-        g_opacities[i] = gr[GRAD_LOGO] / opacities[i]
+            g_means[i, r] += R_cw[0, r] * gm0 + R_cw[1, r] * gm1 + R_cw[2, r] * gm2
+        g_opacities[i] += gr[GRAD_LOGO] / opacities[i]
         # Normal feature = flip * R e3.
         for r in range(3):
             g_rotations[i, r, 2] += flip[i] * gr[GRAD_FEAT + 3 + r]
@@ -1164,7 +1166,7 @@ def project_backward(
                 v += sh[i, ch, k] * Y[k]
             g_col = gr[GRAD_FEAT + ch] if v >= 0.0 else 0.0
             for k in range(n_bases):
-                g_sh[i, ch, k] = g_col * Y[k]
+                g_sh[i, ch, k] += g_col * Y[k]
             if n_bases > 1:
                 for k in range(1, n_bases):
                     gd0 += g_col * sh[i, ch, k] * GX[k]
