@@ -224,9 +224,14 @@ def export_reconstruction(
     near: float | None = None,
     far: float | None = None,
     write_surfels: bool = True,
+    seconds: dict[str, float] | None = None,
 ) -> dict[str, Path]:
     """Write what people look at for one reconstruction; returns {what: path}. Each file is written
-    under a temporary name and renamed, so an interrupted export leaves no half-written file."""
+    under a temporary name and renamed, so an interrupted export leaves no half-written file.
+    `seconds`, when given, receives the wall time of each step (ply, bake, renders, path, turntable,
+    mesh)."""
+    import time
+
     from ..export.images import colorize_depth, normal_to_rgb, write_png
     from ..export.mesh import TsdfConfig, mesh_from_renders, save_mesh
     from ..export.paths import focus_point, interpolate_cameras, save_cameras, turntable
@@ -235,13 +240,24 @@ def export_reconstruction(
 
     out = Path(out_dir)
     written: dict[str, Path] = {}
+    seconds = {} if seconds is None else seconds
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - tick
+        tick = now
+
     if "video" in options.formats:
         reason = video_unavailable()
         if reason is not None:  # fail before any work, not after minutes of rendering
             raise SurfSplatInputError(f"--formats video: {reason}")
     if write_surfels and "ply" in options.formats:
         written["surfels (2DGS PLY)"] = save_ply(gaussians, out / "surfels.ply")
+        lap("ply")
         written.update(write_viewer_ply(gaussians, cameras, width, height, out, options))
+        lap("bake")
     written["cameras"] = save_cameras(out / "cameras.json", cameras, width, height, names, near, far)
 
     s = options.scale
@@ -262,9 +278,11 @@ def export_reconstruction(
             write_png(out / "renders" / f"{tag}_depth.png", colorize_depth(context.depth[i], shown[i]))
             write_png(out / "renders" / f"{tag}_normal.png", normal_to_rgb(context.normal[i]))
         written["context renders"] = out / "renders"
+    lap("renders")
     need_path = "video" in options.formats or "mesh" in options.formats
     path_cams = interpolate_cameras(cameras, options.path_frames) if need_path and len(cameras) >= 2 else None
     path = draw(path_cams, "camera path") if path_cams is not None else None
+    lap("path")
     if "video" in options.formats:
         if path is not None:
             for f in range(len(path_cams)):
@@ -274,6 +292,7 @@ def export_reconstruction(
         focus = focus_point(context.depth, context.alpha >= tau, cameras)
         spin = draw(turntable(cameras, focus, options.turntable_frames, options.turntable_degrees), "turntable")
         written["turntable video"] = write_video(out / "turntable.mp4", spin.color, options.fps)
+        lap("turntable")
     if "mesh" in options.formats:
         views = [context] + ([path] if path is not None else [])
         fuse_cams = cameras if path_cams is None else _cat_cameras(cameras, path_cams)
@@ -286,6 +305,7 @@ def export_reconstruction(
             min_alpha=tau,
         )
         written["mesh (TSDF fusion)"] = save_mesh(mesh, out / "mesh.ply")
+        lap("mesh")
     return written
 
 

@@ -194,6 +194,8 @@ def run(args: argparse.Namespace) -> int:
         f"under half their pixel footprint, median opacity {c['opacity_quantiles']['p50']:.2f}"
         + ("" if c["closed"] else f": not closed ({'; '.join(c['problems'])})")
     )
+    stages = {k: v for k, v in summary["seconds"].items() if k != "total" and v >= 0.05}
+    print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     print(f"wrote {args.out}/:")
     print_written(written)
     return 0

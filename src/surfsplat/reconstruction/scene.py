@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -181,7 +182,9 @@ class Scene:
         out = check_output_dir(
             out_dir, "out_dir", inputs=self.input_files(), writes=[*output_names(options.formats), *SUMMARY_FILES]
         )
+        tick = time.perf_counter()
         closure = self.closure()  # before any file is written: a failure here leaves nothing behind
+        seconds = {"closure": time.perf_counter() - tick}
         written = export_reconstruction(
             self.gaussians,
             self.cameras,
@@ -192,14 +195,18 @@ class Scene:
             names=self.names,
             near=self.near,
             far=self.far,
+            seconds=seconds,
         )
+        tick = time.perf_counter()
         if self.poses is not None:
             written.update(self._pose_outputs(out, written))
         if self.is_capture:
             from .report import write_capture_outputs
 
             written.update(write_capture_outputs(self, out, options))
+        seconds["reports"] = time.perf_counter() - tick
         summary = self.summary()
+        summary["seconds"] = {**self.seconds, **{f"save: {k}": v for k, v in seconds.items()}}
         summary["closure"] = closure.to_json()
         summary["files"] = {k: str(v) for k, v in written.items()}
         written["summary"] = write_text(out / "reconstruction.json", json.dumps(summary, indent=1) + "\n")
