@@ -24,6 +24,15 @@ Parts (each writes its entry of benchmarks/results/capture.json and prints a tab
 - video: a synthetic 1080p video (the room ray-cast at 480x270, upscaled by ffmpeg to 1920x1080,
   H.264) of 10 / 50 / 300 frames along a 2 m path, reconstructed with the cameras estimated from
   it: seconds per stage and peak memory, each size in a fresh process.
+- refine-rooms / refine: held-out PSNR against the refinement's seconds over REFINE_GRID (steps,
+  views per step, render scale, early stop), on one fused scene each: the rooms above (unrefined
+  fusion, averaged over `--rooms`), and DTU scan 24's views 14, 16, ..., 26 at 288x400 with their
+  calibration, scored on views 15, 17, ..., 25.
+- e2e: `surfsplat reconstruct` with default settings and every default output, in a fresh process:
+  a 3-second clip of DTU scan 24 (views 14, 16, ..., 26 held for 4 frames each at 10 fps,
+  400x300), two 400x300 DTU photos (cameras estimated), and the 10-second 1080p video above
+  (300 frames); wall seconds and the stage times `reconstruction.json` records.
+    python benchmarks/capture.py --parts e2e --e2e clip photos video
 The model is `tiny-synthetic` (64x64 rooms); on real photos it reconstructs poorly, which the
 numbers show.
 """
@@ -275,6 +284,65 @@ def views_at(folder: Path, images: str, indices: list[int], shape: tuple[int, in
     return Cameras(calibrated.cameras.c2w.to(torch.float32), K_net), stack.clamp(0, 1), paths
 
 
+def refine_curve_rooms(args, model) -> dict:
+    """Held-out PSNR against refinement seconds over REFINE_GRID on the rooms (the part `rooms`
+    measures with the default refinement), averaged over `--rooms` rooms."""
+    import surfsplat
+    from surfsplat.capture import RefineConfig, frame_name, refine_on_views
+    from surfsplat.data.synthetic import make_scene, render_synthetic
+    from surfsplat.export.paths import CameraSet
+    from surfsplat.metrics import psnr
+    from surfsplat.render import render
+
+    n = 25
+    held = torch.tensor([i for i in range(n) if i % 4 == 0])
+    ctx = torch.tensor([i for i in range(n) if i % 4])
+    per_config = [[] for _ in REFINE_GRID]
+    for seed in range(args.rooms):
+        room = make_scene(1000 + seed)
+        path = long_path(room, torch.Generator().manual_seed(seed), args.path_length)
+        cams = path.cameras(torch.linspace(0, 1, n), SIZE, SIZE)
+        truth = render_synthetic(room, cams, SIZE, SIZE)
+        every = CameraSet(cams, SIZE, SIZE, [frame_name(i) for i in range(n)], 0.5, 15.0)
+        options = surfsplat.CaptureOptions(holdout_every=4, refine=RefineConfig(steps=0))
+        fused = surfsplat.reconstruct(list(truth.image), model, cameras=every, capture=options, progress=False)
+        for k, (steps, per_step, scale, patience) in enumerate(REFINE_GRID):
+            config = RefineConfig(steps=steps, views_per_step=per_step, scale=scale, patience=patience)
+            refined, stats = refine_on_views(
+                fused.gaussians,
+                fused.cameras,
+                truth.image[ctx],
+                SIZE,
+                SIZE,
+                config,
+                mode=fused.mode,
+                alpha_threshold=fused.alpha_threshold,
+            )
+            out = render(refined, cams[held], SIZE, SIZE, mode=fused.mode, alpha_threshold=fused.alpha_threshold)
+            per_config[k].append(
+                {
+                    "steps_run": stats["steps"],
+                    "seconds": stats["seconds"],
+                    "held_out_psnr": float(psnr(out.color.clamp(0, 1), truth.image[held]).mean()),
+                }
+            )
+    rows = []
+    for (steps, per_step, scale, patience), runs in zip(REFINE_GRID, per_config):
+        rows.append(
+            {
+                "steps": steps,
+                "views_per_step": per_step,
+                "scale": scale,
+                "patience": patience,
+                "steps_run": sum(r["steps_run"] for r in runs) / len(runs),
+                "seconds": sum(r["seconds"] for r in runs) / len(runs),
+                "held_out_psnr": sum(r["held_out_psnr"] for r in runs) / len(runs),
+            }
+        )
+        print(f"rooms refine {json.dumps(rows[-1])}", flush=True)
+    return {"rooms": args.rooms, "context_views": len(ctx), "size": [SIZE, SIZE], "rows": rows}
+
+
 def refine_curve(model, name: str, folder: Path, images: str, context: list[int], held: list[int], size) -> dict:
     """Held-out PSNR against refinement seconds over REFINE_GRID, on one fused scene of the
     `context` views (cameras given), scored on the `held` views."""
@@ -503,6 +571,9 @@ def main() -> None:
         save()
     if "fern" in args.parts:
         results["llff_fern"] = real_scene(args, model, "LLFF fern", args.data / "llff_fern", "images_8", (64, 80))
+        save()
+    if "refine-rooms" in args.parts:
+        results["refine_rooms"] = refine_curve_rooms(args, model)
         save()
     if "refine" in args.parts:
         dtu = args.data / "dtu_scan24"

@@ -107,8 +107,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=refine.steps,
         metavar="N",
-        help="at most this many steps fitting a fused scene's colours, opacities and sizes to its context views "
-        f"(0: none; default {refine.steps}; they stop early once the loss stops falling)",
+        help="steps fitting a fused scene's colours, opacities and sizes to its context views "
+        f"(0: none; default {refine.steps}, {refine.views_per_step} views each)",
     )
     group.add_argument(
         "--refine-scale",
