@@ -353,6 +353,17 @@ def five_views(tmp_path_factory):
     return paths, root / "cameras.json"
 
 
+def test_the_default_working_size_is_capped_and_can_be_lifted(five_views, tiny_checkpoint):
+    paths, cameras = five_views
+    full = surfsplat.reconstruct(paths[:2], tiny_checkpoint, cameras=cameras, progress=False, max_working_size=None)
+    assert (full.height, full.width) == (SIZE, SIZE)  # the views' own size, uncapped
+    half = surfsplat.reconstruct(paths[:2], tiny_checkpoint, cameras=cameras, progress=False, max_working_size=16)
+    assert (half.height, half.width) == (16, 16) and len(half.gaussians) == len(full.gaussians) // 4
+    assert torch.allclose(half.cameras.K[:, :2, :2], full.cameras.K[:, :2, :2] * half.width / SIZE)
+    with pytest.raises(SurfSplatInputError, match="max_working_size"):
+        surfsplat.reconstruct(paths[:2], tiny_checkpoint, cameras=cameras, progress=False, max_working_size=8)
+
+
 def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path, capsys):
     paths, cameras = five_views
     argv = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--cameras", str(cameras), "--holdout-every", "4"]
