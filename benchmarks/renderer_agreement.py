@@ -26,10 +26,17 @@ import torch
 from surfsplat import Gaussians
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render
 from surfsplat.render.gsplat_backend import render_gsplat
-from surfsplat.testing.gsplat_reference import cpu_kernels, reference_scene, render_2dgs, render_3dgs, with_intrinsics
+from surfsplat.testing.gsplat_reference import (
+    ALIGNED,
+    cpu_kernels,
+    facing_normals,
+    reference_scene,
+    render_2dgs,
+    render_3dgs,
+    with_intrinsics,
+)
 
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "results"
-ALIGNED = {"lowpass_center_sigma": 1.0, "ewa_support": "alpha"}
 CASES = [(200, 0, 0, (64, 48)), (2000, 1, 3, (64, 48)), (800, 2, 3, (128, 96))]
 ATTRIBUTES = ("means", "quats", "scales", "opacities", "sh")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -45,10 +52,9 @@ def _reference(g, cams, width, height, mode):
     w2c, K, centre = cams.w2c[0], cams.K[0], cams.centers[0]
     if mode == "surfel":
         colour, alpha, depth, normal = render_2dgs(g, w2c, K, centre, width, height)
-    else:  # our camera-facing world normals, blended by gsplat as extra channels
-        n = g.rotations[:, :, 2]
-        facing = torch.where((n * (g.means - centre)).sum(-1, keepdim=True) > 0, -n, n)
-        colour, alpha, depth, normal = render_3dgs(g, w2c, K, centre, width, height, extra=facing)
+    else:
+        extra = facing_normals(g, centre)
+        colour, alpha, depth, normal = render_3dgs(g, w2c, K, centre, width, height, extra=extra)
     return {"colour": colour, "alpha": alpha, "depth": depth, "normal": normal}
 
 

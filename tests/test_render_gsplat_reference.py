@@ -22,10 +22,15 @@ from surfsplat import Gaussians
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render
 
 pytest.importorskip("gsplat", reason="gsplat is part of the test extra: pip install -e '.[test]'")
+from surfsplat.testing.gsplat_reference import (  # noqa: E402
+    ALIGNED,
+    facing_normals,
+    render_2dgs,
+    render_3dgs,
+    with_intrinsics,
+)
 from surfsplat.testing.gsplat_reference import reference_scene as scene  # noqa: E402
-from surfsplat.testing.gsplat_reference import render_2dgs, render_3dgs, with_intrinsics  # noqa: E402
 
-ALIGNED = {"lowpass_center_sigma": 1.0, "ewa_support": "alpha"}
 SIZES = [(64, 48), (128, 96)]
 
 
@@ -88,8 +93,7 @@ def test_ewa_mode_is_gsplats_3dgs(case, backend, dtype):
     cams = with_intrinsics(cams, W, H)
     color, alpha, depth, normal = ours(g, cams, W, H, "ewa", backend)
     # Our camera-facing world normals, blended by gsplat as extra channels.
-    n_world = g.rotations[:, :, 2]
-    facing = torch.where(((n_world * (g.means - cams.centers[0])).sum(-1, keepdim=True) > 0), -n_world, n_world)
+    facing = facing_normals(g, cams.centers[0])
     ref_color, ref_alpha, ref_depth, ref_normal = render_3dgs(
         g, cams.w2c[0], cams.K[0], cams.centers[0], W, H, extra=facing
     )

@@ -101,9 +101,7 @@ def reconstruct(
     start = time.perf_counter()
     # ---- every input is checked here, before anything heavy runs
     capture = capture or CaptureOptions()
-    device = _check_options(capture, device, size, near, far, compact, max_size)
-    if max_working_size is not None and (isinstance(max_working_size, bool) or max_working_size < 16):
-        raise SurfSplatInputError(f"max_working_size: expected at least 16 pixels or None, got {max_working_size}")
+    device = _check_options(capture, device, size, near, far, compact, max_size, max_working_size)
     from ..precision import autocast, parse_precision
 
     parse_precision(precision)
@@ -268,7 +266,9 @@ def reconstruct(
 
 
 # ----------------------------------------------------------------------------------------- checks
-def _check_options(capture: CaptureOptions, device, size, near, far, compact, max_size) -> torch.device:
+def _check_options(
+    capture: CaptureOptions, device, size, near, far, compact, max_size, max_working_size
+) -> torch.device:
     from ..compaction import LEVELS
 
     if not isinstance(capture, CaptureOptions):
@@ -290,6 +290,8 @@ def _check_options(capture: CaptureOptions, device, size, near, far, compact, ma
         raise SurfSplatInputError(f"compact (--compact): expected a level in {sorted(LEVELS)}, got {compact}")
     if max_size < 64:
         raise SurfSplatInputError(f"max_size (--max-size): expected at least 64 pixels, got {max_size}")
+    if max_working_size is not None and (isinstance(max_working_size, bool) or max_working_size < 16):
+        raise SurfSplatInputError(f"max_working_size: expected at least 16 pixels or None, got {max_working_size}")
     return resolve_device(device)
 
 

@@ -295,6 +295,18 @@ def cpu_kernels():
             setattr(_wrapper, name, fn)
 
 
+# Public options that align this project's conventions with gsplat's reference: the surfel
+# low-pass term centred on the 1-sigma box, and no truncation of EWA footprints.
+ALIGNED = {"lowpass_center_sigma": 1.0, "ewa_support": "alpha"}
+
+
+def facing_normals(g, centre: Tensor) -> Tensor:
+    """The surfels' world normals turned towards the camera at `centre`, as this project renders them
+    (gsplat's 3DGS reference blends them as extra channels)."""
+    n = g.rotations[:, :, 2]
+    return torch.where((n * (g.means - centre)).sum(-1, keepdim=True) > 0, -n, n)
+
+
 def reference_scene(
     n: int, seed: int, dtype: torch.dtype, sh_degree: int, fronto: bool = False
 ) -> tuple[Gaussians, Cameras]:

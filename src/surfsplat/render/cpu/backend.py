@@ -52,7 +52,6 @@ class _Plan:
     """Survivors of culling, front to back (survivor m is the m-th nearest), and their tile lists:
     the work of one camera."""
 
-    rotations: np.ndarray  # [N, 3, 3] from the quaternions
     geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
     features: np.ndarray  # [M, 6] survivors' colour and oriented normal
@@ -163,7 +162,6 @@ def _prepare(surfel: bool, inputs: tuple, rot: np.ndarray, camera: _Camera, sett
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(
-        rot,
         kernels.gather_rows(geom, order),
         box,
         kernels.gather_rows(features, order),
@@ -231,15 +229,13 @@ class _Rasterize(torch.autograd.Function):
         ctx.surfel, ctx.cameras, ctx.settings = surfel, cameras, settings
         ctx.plans, ctx.trans, ctx.last, ctx.inputs, ctx.rot = plans, trans, last, inputs, rot
         ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)  # autograd's in-place checks
-        ctx.covariance_dtype = None if covariances is None else covariances.dtype
-        ctx.dtypes = tuple(t.dtype for t in (means, quats, scales, opacities, sh))
         dtype = means.dtype
         return _tensor(color, dtype), _tensor(1.0 - trans, dtype), _tensor(depth, dtype), _tensor(normal, dtype)
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, g_normal):
         settings: CpuRenderSettings = ctx.settings
-        _ = ctx.saved_tensors  # raises if an input was modified in place since the forward
+        saved = ctx.saved_tensors  # raises if an input was modified in place since the forward
         x, q, sc, op, shc, cov = ctx.inputs  # the forward's float64 copies (or views of float64 inputs)
         C, H, W = ctx.last.shape
         n = x.shape[0]
@@ -311,15 +307,12 @@ class _Rasterize(torch.autograd.Function):
         g_quats = np.empty((n, 4))
         kernels.quats_backward(q, g_rot, g_quats)
 
-        def out(grad: np.ndarray, dtype: torch.dtype | None, index: int) -> Tensor | None:
-            if dtype is None or not ctx.needs_input_grad[index]:
-                return None
-            return _tensor(grad, dtype)
-
-        grads = (g_means, g_quats, g_scales, g_opac, g_sh)
+        grads = (g_means, g_quats, g_scales, g_opac, g_sh, g_cov)
         return (
-            *(out(g, dtype, i) for i, (g, dtype) in enumerate(zip(grads, ctx.dtypes))),
-            out(g_cov, ctx.covariance_dtype, 5),
+            *(
+                None if like is None or not ctx.needs_input_grad[i] else _tensor(grad, like.dtype)
+                for i, (grad, like) in enumerate(zip(grads, saved))
+            ),
             None,
             None,
             None,
