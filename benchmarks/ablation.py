@@ -32,13 +32,14 @@ from pathlib import Path
 
 import torch
 
-from surfsplat.commands.demo import DemoConfig, native_truth, write_eval_data
 from surfsplat.data.eval_index import EvaluationIndex
-from surfsplat.evaluation import ModelSpec, iter_index_samples, load_model, predict_sample
+from surfsplat.demo import DemoConfig, native_truth, write_eval_data
+from surfsplat.evaluation import iter_index_samples, predict_sample
 from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator
 from surfsplat.export.figures import write_text
 from surfsplat.metrics.hrrc import HrrcConfig, HrrcEvaluator
 from surfsplat.metrics.lpips import try_load_lpips
+from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.train import fit, latest_checkpoint, override, train_preset
 
 ROOT = Path(__file__).resolve().parents[1]

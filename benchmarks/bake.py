@@ -24,10 +24,10 @@ from pathlib import Path
 
 import torch
 
-from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.bake import BakeConfig, bake_for_viewers, thin_gaussians, viewer_figures
 from surfsplat.export.figures import write_text
 from surfsplat.model.decoder import decoder_mode
+from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.render import render
 
 ROOT = Path(__file__).resolve().parent

@@ -90,8 +90,8 @@ def held_out_scores(scene, cameras, images, depths):
 def rooms(args, model) -> dict:
     import surfsplat
     from surfsplat.capture import RefineConfig, frame_name, refine_on_views
+    from surfsplat.data.cameras import CameraSet
     from surfsplat.data.synthetic import make_scene, render_synthetic
-    from surfsplat.export.paths import CameraSet
 
     rows = []
     n = 25
@@ -185,8 +185,8 @@ def room_video(room, cams, model) -> tuple[float, dict]:
 
 def surfels_vs_area(model) -> dict:
     import surfsplat
+    from surfsplat.data.cameras import CameraSet
     from surfsplat.data.synthetic import make_scene, render_synthetic
-    from surfsplat.export.paths import CameraSet
 
     room = make_scene(1000)
     out = {"frames_on_one_path": [], "path_length": []}
@@ -211,8 +211,8 @@ def surfels_vs_area(model) -> dict:
 # ----------------------------------------------------------------------------------------- real scenes
 def real_scene(args, model, name: str, folder: Path, images: str, size: tuple[int, int]) -> dict:
     import surfsplat
+    from surfsplat.data.cameras import load_cameras
     from surfsplat.data.images import list_images
-    from surfsplat.export.paths import load_cameras
     from surfsplat.metrics import psnr
 
     photos = list_images(folder / images)
@@ -272,9 +272,9 @@ def views_at(folder: Path, images: str, indices: list[int], shape: tuple[int, in
     import imageio.v3 as iio
 
     from surfsplat import Cameras
+    from surfsplat.data.cameras import load_cameras
     from surfsplat.data.images import list_images
     from surfsplat.data.transforms import rescale_and_crop
-    from surfsplat.export.paths import load_cameras
 
     paths = [list_images(folder / images)[i] for i in indices]
     stack = torch.stack([torch.from_numpy(iio.imread(p)[..., :3].copy()).permute(2, 0, 1).float() / 255 for p in paths])
@@ -289,8 +289,8 @@ def refine_curve_rooms(args, model) -> dict:
     measures with the default refinement), averaged over `--rooms` rooms."""
     import surfsplat
     from surfsplat.capture import RefineConfig, frame_name, refine_on_views
+    from surfsplat.data.cameras import CameraSet
     from surfsplat.data.synthetic import make_scene, render_synthetic
-    from surfsplat.export.paths import CameraSet
     from surfsplat.metrics import psnr
     from surfsplat.render import render
 
@@ -348,7 +348,7 @@ def refine_curve(model, name: str, folder: Path, images: str, context: list[int]
     `context` views (cameras given), scored on the `held` views."""
     import surfsplat
     from surfsplat.capture import RefineConfig, refine_on_views
-    from surfsplat.export.paths import load_cameras
+    from surfsplat.data.cameras import load_cameras
     from surfsplat.metrics import psnr
     from surfsplat.render import render
 
@@ -551,7 +551,7 @@ def main() -> None:
         print(json.dumps(video_cost(args.one_video, args.min_motion)))
         return
 
-    from surfsplat.evaluation import ModelSpec, load_model
+    from surfsplat.model.loading import ModelSpec, load_model
 
     out_path = args.out
     out_path.parent.mkdir(parents=True, exist_ok=True)

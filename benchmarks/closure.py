@@ -32,12 +32,13 @@ from pathlib import Path
 
 import torch
 
-from surfsplat.evaluation import ModelSpec, iter_index_samples, load_model, predict_sample
+from surfsplat.evaluation import iter_index_samples, predict_sample
 from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator
 from surfsplat.export.figures import write_text
 from surfsplat.metrics.closure import ClosureAccumulator, closure_metrics, pixel_footprints, views_of_pixels
 from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
+from surfsplat.model.loading import ModelSpec, load_model
 
 ROOT = Path(__file__).resolve().parents[1]
 FACTORS = (1, 2, 4)

@@ -32,13 +32,13 @@ from pathlib import Path
 import torch
 
 from surfsplat.compaction import LEVELS, compact_surfels
-from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.figures import write_text
 from surfsplat.export.ply import save_ply
 from surfsplat.geometry.cameras import Cameras
 from surfsplat.metrics.hrrc import upsample_ground_truth
 from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
+from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.render import render
 from surfsplat.render.cpu.backend import contributing_pairs
 
@@ -123,8 +123,8 @@ def main() -> None:
 # ---------------------------------------------------------------------------------------------- scenes
 def procedural_scenes(count: int, size: int) -> list[dict]:
     """Held-out rooms (the demo's evaluation seed) with native truth at every factor."""
-    from surfsplat.commands.demo import DemoConfig, native_truth, write_eval_data
     from surfsplat.data.eval_index import EvaluationIndex
+    from surfsplat.demo import DemoConfig, native_truth, write_eval_data
     from surfsplat.evaluation import iter_index_samples
 
     if count < 1:

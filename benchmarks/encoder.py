@@ -11,7 +11,7 @@ idle over the last second (Linux /proc/stat); each sample records the idle fract
 
 Each preset and precision runs in a fresh subprocess so that its peak resident memory (CPU) or
 peak allocated memory (CUDA) is its own. bf16 is `torch.autocast(device, dtype=torch.bfloat16)`
-around the call (surfsplat.precision); the table gives its time as a fraction of fp32 without levers. The timed call is one full `SurfSplat` forward (encoder + official
+around the call (surfsplat.utils.precision); the table gives its time as a fraction of fp32 without levers. The timed call is one full `SurfSplat` forward (encoder + official
 adapter, as the release's encoder call) under `no_grad` in eval mode, after one warm-up call; the
 encoder alone is timed as well. Results go to benchmarks/results/encoder_<device>.json and a table
 is printed.
@@ -82,7 +82,7 @@ def run_one(
     from surfsplat import Cameras
     from surfsplat.evaluation import peak_memory
     from surfsplat.model import SurfSplat
-    from surfsplat.precision import autocast
+    from surfsplat.utils.precision import autocast
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)

@@ -32,10 +32,11 @@ def main() -> int:
 
     import torch
 
-    from surfsplat.commands.demo import DemoConfig, write_eval_data
     from surfsplat.data.eval_index import EvaluationIndex
-    from surfsplat.evaluation import EvalConfig, ModelSpec, evaluate, iter_index_samples, load_model
+    from surfsplat.demo import DemoConfig, write_eval_data
+    from surfsplat.evaluation import EvalConfig, evaluate, iter_index_samples
     from surfsplat.metrics.lpips import try_load_lpips
+    from surfsplat.model.loading import ModelSpec, load_model
 
     torch.set_num_threads(args.threads)
     demo = dataclasses.replace(DemoConfig(), eval_scenes=args.rooms, image_size=args.size)

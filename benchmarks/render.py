@@ -33,7 +33,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def _scene():
-    from surfsplat.scenes import make_scene
+    from surfsplat.data.synthetic.surfel_scene import make_scene
 
     return make_scene(resolution=256, views=2, opacity=0.5)
 
@@ -276,7 +276,7 @@ def main() -> None:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {
-        "scene": "surfsplat.scenes.make_scene(256, views=2, opacity=0.5): 131,072 surfels, target view scaled",
+        "scene": "surfsplat.data.synthetic.surfel_scene.make_scene(256, views=2, opacity=0.5): 131,072 surfels, target view scaled",
         "machine": {
             "cpus": torch.get_num_threads(),
             "platform": platform.platform(),

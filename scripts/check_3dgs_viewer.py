@@ -36,14 +36,14 @@ import torch
 
 from surfsplat.compaction import compact_surfels
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
-from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.export.bake import bake_for_viewers, thin_gaussians
 from surfsplat.export.images import to_uint8
 from surfsplat.export.ply import save_ply
-from surfsplat.gaussians import Gaussians
+from surfsplat.geometry.gaussians import Gaussians
 from surfsplat.geometry.sh_rotation import rotate_sh
 from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
+from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.render import render
 
 ROOT = Path(__file__).resolve().parents[1]

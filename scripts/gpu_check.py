@@ -119,7 +119,7 @@ def compare_renderers(
     (`surfsplat.render.gsplat_backend`): its depth difference is reported, not a defect, and the
     gradients compared there are those of colour and alpha alone.
     """
-    from surfsplat.scenes import make_scene
+    from surfsplat.data.synthetic.surfel_scene import make_scene
 
     scene = make_scene(resolution=resolution, views=2, opacity=0.5)
     rows = {}

@@ -13,8 +13,8 @@ import sys
 import time
 from pathlib import Path
 
-from surfsplat import atomic
 from surfsplat.cli import main
+from surfsplat.utils import atomic
 
 name, ready, argv = sys.argv[1], Path(sys.argv[2]), sys.argv[3:]
 real_fsync = atomic._fsync

@@ -10,8 +10,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
-from surfsplat.checks import SurfSplatInputError
-from surfsplat.gaussians import Gaussians
+from surfsplat.geometry.gaussians import Gaussians
 from surfsplat.geometry.rotations import quat_to_matrix
 from surfsplat.geometry.sh import SH_C0, eval_sh, sh_to_color
 from surfsplat.geometry.sh_rotation import rotate_sh
@@ -26,6 +25,7 @@ from surfsplat.model.adapter import (
     surface_frames,
     unproject_depth,
 )
+from surfsplat.utils.checks import SurfSplatInputError
 
 F64 = torch.float64
 

@@ -24,14 +24,14 @@ from surfsplat.capture import (
     refine_summary,
     select_video_frames,
 )
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
+from surfsplat.data.cameras import CameraSet, save_cameras
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
 from surfsplat.export.images import write_png
-from surfsplat.export.paths import CameraSet, save_cameras
 from surfsplat.export.video import write_video
 from surfsplat.model import SurfSplat, save_checkpoint
 from surfsplat.render import render
+from surfsplat.utils.checks import SurfSplatInputError
 
 SIZE = 32
 FOCAL = 32.0
@@ -396,7 +396,7 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
     )
     assert scene.names == ["v1.png", "v2.png", "v3.png"] and scene.holdout.names == ["v0.png", "v4.png"]
     assert scene.passes == [["v1.png", "v2.png"], ["v2.png", "v3.png"]]
-    from surfsplat.commands.export import ExportOptions
+    from surfsplat.export.flow import ExportOptions
 
     scene.save(tmp_path / "api", options=ExportOptions(formats=("ply", "renders"), progress=False))
     for name in (

@@ -11,7 +11,6 @@ import torch
 from safetensors.torch import save_file
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.model import (
     SurfSplat,
     export_release_state_dict,
@@ -23,6 +22,7 @@ from surfsplat.model import (
 )
 from surfsplat.model.checkpoint import RELEASE_KEY_RULES, ours_to_release, release_to_ours
 from surfsplat.model.formula_weights import formula_tensor, hash_uniform, read_spec
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _tiny(seed: int = 0) -> SurfSplat:

@@ -11,9 +11,9 @@ import torch
 from plyfile import PlyData
 
 from surfsplat.cli import main
+from surfsplat.data.cameras import save_cameras
 from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig
 from surfsplat.export.images import write_png
-from surfsplat.export.paths import save_cameras
 from surfsplat.model import SurfSplat, save_checkpoint
 
 SURFEL_FIELDS = {

@@ -17,7 +17,6 @@ import torch
 from plyfile import PlyData
 
 from surfsplat import Cameras, compact
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
 from surfsplat.compaction import (
     LEVELS,
@@ -28,10 +27,11 @@ from surfsplat.compaction import (
     pixel_cells,
     refit,
 )
-from surfsplat.export.paths import save_cameras
+from surfsplat.data.cameras import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model.adapter import GaussianAdapter
 from surfsplat.render import render
+from surfsplat.utils.checks import SurfSplatInputError
 from surfsplat.viewer.scene import splat_arrays
 
 H = W = 16

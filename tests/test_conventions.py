@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.rotations import matrix_to_quat, quat_to_matrix
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def random_c2w(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:

@@ -11,10 +11,10 @@ import pytest
 import torch
 from PIL import Image
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.commands import convert as convert_command
 from surfsplat.data import example_to_scene, load_example, load_scene, read_index
 from surfsplat.data.convert import convert
+from surfsplat.utils.checks import SurfSplatInputError
 from test_data_formats import _random_cameras, _write_images, write_colmap_model
 
 _GL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))

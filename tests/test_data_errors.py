@@ -13,7 +13,6 @@ import pytest
 import torch
 from PIL import Image
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data import (
     BoundedViewSampler,
     BoundedViewSamplerConfig,
@@ -25,6 +24,7 @@ from surfsplat.data import (
     read_chunk,
     write_chunks,
 )
+from surfsplat.utils.checks import SurfSplatInputError
 from test_data_chunks import make_example
 from test_data_formats import _random_cameras, write_colmap_model
 

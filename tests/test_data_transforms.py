@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data import center_crop, horizontal_flip, rescale_and_crop, resize_views
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _project(K: torch.Tensor, X: torch.Tensor) -> torch.Tensor:

@@ -40,8 +40,8 @@ import torch
 import torch.nn.functional as F
 
 from surfsplat import Cameras
-from surfsplat.gaussians import Gaussians
 from surfsplat.geometry.cameras import rigid_inverse, validate_c2w, validate_intrinsics
+from surfsplat.geometry.gaussians import Gaussians
 from surfsplat.model import SurfSplat
 from surfsplat.model.adapter import AdapterConfig, GaussianAdapter
 from surfsplat.testing.standin_device import STANDIN, UPLOAD, DeviceMixError, StandinDevice, StandinTensor, standin

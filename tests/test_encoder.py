@@ -11,7 +11,6 @@ import torch
 import torch.nn.functional as F
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.model import PRESETS, SurfSplat, export_release_state_dict
 from surfsplat.model.encoder import cost_volume as cv
 from surfsplat.model.encoder.mv_transformer import (
@@ -24,6 +23,7 @@ from surfsplat.model.encoder.mv_transformer import (
     window_order,
 )
 from surfsplat.model.encoder.unet import CrossViewAttentionBlock
+from surfsplat.utils.checks import SurfSplatInputError
 
 # The golden fixture's manifests, reduced to the parameter count and key shapes (tests/data/README.md).
 MANIFESTS = {

@@ -10,26 +10,24 @@ import json
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.eval_index import EvaluationIndex
 from surfsplat.data.synthetic import write_synthetic_chunks
 from surfsplat.evaluation import (
     EvalConfig,
-    ModelSpec,
     SampleCounts,
     evaluate,
     format_results,
     iter_index_samples,
-    load_model,
     per_scene_csv,
     predict_sample,
-    resolve_checkpoint,
-    with_adapter,
     write_results,
 )
 from surfsplat.metrics import psnr, ssim, upsample_ground_truth
 from surfsplat.metrics.lpips import LpipsUnavailable
 from surfsplat.model import SurfSplat, save_checkpoint
+from surfsplat.model.loading import ModelSpec, load_model
+from surfsplat.model.pretrained import resolve_checkpoint, with_adapter
+from surfsplat.utils.checks import SurfSplatInputError
 
 SIZE = 32
 

@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.chunks import ChunkWriter, scene_to_example
 from surfsplat.data.eval_index import EvaluationIndex
 from surfsplat.data.scene import Scene
@@ -27,6 +26,7 @@ from surfsplat.geometry.rotations import matrix_to_quat
 from surfsplat.metrics.lpips import LpipsUnavailable
 from surfsplat.model import SurfSplat
 from surfsplat.render import render
+from surfsplat.utils.checks import SurfSplatInputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SIZE = 32

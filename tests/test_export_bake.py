@@ -17,9 +17,8 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
-from surfsplat.commands.export import ExportOptions, export_reconstruction
+from surfsplat.data.cameras import save_cameras
 from surfsplat.export.bake import (
     COVERED_ALPHA,
     BakeConfig,
@@ -28,10 +27,11 @@ from surfsplat.export.bake import (
     thin_gaussians,
     viewer_figures,
 )
-from surfsplat.export.paths import save_cameras
+from surfsplat.export.flow import ExportOptions, export_reconstruction
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model.adapter import GaussianAdapter
 from surfsplat.render import render
+from surfsplat.utils.checks import SurfSplatInputError
 
 H = W = 24
 FOCAL, DEPTH = 24.0, 4.0

@@ -10,8 +10,8 @@ import torch
 from plyfile import PlyData
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.export.mesh import Mesh, TsdfConfig, extract_mesh, load_mesh, save_mesh, tsdf_fusion
+from surfsplat.utils.checks import SurfSplatInputError
 
 H = W = 48
 FOCAL = 45.0

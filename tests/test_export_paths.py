@@ -9,18 +9,10 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
-from surfsplat.export.paths import (
-    axis_angle_matrix,
-    focus_point,
-    interpolate_cameras,
-    load_cameras,
-    mean_camera,
-    save_cameras,
-    slerp,
-    turntable,
-)
+from surfsplat.data.cameras import load_cameras, save_cameras
+from surfsplat.export.paths import axis_angle_matrix, focus_point, interpolate_cameras, mean_camera, slerp, turntable
 from surfsplat.geometry.rotations import matrix_to_quat, quat_to_matrix
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _rz(angle: float) -> torch.Tensor:

@@ -9,10 +9,10 @@ from html.parser import HTMLParser
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.export.figures import image_grid, line_chart, smooth, write_text
 from surfsplat.export.images import write_png
 from surfsplat.export.report import HtmlReport
+from surfsplat.utils.checks import SurfSplatInputError
 
 SVG = "{http://www.w3.org/2000/svg}"
 

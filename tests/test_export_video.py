@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.export import video
 from surfsplat.export.video import read_video, video_unavailable, write_video
+from surfsplat.utils.checks import SurfSplatInputError
 
 pytestmark = pytest.mark.skipif(video_unavailable() is not None, reason=str(video_unavailable()))
 

@@ -15,8 +15,8 @@ import pytest
 from tqdm import tqdm
 
 import surfsplat
-from surfsplat import log
 from surfsplat.cli import main
+from surfsplat.utils import log
 
 
 @pytest.fixture(autouse=True)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import Lpips, LpipsUnavailable, load_lpips
 from surfsplat.train.losses import ImageLoss, LossConfig, cascade_loss, cascade_weights
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def constant_error_pair(error: float, shape=(2, 2, 3, 16, 16)) -> tuple[torch.Tensor, torch.Tensor]:

@@ -9,10 +9,10 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import Lpips, LpipsUnavailable, find_lpips_weights, load_lpips, try_load_lpips
 from surfsplat.metrics.lpips import VGG16_FILENAME, lin_shapes, vgg_shapes
 from surfsplat.model.formula_weights import formula_tensor  # the golden fixtures' weight formula
+from surfsplat.utils.checks import SurfSplatInputError
 
 # Tiny stand-ins for torchvision's classifier keys: a real file carries them and they are ignored.
 CLASSIFIER = {"classifier.0.weight": torch.zeros(4, 3), "classifier.0.bias": torch.zeros(4)}

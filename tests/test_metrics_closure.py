@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.sh import SH_C0
 from surfsplat.metrics.closure import (
     CLOSURE_MIN,
@@ -18,6 +17,7 @@ from surfsplat.metrics.closure import (
     pixel_footprints,
     views_of_pixels,
 )
+from surfsplat.utils.checks import SurfSplatInputError
 
 SIZE, FOCAL, DEPTH = 24, 24.0, 4.0
 

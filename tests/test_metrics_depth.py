@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import SCANNET_DEPTH_RANGE, depth_metrics
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def test_depth_metrics_closed_form_on_four_pixels():

@@ -10,7 +10,6 @@ import torch
 from plyfile import PlyData, PlyElement
 from scipy.io import savemat
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics.dtu import (
     downsample,
     dtu_chamfer,
@@ -26,6 +25,7 @@ from surfsplat.metrics.geometry import (
     surface_metrics,
     view_geometry,
 )
+from surfsplat.utils.checks import SurfSplatInputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -11,7 +11,6 @@ import torch
 import torch.nn.functional as F
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import (
     HrrcConfig,
     HrrcEvaluator,
@@ -26,6 +25,7 @@ from surfsplat.metrics import (
     upsample_ground_truth,
 )
 from surfsplat.metrics.lpips import lin_shapes, vgg_shapes
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def keys_bicubic_1d(signal: np.ndarray, factor: int, a: float = -0.75) -> np.ndarray:

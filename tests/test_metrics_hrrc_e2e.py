@@ -7,9 +7,9 @@ import dataclasses
 import pytest
 import torch
 
+from surfsplat.data.synthetic.surfel_scene import make_scene, ray_cast, texture
 from surfsplat.metrics import HrrcConfig, LpipsUnavailable, evaluate_hrrc, psnr, render_at_scales
 from surfsplat.render import render
-from surfsplat.scenes import make_scene, ray_cast, texture
 
 
 def analytic_image(cameras, width: int, height: int) -> torch.Tensor:

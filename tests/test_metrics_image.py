@@ -11,9 +11,9 @@ import torch
 from safetensors.torch import load_file
 from skimage.metrics import structural_similarity
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import psnr, ssim
 from surfsplat.metrics.image import gaussian_taps
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def skimage_ssim(target: torch.Tensor, prediction: torch.Tensor) -> list[float]:

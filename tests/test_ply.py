@@ -8,9 +8,9 @@ import torch
 from plyfile import PlyData
 
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.export import load_ply, save_ply
 from surfsplat.render import render
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def scene(n: int = 200, degree: int = 2, seed: int = 0) -> Gaussians:

@@ -13,7 +13,6 @@ import pytest
 import torch
 from PIL import Image
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
 from surfsplat.data.synthetic.primitives import Primitive
 from surfsplat.data.synthetic.render import render_synthetic
@@ -21,6 +20,7 @@ from surfsplat.data.synthetic.scene import Lighting, SyntheticConfig, SyntheticS
 from surfsplat.data.synthetic.textures import random_texture
 from surfsplat.geometry.cameras import Cameras
 from surfsplat.poses import PoseConfig, estimate_cameras, exif_focal, relative_pose_errors
+from surfsplat.utils.checks import SurfSplatInputError
 
 W, H = 400, 300
 FAST = PoseConfig(min_extraction_size=400)  # no upscaling: for the error paths, where accuracy is not the point
@@ -324,7 +324,7 @@ def test_config_checks_name_the_option():
 # ----------------------------------------------------------------------------------------- commands
 @pytest.mark.slow
 def test_poses_command_writes_a_camera_file_load_cameras_reads(orbit_views, tmp_path, capsys):
-    from surfsplat.export.paths import load_cameras
+    from surfsplat.data.cameras import load_cameras
 
     paths = _save(orbit_views[0][:2], tmp_path)
     focal = float(orbit_views[1].K[0, 0, 0])
@@ -422,7 +422,7 @@ def _label_boxes(svg: str) -> list[tuple[float, float, float, float]]:
 
 
 def test_top_view_labels_never_overlap_and_every_dot_names_its_photo():
-    from surfsplat.export.paths import CameraSet
+    from surfsplat.data.cameras import CameraSet
     from surfsplat.poses.report import top_view_svg
 
     # Three cameras 10 units apart, then seventeen within 5 cm of the middle one (a pause in a walk,

@@ -1,4 +1,4 @@
-"""bf16 precision: choosing it (`surfsplat.precision`), the fast exact paths it uses, and the
+"""bf16 precision: choosing it (`surfsplat.utils.precision`), the fast exact paths it uses, and the
 released model's function under `torch.autocast(..., dtype=torch.bfloat16)`.
 
 The bf16 bounds are the issue's: relative L2 to the release's float32 outputs <= 5e-3 for depths
@@ -14,8 +14,7 @@ import torch.nn.functional as F
 from safetensors.torch import load_file
 
 from _golden import lightning_release_state, output, rel
-from surfsplat import Cameras, precision
-from surfsplat.checks import SurfSplatInputError
+from surfsplat import Cameras
 from surfsplat.model import SurfSplat, load_release_weights
 from surfsplat.model.encoder.conv import ReplicateConv2d
 from surfsplat.model.encoder.cost_volume import (
@@ -25,6 +24,8 @@ from surfsplat.model.encoder.cost_volume import (
     plane_sweep_cost_volume,
 )
 from surfsplat.model.encoder.encoder import PARTS
+from surfsplat.utils import precision
+from surfsplat.utils.checks import SurfSplatInputError
 
 BF16_BOUNDS = [("depths", 5e-3), ("gaussians.means", 5e-3), ("gaussians.opacities", 1e-2)]
 

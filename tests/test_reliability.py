@@ -27,18 +27,19 @@ import torch
 from plyfile import PlyData
 from safetensors.torch import load_file, save_file
 
-from surfsplat import Cameras, atomic
+from surfsplat import Cameras
 from surfsplat.cli import main
+from surfsplat.data.cameras import save_cameras
 from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig, write_synthetic_chunks
+from surfsplat.data.synthetic.surfel_scene import make_scene
 from surfsplat.export.images import write_png
 from surfsplat.export.mesh import load_mesh
-from surfsplat.export.paths import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
 from surfsplat.model import SurfSplat, load_checkpoint, save_checkpoint
-from surfsplat.scenes import make_scene
 from surfsplat.train import fit
 from surfsplat.train.checkpoint import list_checkpoints, verify_checkpoint
 from surfsplat.train.config import override, train_preset
+from surfsplat.utils import atomic
 
 SIZE = 64  # every image of the corpus is 64 x 64
 SLOW_WRITER = Path(__file__).parent / "_slow_writer.py"
@@ -812,9 +813,9 @@ def test_zero_depth_surfels_export_without_nan(world, tmp_path):
     """Surfels at the camera centre (depth 0) and of zero size: renders and PLY stay finite, and the
     mesh, with no depth to fuse, is refused plainly rather than written with NaN."""
     from surfsplat import Gaussians
-    from surfsplat.checks import SurfSplatInputError
-    from surfsplat.commands.export import ExportOptions, export_reconstruction
-    from surfsplat.export.paths import load_cameras
+    from surfsplat.data.cameras import load_cameras
+    from surfsplat.export.flow import ExportOptions, export_reconstruction
+    from surfsplat.utils.checks import SurfSplatInputError
 
     cams = load_cameras(world.ply_cameras)
     n = 64

@@ -12,11 +12,11 @@ from scipy.special import sph_harm_y
 
 from _reference_render import reference_render
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
+from surfsplat.data.synthetic.surfel_scene import frame_from_normal
 from surfsplat.geometry.rotations import matrix_to_quat
 from surfsplat.geometry.sh import sh_basis, sh_to_color
 from surfsplat.render import TorchRenderSettings, render
-from surfsplat.scenes import frame_from_normal
+from surfsplat.utils.checks import SurfSplatInputError
 
 # The pure-PyTorch reference and the compiled CPU backend must both pass the closed-form checks.
 BACKENDS = ["torch", "cpu"]
@@ -421,7 +421,7 @@ def test_termination_holds_across_depth_blocks():
 def test_torch_backend_gradients_repeat_bit_for_bit_with_several_threads(mode):
     # Gathers use index_select, whose backward adds in index order; advanced indexing's backward
     # adds float32 gradients with parallel atomics on multi-threaded CPUs (last bits varied per run).
-    from surfsplat.scenes import make_scene
+    from surfsplat.data.synthetic.surfel_scene import make_scene
 
     scene = make_scene(resolution=48, views=2, opacity=0.5)
     threads = torch.get_num_threads()

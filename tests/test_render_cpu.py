@@ -12,10 +12,10 @@ import torch.nn.functional as F
 
 from _reference_render import reference_render
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
+from surfsplat.data.synthetic.surfel_scene import frame_from_normal
 from surfsplat.geometry.rotations import matrix_to_quat
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render, resolve_backend
-from surfsplat.scenes import frame_from_normal
+from surfsplat.utils.checks import SurfSplatInputError
 
 numba = pytest.importorskip("numba", reason="the compiled CPU backend needs numba")
 from surfsplat.render.cpu import kernels  # noqa: E402
@@ -462,7 +462,7 @@ def test_termination_holds_across_many_layers():
 def test_benchmark_scene_matches_torch_reference(mode):
     # The benchmark's surfel scene at a small size, in float64. The torch backend runs with one
     # depth block per tile so that its stopped pixels stay stopped (see the test above).
-    from surfsplat.scenes import make_scene
+    from surfsplat.data.synthetic.surfel_scene import make_scene
 
     sc = make_scene(resolution=64)
     cams = sc.target.to(torch.float64).scaled(1.5)

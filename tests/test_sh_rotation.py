@@ -8,10 +8,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.rotations import skew
 from surfsplat.geometry.sh import SH_C1, eval_sh, sh_basis
 from surfsplat.geometry.sh_rotation import rotate_sh, sh_rotation_matrix
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def random_rotations(n: int, seed: int) -> torch.Tensor:

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.synthetic import (
     Lighting,
     Primitive,
@@ -25,6 +24,7 @@ from surfsplat.data.synthetic import (
     surface_samples,
 )
 from surfsplat.data.synthetic.scene import SyntheticConfig, _frame_with_normal
+from surfsplat.utils.checks import SurfSplatInputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.model.surfsplat import SurfSplat
 from surfsplat.train import checkpoint as checkpoint_module
 from surfsplat.train import fit, train_preset
@@ -37,6 +36,7 @@ from surfsplat.train.checkpoint import (
     verify_checkpoint,
 )
 from surfsplat.train.config import override
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _trained_model_and_optimizer(seed: int = 0) -> tuple[SurfSplat, torch.optim.AdamW]:

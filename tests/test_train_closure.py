@@ -11,7 +11,6 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.data.synthetic import SyntheticDataset, SyntheticDatasetConfig, render_synthetic
 from surfsplat.model.adapter import (
     AdapterConfig,
@@ -26,6 +25,7 @@ from surfsplat.train import fit, train_preset
 from surfsplat.train.config import override
 from surfsplat.train.data import TrainBatch, ViewBatch, flip_views
 from surfsplat.train.losses import LossConfig, alpha_at_window, highres_loss
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _K(f: float = 20.0, c: float = 8.0) -> torch.Tensor:

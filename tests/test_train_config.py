@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.commands import train as command
 from surfsplat.train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, train_preset
 from surfsplat.train.data import build_train_batches
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def test_release_presets_carry_the_paper_values() -> None:

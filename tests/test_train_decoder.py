@@ -9,13 +9,13 @@ import torch
 import torch.nn.functional as F
 
 from surfsplat import Cameras, Gaussians
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.geometry.sh import SH_C0
 from surfsplat.model.adapter import AdapterConfig
 from surfsplat.model.decoder import decoder_mode, render_views
 from surfsplat.model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
 from surfsplat.render import render
 from surfsplat.train.cascade import coarse_inverse_depth, intermediate_gaussians, num_intermediate_depths
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def test_convention_render_mode_follows_the_adapter() -> None:

@@ -14,7 +14,6 @@ import pytest
 import torch
 
 from surfsplat import Cameras
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.metrics import LpipsUnavailable, try_load_lpips
 from surfsplat.model.checkpoint import load_checkpoint
 from surfsplat.model.surfsplat import SurfSplat
@@ -25,6 +24,7 @@ from surfsplat.train.data import build_validation_samples
 from surfsplat.train.distributed import DistributedContext
 from surfsplat.train.loop import resolve_precision
 from surfsplat.train.validation import validate
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _quick(out: Path, **changes):
@@ -206,12 +206,12 @@ def test_geometry_supervision_gives_better_depth_on_held_out_rooms(tmp_path: Pat
 
 
 def test_precision_rules_and_float32_adapter_under_autocast(monkeypatch) -> None:
-    import surfsplat.precision
+    import surfsplat.utils.precision
 
     cpu = torch.device("cpu")
-    monkeypatch.setattr(surfsplat.precision, "cpu_bf16_flags", lambda: frozenset())
+    monkeypatch.setattr(surfsplat.utils.precision, "cpu_bf16_flags", lambda: frozenset())
     assert resolve_precision(train_preset("tiny"), cpu) is None  # auto: float32 on a CPU without native bf16
-    monkeypatch.setattr(surfsplat.precision, "cpu_bf16_flags", lambda: frozenset({"amx_bf16"}))
+    monkeypatch.setattr(surfsplat.utils.precision, "cpu_bf16_flags", lambda: frozenset({"amx_bf16"}))
     assert resolve_precision(train_preset("tiny"), cpu) == torch.bfloat16  # auto: bf16 on an AMX CPU
     assert resolve_precision(train_preset("tiny", precision="fp32"), cpu) is None
     assert resolve_precision(train_preset("tiny", precision="bf16"), cpu) == torch.bfloat16

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.train.schedule import learning_rate
+from surfsplat.utils.checks import SurfSplatInputError
 
 
 def _one_cycle_reference(total: int, peak: float, pct: float, div: float, final_div: float) -> list[float]:

@@ -17,13 +17,14 @@ from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
 from surfsplat import Gaussians
-from surfsplat.checks import SurfSplatInputError
+from surfsplat.data.cameras import save_cameras
+from surfsplat.data.synthetic.surfel_scene import SPHERE_CENTER, make_scene
 from surfsplat.export.images import to_uint8
 from surfsplat.export.mesh import Mesh, save_mesh
-from surfsplat.export.paths import interpolate_cameras, save_cameras
+from surfsplat.export.paths import interpolate_cameras
 from surfsplat.export.ply import save_ply
 from surfsplat.render import render
-from surfsplat.scenes import SPHERE_CENTER, make_scene
+from surfsplat.utils.checks import SurfSplatInputError
 from surfsplat.viewer import BrowserView, SurfelViewer, camera_view, load_viewer_scene, splat_arrays, view_cameras
 from surfsplat.viewer.app import set_client_view
 

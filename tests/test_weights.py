@@ -20,17 +20,17 @@ import pytest
 import torch
 
 from _golden import OUTPUTS, lightning_release_state, output, rel, run_case
-from surfsplat.checks import SurfSplatInputError
 from surfsplat.cli import main
-from surfsplat.evaluation import ModelSpec, load_model
 from surfsplat.model import SurfSplat, export_release_state_dict, load_pretrained, save_checkpoint
 from surfsplat.model import pretrained as pretrained_module
 from surfsplat.model.checkpoint import ours_to_release, release_to_ours, unimatch_to_ours
+from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.model.pretrained import WeightsUnavailable, cached_file, check_resolution, fetch, hash_prefix
 from surfsplat.model.registry import REGISTRY, Source, known_names, lookup, parse_hf_uri
 from surfsplat.model.surfsplat import PRESETS
 from surfsplat.train import build_model, train_preset
 from surfsplat.train.config import config_from_dict, override, paper_init
+from surfsplat.utils.checks import SurfSplatInputError
 
 REVISION = "0123456789abcdef0123456789abcdef01234567"  # a commit hash, as the hub stores snapshots
 

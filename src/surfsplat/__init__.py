@@ -1,8 +1,8 @@
 """SurfSplat: feed-forward 2D Gaussian surfel reconstruction from posed images."""
 
 from .compaction import compact
-from .gaussians import Gaussians
 from .geometry.cameras import Cameras
+from .geometry.gaussians import Gaussians
 from .reconstruction import CaptureOptions, Scene, reconstruct
 
 __version__ = "0.1.0"

@@ -2,7 +2,7 @@
 
 Each sub-command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
 modules are imported only when their command runs, so `surfsplat --help` stays fast.
--q/--quiet and -v/--verbose (see `surfsplat.log`) are accepted before or after the command;
+-q/--quiet and -v/--verbose (see `surfsplat.utils.log`) are accepted before or after the command;
 `surfsplat --version` prints the installed version.
 
 Exit codes: 0 done; 2 bad input (one line naming the file or option, nothing written); 1 an output
@@ -21,9 +21,9 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from . import log
-from .atomic import OutputError, output_error
-from .checks import SurfSplatInputError
+from .utils import log
+from .utils.atomic import OutputError, output_error
+from .utils.checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
 

@@ -45,10 +45,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from ..metrics.closure import pixel_footprints
+from ..utils.checks import SurfSplatInputError
 
 
 @dataclass(frozen=True)

@@ -34,9 +34,9 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
+from ..utils.checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
 
@@ -94,8 +94,8 @@ def refine_on_views(
 
     import torch.nn.functional as F
 
-    from ..log import progress as progress_bar
     from ..render import render
+    from ..utils.log import progress as progress_bar
 
     start = time.perf_counter()
 

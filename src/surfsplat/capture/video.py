@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg")
 THUMBNAIL_SIZE = 64  # long side of the grey thumbnails motion is measured on

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 
 def nearest_neighbour_order(centers: Tensor) -> list[int]:  # centers [N, 3]

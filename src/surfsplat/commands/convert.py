@@ -37,8 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..checks import check_output_dir
     from ..data.convert import convert
+    from ..utils.checks import check_output_dir
 
     check_output_dir(args.out, "OUT", inputs=[args.src])
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..checks import SurfSplatInputError, check_output_dir
-from ..precision import PRECISIONS
+from ..utils.checks import SurfSplatInputError, check_output_dir
+from ..utils.precision import PRECISIONS
 from .export import add_compact_argument
 
 
@@ -108,15 +108,14 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation import (
         RESULT_FILES,
         EvalConfig,
-        ModelSpec,
         SampleCounts,
         evaluate,
         format_results,
         iter_index_samples,
-        load_model,
         write_results,
     )
     from ..metrics.lpips import try_load_lpips
+    from ..model.loading import ModelSpec, load_model
     from ..reconstruction.pipeline import resolve_device as _device
 
     if (args.checkpoint is None) == (args.compare is None):

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..checks import SurfSplatInputError, check_output_file
+from ..utils.checks import SurfSplatInputError, check_output_file
 
 
 def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +54,7 @@ def estimate_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export.paths import save_cameras
+    from ..data.cameras import save_cameras
 
     if args.out.suffix.lower() != ".json":
         raise SurfSplatInputError(f"--out: expected a .json camera file name, got {args.out}")

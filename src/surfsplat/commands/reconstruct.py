@@ -5,7 +5,7 @@
     surfsplat reconstruct --checkpoint depthsplat_small.ckpt --trust-pickle --preset small \\
         --images scan24/images_4/000000.png scan24/images_4/000001.png --cameras scan24 --images-folder images_4
 
-CAMS is a JSON camera file (see `surfsplat.export.paths.load_cameras`), a COLMAP model folder, or a
+CAMS is a JSON camera file (see `surfsplat.data.cameras.load_cameras`), a COLMAP model folder, or a
 scene folder of any format `load_scene` reads (LLFF, DTU, transforms.json, COLMAP, RE10K); the
 images are matched to its cameras by file name. Images are rescaled and centre-cropped to a size
 the network accepts (multiples of 16; `--size` to choose), with K following exactly. Without
@@ -27,9 +27,10 @@ import dataclasses
 import json
 from pathlib import Path
 
-from ..checks import check_output_dir
-from ..precision import PRECISIONS
-from .export import FORMATS, add_export_arguments, options_from_args, output_names, print_written
+from ..export.flow import FORMATS, output_names
+from ..utils.checks import check_output_dir
+from ..utils.precision import PRECISIONS
+from .export import add_export_arguments, options_from_args, print_written
 from .poses import add_pose_arguments
 
 

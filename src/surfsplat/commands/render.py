@@ -18,8 +18,8 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError, check_output_dir
-from ..log import progress
+from ..utils.checks import SurfSplatInputError, check_output_dir
+from ..utils.log import progress
 
 logger = logging.getLogger(__name__)
 
@@ -49,8 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..data.cameras import load_cameras
     from ..export.images import colorize_depth, normal_to_rgb, write_png
-    from ..export.paths import load_cameras
     from ..export.ply import load_ply
     from ..render import render
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import torch
 
-from ..atomic import write_text
-from ..checks import SurfSplatInputError, check_output_dir
 from ..render.types import BACKENDS
+from ..utils.atomic import write_text
+from ..utils.checks import SurfSplatInputError, check_output_dir
 
 logger = logging.getLogger(__name__)
 
@@ -26,10 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..data.synthetic.surfel_scene import make_scene
     from ..export.images import colorize_depth, normal_to_rgb, write_png
     from ..export.ply import save_ply
     from ..render import render
-    from ..scenes import make_scene
 
     if args.resolution < 8:
         raise SurfSplatInputError(f"--resolution: expected at least 8 pixels, got {args.resolution}")

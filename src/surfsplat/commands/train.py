@@ -17,11 +17,11 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..checks import SurfSplatInputError, check_output_dir, read_json
 from ..render.types import BACKENDS
 from ..train.checkpoint import latest_checkpoint
 from ..train.config import TRAIN_PRESETS, TrainConfig, config_from_dict, override, paper_init, train_preset
 from ..train.loop import fit, read_checkpoint_config
+from ..utils.checks import SurfSplatInputError, check_output_dir, read_json
 
 # option dest -> dotted config field it sets
 _FIELDS: dict[str, str] = {

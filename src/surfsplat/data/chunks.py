@@ -22,10 +22,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..atomic import atomic_path
-from ..atomic import write_text as atomic_write_text
-from ..checks import SurfSplatInputError, read_json
 from ..geometry.cameras import Cameras
+from ..utils.atomic import atomic_path
+from ..utils.atomic import write_text as atomic_write_text
+from ..utils.checks import SurfSplatInputError, read_json
 from .formats.re10k_raw import rows_to_cameras
 from .images import decode_depth_png, decode_image_bytes, encode_depth_png, encode_image, image_bytes_size
 from .scene import Scene

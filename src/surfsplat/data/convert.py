@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .chunks import ChunkWriter, Example, scene_to_example, validate_example
 from .formats.blender import read_transforms
 from .formats.common import make_cameras

@@ -36,8 +36,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
 
-from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk, read_index
 from .transforms import ResizeMethod, rescale_and_crop
 from .view_sampler import BoundedViewSampler, EvaluationViewSampler, NotEnoughViews

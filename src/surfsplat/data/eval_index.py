@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..checks import SurfSplatInputError, read_json
+from ..utils.checks import SurfSplatInputError, read_json
 
 _SUFFIX = re.compile(r"^(.*)_(\d+)$")
 

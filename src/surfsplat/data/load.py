@@ -8,7 +8,7 @@ from typing import Literal
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .formats.blender import is_blender, load_blender
 from .formats.colmap import is_colmap, load_colmap
 from .formats.dtu import is_dtu, load_dtu

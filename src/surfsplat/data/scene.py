@@ -8,8 +8,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 
 @dataclass

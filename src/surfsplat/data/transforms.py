@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 ResizeMethod = Literal["lanczos", "bicubic", "bilinear", "area"]
 _FLIP_X = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=torch.float64))

@@ -2,11 +2,11 @@
 exact truth. The per-quantity math (PSNR, SSIM, LPIPS, HRRC, depth, closure, surface distances)
 lives in `surfsplat.metrics`; this package runs it over datasets and writes the results.
 
-    model, name = load_model(ModelSpec("tiny-synthetic"))
+    model, name = load_model(ModelSpec("tiny-synthetic"))      # surfsplat.model.loading
     result = evaluate(model, iter_index_samples(roots, index), EvalConfig(), name=name)
     print(format_results({name: result}))
 
-- `run`: models by name or path, the index's samples, the forward pass, `evaluate`, tables and files.
+- `run`: the index's samples, the forward pass, `evaluate`, tables and files.
 - `geometry`: depth, normals and surfaces of reconstructions against procedural rooms' truth.
 """
 
@@ -23,20 +23,16 @@ from .run import (
     EvalConfig,
     EvalSample,
     EvaluationResult,
-    ModelSpec,
     SampleCounts,
     ScenePrediction,
     evaluate,
     format_results,
     geometry_csv,
     iter_index_samples,
-    load_model,
     peak_memory,
     peak_rss_bytes,
     per_scene_csv,
     predict_sample,
-    resolve_checkpoint,
-    with_adapter,
     write_results,
 )
 
@@ -48,7 +44,6 @@ __all__ = [
     "GeometryConfig",
     "GeometryEvaluator",
     "GeometryReport",
-    "ModelSpec",
     "SampleCounts",
     "ScenePrediction",
     "evaluate",
@@ -56,14 +51,11 @@ __all__ = [
     "format_results",
     "geometry_csv",
     "iter_index_samples",
-    "load_model",
     "peak_memory",
     "peak_rss_bytes",
     "per_scene_csv",
     "predict_sample",
     "procedural_scene",
-    "resolve_checkpoint",
     "score_scene",
-    "with_adapter",
     "write_results",
 ]

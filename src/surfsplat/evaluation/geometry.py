@@ -34,13 +34,13 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..checks import SurfSplatInputError
 from ..data.synthetic.scene import SyntheticScene
 from ..data.synthetic.truth import Viewpoints, geometry_truth, scene_from_key, surface_samples
 from ..export.mesh import TsdfConfig, extract_mesh, tsdf_fusion
 from ..geometry.cameras import Cameras
 from ..metrics.geometry import normalize_by_alpha, sample_mesh, surface_metrics, view_geometry
 from ..render import RenderOutput, render
+from ..utils.checks import SurfSplatInputError
 
 VIEW_COLUMNS = (
     "abs_rel",

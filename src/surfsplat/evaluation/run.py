@@ -34,89 +34,25 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
 from ..data.chunks import decode_depths, decode_views, example_cameras, image_size, list_chunks, read_chunk
 from ..data.eval_index import EvaluationIndex
 from ..data.transforms import rescale_and_crop
 from ..geometry.cameras import Cameras
-from ..log import progress
 from ..metrics.closure import ClosureAccumulator, ClosureMetrics, format_closure_table
 from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, UPSAMPLE_MODES, HrrcConfig, HrrcEvaluator, HrrcReport, format_hrrc_table
 from ..metrics.lpips import Lpips, LpipsUnavailable
 from ..model.decoder import decoder_mode
-from ..model.pretrained import check_resolution, load_pretrained, with_adapter
-from ..model.pretrained import resolve_checkpoint as resolve_checkpoint  # public here before it moved
+from ..model.pretrained import check_resolution
 from ..model.surfsplat import SurfSplat
-from ..precision import Precision, Resolved, autocast, parse_precision, resolve_precision
 from ..render import RenderOutput, render
+from ..utils.checks import SurfSplatInputError
+from ..utils.log import progress
+from ..utils.precision import Precision, Resolved, autocast, parse_precision, resolve_precision
 from .geometry import COLUMNS as GEOMETRY_COLUMNS
 from .geometry import GeometryConfig, GeometryEvaluator, GeometryReport, format_geometry_table
 
 DEPTH_METRICS = ("abs_rel", "sq_rel", "rmse", "delta1")
-
-
-# ----------------------------------------------------------------------------------------- models
-@dataclass(frozen=True)
-class ModelSpec:
-    """Which network to evaluate: a checkpoint, and how to read it."""
-
-    checkpoint: str  # a weights name (`surfsplat weights list`), hf://owner/repo/file, our .safetensors/.json
-    # pair, a training checkpoint folder, a run folder, or a release .ckpt/.pth
-    name: str | None = None  # label in tables (default: derived from the path and overrides)
-    preset: str | None = None  # encoder preset of a release file given by path (None: small); names know theirs
-    adapter_overrides: tuple[
-        tuple[str, object], ...
-    ] = ()  # AdapterConfig fields to change, e.g. (("opacity_max", 1.0),)
-    trust_pickle: bool = False  # release .ckpt files pickle their hyper-parameters; allow unpickling them
-
-    @staticmethod
-    def parse(text: str, preset: str | None = None, trust_pickle: bool = False) -> ModelSpec:
-        """`[NAME=]CHECKPOINT[:field=value,field=value]`, e.g. `w/o FAB=runs/tiny:opacity_max=1.0`.
-
-        Values are JSON (numbers, true/false) or bare words (strings such as prior=none).
-        """
-        name = None
-        head, _, tail = text.partition(":")
-        if "=" in head:
-            name, head = head.split("=", 1)
-        if not head:
-            raise SurfSplatInputError(f"--compare {text!r}: expected [NAME=]CHECKPOINT[:field=value,...]")
-        overrides = []
-        for item in filter(None, tail.split(",")):
-            if "=" not in item:
-                raise SurfSplatInputError(f"--compare {text!r}: adapter override {item!r} is not field=value")
-            key, value = item.split("=", 1)
-            try:
-                parsed: object = json.loads(value)
-            except ValueError:
-                parsed = value
-            overrides.append((key.strip(), parsed))
-        return ModelSpec(
-            checkpoint=head,
-            name=name or None,
-            preset=preset,
-            adapter_overrides=tuple(overrides),
-            trust_pickle=trust_pickle,
-        )
-
-    def label(self) -> str:
-        if self.name:
-            return self.name
-        path = Path(self.checkpoint)
-        base = path.parent.parent.name + "/" + path.name if path.parent.name == "checkpoints" else path.name
-        extra = ",".join(f"{k}={v}" for k, v in self.adapter_overrides)
-        return base + (f" [{extra}]" if extra else "")
-
-
-def load_model(spec: ModelSpec, device: torch.device | str = "cpu") -> tuple[SurfSplat, str]:
-    """(model in eval mode, table label) for a ModelSpec: a weights name, an hf:// address or a path."""
-    model = load_pretrained(spec.checkpoint, preset=spec.preset, trust_pickle=spec.trust_pickle)
-    if spec.adapter_overrides:
-        info = model.pretrained_info
-        model = with_adapter(model, dict(spec.adapter_overrides))
-        model.pretrained_info = info
-    return model.to(device).eval(), spec.label()
 
 
 # ----------------------------------------------------------------------------------------- samples
@@ -297,7 +233,7 @@ def predict_sample(
 ) -> ScenePrediction:
     """Reconstruct a sample's scene from its context views and render its targets at every factor
     (compacted first at level `compact`, see `surfsplat.compact`, when given). `precision` is the
-    forward pass's (auto, fp32, bf16; `surfsplat.precision`)."""
+    forward pass's (auto, fp32, bf16; `surfsplat.utils.precision`)."""
     device = next(model.parameters()).device
     h, w = sample.target_images.shape[-2:]
     images = sample.context_images[None].to(device)
@@ -359,7 +295,7 @@ class EvalConfig:
     progress: bool = True  # progress over the entries (a bar on a terminal, log lines elsewhere)
     geometry: GeometryConfig | None = None  # also score geometry against exact truth (procedural scenes)
     compact: int | None = None  # score the reconstruction compacted at this level (surfsplat.compact)
-    precision: Precision = "fp32"  # forward pass: auto, fp32 or bf16 (surfsplat.precision)
+    precision: Precision = "fp32"  # forward pass: auto, fp32 or bf16 (surfsplat.utils.precision)
 
     def __post_init__(self) -> None:
         parse_precision(self.precision, "precision")

@@ -31,12 +31,12 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from ..geometry.sh import SH_C0
-from ..log import progress
 from ..render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
+from ..utils.checks import SurfSplatInputError
+from ..utils.log import progress
 
 COVERED_ALPHA = 0.05  # pixels our render covers: the fit and its figures look only at these
 

@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import atomic
-from ..checks import SurfSplatInputError
+from ..utils import atomic
+from ..utils.checks import SurfSplatInputError
 
 # Colours of the chart's series, in order (a colour-blind-safe palette).
 SERIES_COLOURS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9")

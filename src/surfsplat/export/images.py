@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..atomic import atomic_path
+from ..utils.atomic import atomic_path
 
 
 def to_uint8(image: Tensor) -> np.ndarray:

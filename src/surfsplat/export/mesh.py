@@ -25,9 +25,9 @@ import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 from torch import Tensor
 
-from ..atomic import atomic_path
-from ..checks import SurfSplatInputError, check_tensor
 from ..geometry.cameras import Cameras
+from ..utils.atomic import atomic_path
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .mesh import Mesh
 
 SHAPE_GREY = 0.8  # albedo of the shape-only picture

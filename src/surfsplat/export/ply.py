@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 
-from ..atomic import atomic_path
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
+from ..geometry.gaussians import Gaussians
 from ..geometry.rotations import matrix_to_quat
 from ..geometry.sh import sh_degree_from_bases
+from ..utils.atomic import atomic_path
+from ..utils.checks import SurfSplatInputError
 
 Precision = Literal["float32", "float64"]
 

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .figures import write_text
 
 _STYLE = """

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..atomic import atomic_path
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.atomic import atomic_path
+from ..utils.checks import SurfSplatInputError, check_tensor
 from .images import to_uint8
 
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 # OpenGL / Blender camera axes (x right, y up, z backward) <-> OpenCV (x right, y down, z forward).
 _FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))

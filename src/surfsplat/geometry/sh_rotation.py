@@ -32,7 +32,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .sh import sh_basis, sh_degree_from_bases
 
 SHConvention = Literal["3dgs", "e3nn"]

@@ -26,9 +26,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
+from ..utils.checks import SurfSplatInputError
 
 CLOSURE_MIN = 0.9  # a closed surface keeps at least this share of its x1 alpha at the largest factor
 UNDERSIZED_MAX = 0.15  # and at most this share of surfels under half their footprint

@@ -16,7 +16,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 SCANNET_DEPTH_RANGE = (0.5, 10.0)  # the release's eval_min_depth / eval_max_depth for ScanNet
 DELTA_BASE = 1.25  # threshold accuracy: ratio < 1.25^k

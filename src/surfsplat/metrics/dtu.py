@@ -36,7 +36,7 @@ from scipy.io import loadmat
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .geometry import _points
 
 DOWNSAMPLE_MM = 0.2  # down-sampling density of the reconstruction

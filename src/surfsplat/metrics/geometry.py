@@ -36,7 +36,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 from .depth import DepthMetrics, depth_metrics
 
 NORMAL_THRESHOLDS_DEG = (11.25, 22.5, 30.0)

@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError, check_tensor
 from .image import psnr, ssim
 from .lpips import Lpips, LpipsUnavailable
 

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 SSIM_WIN_SIZE = 11  # the published call's win_size: the crop and N of the sample covariance
 SSIM_SIGMA = 1.5  # scikit-image's Gaussian width when gaussian_weights=True

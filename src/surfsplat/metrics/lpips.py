@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..checks import SurfSplatInputError, check_tensor
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 VGG16_FILENAME = "vgg16-397923af.pth"  # torchvision's ImageNet VGG16, in the torch hub cache
 LIN_FILENAME = "vgg.pth"  # the lpips package's v0.1 linear heads for the VGG trunk

@@ -37,12 +37,12 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
-from ..gaussians import THIN_SCALE, Gaussians
 from ..geometry.cameras import validate_c2w, validate_intrinsics
+from ..geometry.gaussians import THIN_SCALE, Gaussians
 from ..geometry.rotations import matrix_to_quat, quat_to_matrix, skew
 from ..geometry.sh import SH_C0, num_sh_bases
 from ..geometry.sh_rotation import SHConvention, sh_rotation_matrix
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 # A cross product counts as degenerate (normal undefined) below this sine of the tangent angle.
 _DEGENERATE_SINE = 1e-6

@@ -33,9 +33,9 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from ..atomic import atomic_path
-from ..atomic import write_text as atomic_write_text
-from ..checks import SurfSplatInputError, read_json
+from ..utils.atomic import atomic_path
+from ..utils.atomic import write_text as atomic_write_text
+from ..utils.checks import SurfSplatInputError, read_json
 from .encoder.encoder import SurfSplatEncoder
 
 # ----------------------------------------------------------------------------- the mapping table

@@ -27,11 +27,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from ..render import render
 from ..render.types import Backend, RenderMode
+from ..utils.checks import SurfSplatInputError
 from .adapter import AdapterConfig
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 _MASK32 = np.uint64(0xFFFFFFFF)
 _KNUTH = np.uint64(2654435761)  # Knuth's multiplicative hash constant

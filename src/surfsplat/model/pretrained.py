@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .adapter import AdapterConfig
 from .checkpoint import load_checkpoint, load_release_weights
 from .registry import HF_SCHEME, PACKAGE_WEIGHTS, REGISTRY, Role, Source, WeightsEntry, looks_like_name, lookup
@@ -329,7 +329,7 @@ def detect_layout(keys: list[str]) -> str:
 
 def describe_file(path: str | Path, *, trust_pickle: bool = False) -> dict[str, object]:
     """Metadata of a checkpoint file or folder: layout, preset, resolution, adapter, steps, source, size."""
-    from ..checks import read_json
+    from ..utils.checks import read_json
     from .checkpoint import FORMAT_NAME, read_state_dict, training_metadata
 
     path = Path(path)

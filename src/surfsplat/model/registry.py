@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 from pathlib import PurePosixPath
 from typing import Literal
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 SourceKind = Literal["hf", "url", "package"]
 # How a file's tensors are named: the release's encoder, our own .safetensors + .json pair, the two

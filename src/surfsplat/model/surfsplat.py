@@ -19,11 +19,11 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from ..checks import SurfSplatInputError, check_tensor
-from ..configio import dataclass_from_dict
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
-from ..precision import without_autocast
+from ..geometry.gaussians import Gaussians
+from ..utils.checks import SurfSplatInputError, check_tensor
+from ..utils.configio import dataclass_from_dict
+from ..utils.precision import without_autocast
 from .adapter import AdapterConfig, AdapterOutput, GaussianAdapter
 from .encoder.encoder import EncoderConfig, SurfSplatEncoder
 from .encoder.vit import VIT_CONFIGS, ViTConfig

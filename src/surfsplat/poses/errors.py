@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 
 def relative_pose_errors(c2w: torch.Tensor, reference: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -55,9 +55,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..checks import SurfSplatInputError
-from ..export.paths import CameraSet
+from ..data.cameras import CameraSet
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .exif import exif_focal
 
 FOCAL_PRIOR_FACTOR = 1.2  # COLMAP's default focal guess: 1.2 x the long side of the image

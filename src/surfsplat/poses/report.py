@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..export.paths import CameraSet
+from ..data.cameras import CameraSet
 from .estimate import PoseSummary
 
 THUMBNAIL_WIDTH = 320  # pixels of the photo copies shown in the report
@@ -29,10 +29,10 @@ def write_pose_outputs(
     renders: list[Path] | None = None,  # colour renders of the registered views, beside the report
 ) -> dict[str, Path]:
     """Write estimated_cameras.json, poses.json, poses/ (thumbnails, top view) and report.html."""
+    from ..data.cameras import save_cameras
     from ..data.images import read_image
     from ..export.figures import write_text
     from ..export.images import write_png
-    from ..export.paths import save_cameras
     from ..export.report import HtmlReport
 
     out = Path(out_dir)

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..capture import FrameConfig, VideoFrames, is_video_file, select_video_frames
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 ImageSource = str | os.PathLike | np.ndarray | Tensor  # a file, uint8 / float [H, W, 3] array, or [3, H, W] tensor
 

@@ -31,8 +31,8 @@ from typing import Literal
 import torch
 
 from ..capture import FrameConfig, FusionConfig, RefineConfig, SurfelFusion, context_sets, refine_on_views
-from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .inputs import CaptureInput, ImageSource, read_capture
 from .scene import HeldOut, Scene
 
@@ -102,7 +102,7 @@ def reconstruct(
     # ---- every input is checked here, before anything heavy runs
     capture = capture or CaptureOptions()
     device = _check_options(capture, device, size, near, far, compact, max_size, max_working_size)
-    from ..precision import autocast, parse_precision
+    from ..utils.precision import autocast, parse_precision
 
     parse_precision(precision)
     if focal is not None and cameras is not None:
@@ -172,7 +172,7 @@ def reconstruct(
         return stack.clamp(0, 1), K_net
 
     # ---- forward passes, fused as they stream by
-    from ..log import progress as progress_bar
+    from ..utils.log import progress as progress_bar
 
     fusion = SurfelFusion(capture.fusion, mode=mode) if len(passes) > 1 else None
     seconds["forward"], seconds["fusion"], seconds["compact"] = 0.0, 0.0, 0.0
@@ -310,7 +310,7 @@ def resolve_device(choice: str | torch.device) -> torch.device:
 
 def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
     """(CameraSet of the views in their order, where they came from), or None to estimate them."""
-    from ..export.paths import CameraSet, load_cameras
+    from ..data.cameras import CameraSet, load_cameras
 
     if cameras is None:
         if images_folder is not None:
@@ -348,7 +348,7 @@ def _is_model(checkpoint) -> bool:
 
 
 def _load(checkpoint, preset, trust_pickle, device):
-    from ..evaluation import ModelSpec, load_model
+    from ..model.loading import ModelSpec, load_model
 
     if checkpoint is None:
         checkpoint = "tiny-synthetic"

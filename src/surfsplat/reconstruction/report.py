@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 from ..capture import refine_summary
-from ..export.paths import CameraSet
+from ..data.cameras import CameraSet
 
 THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
 

@@ -16,9 +16,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
+from ..utils.checks import SurfSplatInputError
 
 
 @dataclass
@@ -163,13 +163,13 @@ class Scene:
         self,
         out_dir: str | Path,
         formats: tuple[str, ...] | None = None,
-        options=None,  # surfsplat.commands.export.ExportOptions; default: `formats` with the model's rendering
+        options=None,  # surfsplat.export.flow.ExportOptions; default: `formats` with the model's rendering
     ) -> dict[str, Path]:
         """Write the reconstruction (see `export_reconstruction`), the cameras' report when they were
         estimated, the capture's report and reconstruction.json; returns {what: path}."""
-        from ..checks import check_output_dir
-        from ..commands.export import FORMATS, ExportOptions, export_reconstruction, output_names
         from ..export.figures import write_text
+        from ..export.flow import FORMATS, ExportOptions, export_reconstruction, output_names
+        from ..utils.checks import check_output_dir
 
         if options is None:
             options = ExportOptions(

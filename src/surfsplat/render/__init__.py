@@ -8,9 +8,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from ..checks import SurfSplatInputError, check_tensor
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
+from ..utils.checks import SurfSplatInputError, check_tensor
 from .cpu import CpuRenderSettings
 from .cpu import backend_unavailable as cpu_backend_unavailable
 from .torch_backend import TorchRenderSettings, render_torch

@@ -30,8 +30,8 @@ from dataclasses import fields
 import torch
 from torch import Tensor
 
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from .torch_backend import Projected, TorchRenderSettings, project
 from .types import RenderConventions, RenderMode
 

@@ -8,7 +8,7 @@ from typing import Literal, get_args
 
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 RenderMode = Literal["surfel", "ewa"]
 Backend = Literal["auto", "torch", "cpu", "gsplat"]

@@ -234,7 +234,7 @@ def render_3dgs(
     extra: Tensor | None = None,
 ):
     """gsplat's 3DGS (EWA) reference for one camera: colour, alpha, centre depth and `extra` channels blended."""
-    from surfsplat.gaussians import THIN_SCALE
+    from surfsplat.geometry.gaussians import THIN_SCALE
 
     scales = torch.cat((g.scales, torch.full_like(g.scales[:, :1], THIN_SCALE)), -1)
     covars, _ = ref._quat_scale_to_covar_preci(F.normalize(g.quats, dim=-1), scales, compute_preci=False)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from .. import log
 from ..cli import run_command
 from ..commands import train as command
+from ..utils import log
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,12 +19,12 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from ..model.encoder.cost_volume import linear_inverse_depth_candidates
 from ..model.encoder.encoder import MATCHING_STRIDE
 from ..model.surfsplat import SurfSplat, SurfSplatPrediction
+from ..utils.checks import SurfSplatInputError
 
 _LOGITS = "depth_head_logits"  # the first scale's candidate logits [(B V), D, h, w]
 _RAW = "gaussian_head_out"  # the Gaussian head's output [(B V), C, H, W]

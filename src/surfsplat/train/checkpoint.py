@@ -41,11 +41,11 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from ..atomic import output_error
-from ..checks import SurfSplatInputError
 from ..model.checkpoint import save_checkpoint as save_model
 from ..model.checkpoint import training_metadata
 from ..model.surfsplat import SurfSplat
+from ..utils.atomic import output_error
+from ..utils.checks import SurfSplatInputError
 
 FORMAT_NAME = "surfsplat-train-state"
 FORMAT_VERSION = 1

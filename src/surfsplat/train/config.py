@@ -19,12 +19,12 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from ..checks import SurfSplatInputError
-from ..configio import dataclass_from_dict
 from ..data.view_sampler import BoundedViewSamplerConfig
 from ..model.adapter import AdapterConfig
 from ..model.surfsplat import PRESETS
 from ..render.types import BACKENDS, Backend
+from ..utils.checks import SurfSplatInputError
+from ..utils.configio import dataclass_from_dict
 from .losses import LossConfig
 
 Precision = Literal["auto", "fp32", "bf16", "fp16"]

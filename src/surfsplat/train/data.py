@@ -30,13 +30,13 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
-from ..checks import SurfSplatInputError
 from ..data.dataset import ChunkDataset, ChunkDatasetConfig, mix_seed
 from ..data.eval_index import EvaluationIndex
 from ..data.synthetic import SyntheticDataset, SyntheticDatasetConfig
 from ..data.transforms import horizontal_flip
 from ..data.view_sampler import BoundedViewSampler, EvaluationViewSampler, StepCounter
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .config import DataConfig
 
 # Validation rooms come from this offset of the training seed: mix_seed makes the two sequences of

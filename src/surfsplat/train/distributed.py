@@ -18,7 +18,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 
 @dataclass(frozen=True)

@@ -43,11 +43,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
 
-from ..atomic import write_text
-from ..checks import SurfSplatInputError, read_json
 from ..data.dataset import mix_seed
 from ..export.figures import image_grid
-from ..log import progress
 from ..metrics.lpips import Lpips, LpipsUnavailable, try_load_lpips
 from ..model.checkpoint import (
     describe_init,
@@ -59,9 +56,12 @@ from ..model.checkpoint import (
 from ..model.decoder import decoder_mode, render_views
 from ..model.pretrained import resolve, resolve_checkpoint, with_adapter
 from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
-from ..precision import autocast_dtype
-from ..precision import resolve_precision as resolve_device_precision
 from ..render.types import Backend, RenderMode
+from ..utils.atomic import write_text
+from ..utils.checks import SurfSplatInputError, read_json
+from ..utils.log import progress
+from ..utils.precision import autocast_dtype
+from ..utils.precision import resolve_precision as resolve_device_precision
 from .cascade import intermediate_gaussians, num_intermediate_depths
 from .checkpoint import (
     TrainingState,
@@ -193,7 +193,7 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, step: int, config: Train
 
 
 def resolve_precision(config: TrainConfig, device: torch.device) -> torch.dtype | None:
-    """The autocast dtype (None: full float32). `auto` and `bf16` follow `surfsplat.precision`
+    """The autocast dtype (None: full float32). `auto` and `bf16` follow `surfsplat.utils.precision`
     (auto: bf16 where the device computes it natively, AMX / AVX512-BF16 CPUs included); fp16
     (with loss scaling) needs a GPU. Weights and optimizer state stay float32 in every case."""
     if config.precision == "fp16":

@@ -38,9 +38,9 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from ..checks import SurfSplatInputError, check_tensor
 from ..metrics.lpips import Lpips, LpipsUnavailable, load_lpips
 from ..model.adapter import sobel_tangents, unproject_depth
+from ..utils.checks import SurfSplatInputError, check_tensor
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 
 def _cosine(start: float, end: float, fraction: float) -> float:

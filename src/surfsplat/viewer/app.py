@@ -29,8 +29,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from ..checks import SurfSplatInputError
 from ..geometry.cameras import Cameras
+from ..utils.checks import SurfSplatInputError
 from .scene import ViewerScene, scene_bounds, splat_arrays, summary_line
 
 logger = logging.getLogger(__name__)

@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..checks import SurfSplatInputError
 from ..export.mesh import load_mesh as read_mesh
-from ..gaussians import Gaussians
 from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
 from ..geometry.sh import SH_C0
 from ..render import DEFAULT_ALPHA_THRESHOLD
 from ..render.types import RenderMode
+from ..utils.checks import SurfSplatInputError
 
 PATH_FRAMES = 48  # ExportOptions.path_frames: the path's frame count when path/ holds no frames to count
 FRUSTUM_IMAGE_SIZE = 256  # longest side of the images on the frustums (the browser gets them as JPEG/PNG)
@@ -66,7 +66,8 @@ def load_viewer_scene(path: str | os.PathLike, progress: Progress | None = None)
 
     Raises SurfSplatInputError naming the file for anything that is not what `reconstruct` writes.
     """
-    from ..export.paths import interpolate_cameras, load_cameras
+    from ..data.cameras import load_cameras
+    from ..export.paths import interpolate_cameras
     from ..export.ply import load_ply
 
     def step(what: str, fraction: float) -> None:
@@ -108,7 +109,7 @@ def load_viewer_scene(path: str | os.PathLike, progress: Progress | None = None)
     summary_file = folder / "reconstruction.json"
     summary: dict = {}
     if summary_file.is_file():
-        from ..checks import read_json
+        from ..utils.checks import read_json
 
         summary = read_json(summary_file)
         if not isinstance(summary, dict):

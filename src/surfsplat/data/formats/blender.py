@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
-from ...checks import SurfSplatInputError, read_json
 from ...geometry.cameras import Cameras
+from ...utils.checks import SurfSplatInputError, read_json
 from ..scene import Scene, check_finite_rows, downscale_from_folder, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
 

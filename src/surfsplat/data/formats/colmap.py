@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import rigid_inverse
 from ...geometry.rotations import quat_to_matrix
+from ...utils.checks import SurfSplatInputError
 from ..scene import Scene, downscale_from_folder, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras, validate_c2w, validate_intrinsics
+from ...utils.checks import SurfSplatInputError
 from ..images import read_image, read_image_size
 from ..scene import check_finite_rows
 

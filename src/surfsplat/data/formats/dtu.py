@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
+from ...utils.checks import SurfSplatInputError
 from ..images import list_images, read_image
 from ..scene import Scene, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras, validate_c2w
+from ...utils.checks import SurfSplatInputError
 from ..images import list_images
 from ..scene import Scene, check_finite_rows, fit_intrinsics
 from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder

@@ -13,8 +13,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras, rigid_inverse, validate_c2w
+from ...utils.checks import SurfSplatInputError
 from ..images import is_image_file
 from ..scene import Scene, check_finite_rows
 from .common import image_sizes, load_image_stack, make_cameras

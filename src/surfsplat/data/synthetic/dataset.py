@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras
+from ...utils.checks import SurfSplatInputError
 from ..chunks import ChunkWriter, scene_to_example
 from ..dataset import Sample, mix_seed
 from ..scene import Scene

@@ -15,8 +15,8 @@ import torch
 from einops import rearrange
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras
+from ...utils.checks import SurfSplatInputError
 from .scene import SyntheticScene
 from .textures import albedo
 

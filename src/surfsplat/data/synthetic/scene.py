@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras
+from ...utils.checks import SurfSplatInputError
 from .primitives import Primitive
 from .textures import random_texture
 

@@ -23,8 +23,8 @@ import torch
 from einops import rearrange
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
 from ...geometry.cameras import Cameras
+from ...utils.checks import SurfSplatInputError
 from .primitives import Primitive
 from .render import cast_rays, pixel_rays, ray_geometry
 from .scene import SyntheticConfig, SyntheticScene

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ...precision import without_autocast
+from ...utils.precision import without_autocast
 
 
 class ReplicateConv2d(nn.Conv2d):

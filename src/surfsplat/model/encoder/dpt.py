@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ... import precision
+from ...utils import precision
 from .conv import ReplicateConv2d
 
 

@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
-from ... import precision
-from ...checks import SurfSplatInputError
+from ...utils import precision
+from ...utils.checks import SurfSplatInputError
 from .chunking import items_per_block
 from .cnn import CNNEncoder
 from .conv import ReplicateConv2d

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from ... import precision
+from ...utils import precision
 from .conv import ReplicateConv2d
 
 

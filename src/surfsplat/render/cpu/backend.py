@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...checks import SurfSplatInputError
-from ...gaussians import Gaussians
 from ...geometry.cameras import Cameras
+from ...geometry.gaussians import Gaussians
+from ...utils.checks import SurfSplatInputError
 from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings

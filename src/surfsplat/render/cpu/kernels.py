@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import get_thread_id, njit, prange
 
-from ...gaussians import THIN_SCALE
+from ...geometry.gaussians import THIN_SCALE
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..types import (
     ALPHA_MAX,

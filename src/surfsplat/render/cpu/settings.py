@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...checks import SurfSplatInputError
+from ...utils.checks import SurfSplatInputError
 from ..types import RenderConventions
 
 

@@ -7,9 +7,9 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
-from .checks import SurfSplatInputError, check_tensor
-from .geometry.rotations import quat_to_matrix
-from .geometry.sh import sh_degree_from_bases
+from ..utils.checks import SurfSplatInputError, check_tensor
+from .rotations import quat_to_matrix
+from .sh import sh_degree_from_bases
 
 # Third scale of a surfel seen as a thin 3D Gaussian (how the release and 3DGS baselines render it).
 THIN_SCALE = 1e-10

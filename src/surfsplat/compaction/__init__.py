@@ -66,12 +66,12 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from .checks import SurfSplatInputError
-from .gaussians import Gaussians
-from .geometry.cameras import Cameras
-from .geometry.rotations import matrix_to_quat
-from .geometry.sh import SH_C0
-from .render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
+from ..geometry.cameras import Cameras
+from ..geometry.gaussians import Gaussians
+from ..geometry.rotations import matrix_to_quat
+from ..geometry.sh import SH_C0
+from ..render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
+from ..utils.checks import SurfSplatInputError
 
 
 @dataclass(frozen=True)
@@ -359,7 +359,7 @@ def _probe_cameras(cameras: Cameras, nearby: int) -> Cameras:
     """The context cameras plus `nearby` cameras strictly between each consecutive pair."""
     if nearby == 0 or len(cameras) < 2:
         return cameras
-    from .export.paths import interpolate_cameras
+    from ..export.paths import interpolate_cameras
 
     c2w, K = [cameras.c2w], [cameras.K]
     for i in range(len(cameras) - 1):
@@ -389,7 +389,7 @@ def blending_weights(
     g = gaussians.detach()
     dc = torch.full_like(g.sh[:, :1, :1], 0.5 / SH_C0).requires_grad_(True)
     best = torch.zeros(len(g), dtype=g.means.dtype, device=g.means.device)
-    from .render import render
+    from ..render import render
 
     with torch.enable_grad():
         for c in range(len(cameras)):
@@ -472,7 +472,7 @@ def refit(
     zero thickness) is kept, and so are explicit covariances (their scales do not render).
     colours_only: fit the SH alone; opacities and scales come back exactly as they went in (step 5).
     """
-    from .render import render
+    from ..render import render
 
     views = [(cameras.scaled(float(f)), width * int(f), height * int(f)) for f in cfg.refit_factors]
     with torch.no_grad():

@@ -14,10 +14,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .gaussians import Gaussians
-from .geometry.cameras import Cameras
-from .geometry.rotations import matrix_to_quat
-from .geometry.sh import rgb_to_sh_dc
+from ...geometry.cameras import Cameras
+from ...geometry.gaussians import Gaussians
+from ...geometry.rotations import matrix_to_quat
+from ...geometry.sh import rgb_to_sh_dc
 
 SPHERE_CENTER = (0.0, 0.0, 3.2)
 SPHERE_RADIUS = 1.0
