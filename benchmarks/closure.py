@@ -35,7 +35,8 @@ import torch
 from surfsplat.evaluation import iter_index_samples, predict_sample
 from surfsplat.evaluation.geometry import GeometryConfig, GeometryEvaluator
 from surfsplat.export.figures import write_text
-from surfsplat.metrics.closure import ClosureAccumulator, closure_metrics, pixel_footprints, views_of_pixels
+from surfsplat.geometry.pixels import pixel_footprints, views_of_pixels
+from surfsplat.metrics.closure import ClosureAccumulator, closure_metrics
 from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
 from surfsplat.model.loading import ModelSpec, load_model

@@ -21,14 +21,14 @@ from surfsplat.cli import main
 from surfsplat.compaction import (
     LEVELS,
     CompactConfig,
-    _local_minima,
     blending_weights,
     compact_surfels,
-    pixel_cells,
     refit,
 )
+from surfsplat.compaction.prune import _local_minima
 from surfsplat.data.cameras import save_cameras
 from surfsplat.export.ply import load_ply, save_ply
+from surfsplat.geometry.pixels import pixel_cells
 from surfsplat.model.adapter import GaussianAdapter
 from surfsplat.render import render
 from surfsplat.utils.checks import SurfSplatInputError

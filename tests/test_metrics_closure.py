@@ -8,14 +8,13 @@ import pytest
 import torch
 
 from surfsplat import Cameras, Gaussians
+from surfsplat.geometry.pixels import pixel_footprints, views_of_pixels
 from surfsplat.geometry.sh import SH_C0
 from surfsplat.metrics.closure import (
     CLOSURE_MIN,
     ClosureAccumulator,
     closure_metrics,
     format_closure_table,
-    pixel_footprints,
-    views_of_pixels,
 )
 from surfsplat.utils.checks import SurfSplatInputError
 

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
-from ..metrics.closure import pixel_footprints
+from ..geometry.pixels import pixel_footprints, pixel_grid
 from ..utils.checks import SurfSplatInputError
 
 
@@ -126,10 +126,7 @@ class SurfelFusion:
                     f"fusion: expected one surfel per pixel of {v} views of {width}x{height} "
                     f"({v * height * width:,}), got {len(gaussians):,}; pass their pixels"
                 )
-            views, rows, cols = torch.meshgrid(
-                torch.arange(v), torch.arange(height), torch.arange(width), indexing="ij"
-            )
-            pixels = torch.stack((views.flatten(), rows.flatten(), cols.flatten()), -1)
+            pixels = pixel_grid(v, height, width)
         elif pixels.shape != (len(gaussians), 3):
             raise SurfSplatInputError(f"fusion: pixels expected [{len(gaussians)}, 3], got {tuple(pixels.shape)}")
         g = gaussians.detach()

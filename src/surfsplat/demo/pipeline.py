@@ -49,7 +49,9 @@ class DemoConfig:
     video_frames: int = 36  # frames of each video
     mesh_resolution: int = 96  # TSDF voxels along the longest side
     seed: int = 111123  # training seed (the preset's)
-    precision: Precision = "fp32"  # training and evaluation forward passes: auto, fp32, bf16 (surfsplat.utils.precision)
+    precision: Precision = (
+        "fp32"  # training and evaluation forward passes: auto, fp32, bf16 (surfsplat.utils.precision)
+    )
 
     @staticmethod
     def quick() -> DemoConfig:

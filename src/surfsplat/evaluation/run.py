@@ -211,7 +211,7 @@ class ScenePrediction:
     def closure_surfels(self) -> tuple[Tensor, Tensor | None, float | None]:
         """(pixel footprints [N], multipliers, r) of the rendered surfels, for `ClosureAccumulator`:
         as predicted, each surfel's own context view judges its size; compacted, the finest view."""
-        from ..metrics.closure import pixel_footprints, views_of_pixels
+        from ..geometry.pixels import pixel_footprints, views_of_pixels
 
         cams = self.sample.context_cameras
         h, w = self.sample.context_images.shape[-2:]

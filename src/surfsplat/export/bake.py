@@ -33,6 +33,7 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
+from ..geometry.pixels import pixel_footprints
 from ..geometry.sh import SH_C0
 from ..render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
 from ..utils.checks import SurfSplatInputError
@@ -264,7 +265,9 @@ def bake_for_viewers(
     # floored surfels): the adapter's tangent clamp leaves many smaller than their pixel spacing,
     # which the surfel renderer's screen-space filter hides at x1 and ours normalises away, but a
     # standard viewer shows as gaps at x2.
-    tangent = torch.maximum(scales[:, :2], _footprints(g, cameras)[:, None] / math.sqrt(LOWPASS_RHO_SCALE))
+    tangent = torch.maximum(
+        scales[:, :2], pixel_footprints(g, cameras, width, height)[:, None] / math.sqrt(LOWPASS_RHO_SCALE)
+    )
     third = (tangent.amin(-1, keepdim=True) * config.thickness).clamp_min(1e-12)
     log_scales = torch.cat((tangent.clamp_min(1e-12), third), dim=-1).log().requires_grad_(True)
     sh = g.sh.clone().requires_grad_(True)
@@ -355,15 +358,6 @@ def _axes(g: Gaussians) -> tuple[Tensor, Tensor]:
         return g.rotations, torch.cat((g.scales, torch.zeros_like(g.scales[:, :1])), dim=-1)
     evals, evecs = torch.linalg.eigh(g.explicit_covariances.double())
     return evecs.flip(-1).to(g.means.dtype), evals.flip(-1).clamp_min(0).sqrt().to(g.means.dtype)
-
-
-def _footprints(g: Gaussians, cameras: Cameras) -> Tensor:
-    """[N] world size of a pixel at each Gaussian, in the context view that samples it finest
-    (camera z / focal; 0 where no camera has it in front)."""
-    w2c, K = cameras.w2c.to(g.means), cameras.K.to(g.means)
-    z = g.means @ w2c[:, 2, :3].T + w2c[:, 2, 3]  # [N, C]
-    size = torch.where(z > 0, z / K[:, 0, 0], torch.full_like(z, math.inf)).amin(-1)
-    return torch.where(torch.isfinite(size), size, torch.zeros_like(size))
 
 
 def _scene_depth(alpha: Tensor, depth: Tensor) -> float:

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
+from ..geometry.pixels import pixel_footprints
 from ..utils.checks import SurfSplatInputError
 
 CLOSURE_MIN = 0.9  # a closed surface keeps at least this share of its x1 alpha at the largest factor
@@ -36,44 +37,6 @@ UNDERSIZE_FRACTION = 0.5  # "undersized": smaller tangent scale < this times the
 COVERAGE_LEVELS = (0.5, 0.9)
 OPACITY_QUANTILES = (0.1, 0.5, 0.9)
 _AT_BOUND = 1e-4  # relative tolerance of "at a bound" (the clamp returns the bound exactly)
-
-
-def views_of_pixels(num_views: int, height: int, width: int) -> Tensor:
-    """[V*H*W] the context view each surfel of a model output came from ((view, row, column) order)."""
-    return torch.arange(num_views).repeat_interleave(height * width)
-
-
-def pixel_footprints(
-    gaussians: Gaussians, cameras: Cameras, width: int, height: int, views: Tensor | None = None
-) -> Tensor:
-    """[N] world size z / f of one pixel at each surfel's centre (f = the geometric mean of fx, fy).
-
-    views: [N] index of the camera that predicted each surfel (`views_of_pixels` for model outputs);
-    None takes, per surfel, the finest footprint among the cameras that see its centre in frame (a
-    loaded PLY), or the nearest camera in front when none does.
-    """
-    means = gaussians.means.detach().to(torch.float64)
-    w2c = cameras.w2c.to(torch.float64)
-    K = cameras.K.to(torch.float64)
-    z = torch.einsum("cj,nj->nc", w2c[:, 2, :3], means) + w2c[:, 2, 3]  # [N, C] camera depths
-    focal = (K[:, 0, 0] * K[:, 1, 1]).sqrt()  # [C]
-    footprint = z / focal
-    if views is not None:
-        views = views.to(means.device).long()
-        if views.shape != (len(gaussians),) or bool((views < 0).any() | (views >= len(cameras)).any()):
-            raise SurfSplatInputError(f"views: expected {len(gaussians)} camera indices below {len(cameras)}")
-        return footprint.gather(1, views[:, None])[:, 0].clamp_min(0).float()
-    cam = torch.einsum("cij,nj->nci", w2c[:, :3, :3], means) + w2c[:, :3, 3]  # [N, C, 3]
-    uv = torch.einsum("cij,ncj->nci", K, cam)
-    front = z > 1e-9
-    u = uv[..., 0] / z.where(front, torch.ones_like(z))
-    v = uv[..., 1] / z.where(front, torch.ones_like(z))
-    sees = front & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
-    inf = torch.full_like(footprint, float("inf"))
-    best = footprint.where(sees, inf).min(1).values
-    fallback = footprint.where(front, inf).min(1).values
-    out = torch.where(torch.isfinite(best), best, fallback)
-    return torch.where(torch.isfinite(out), out, torch.zeros_like(out)).float()
 
 
 def undersized(gaussians: Gaussians, footprints: Tensor) -> Tensor:

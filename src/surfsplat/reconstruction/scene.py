@@ -82,7 +82,8 @@ class Scene:
     def closure(self, factors: tuple[int, ...] = (1, 2, 4), max_views: int = 4):
         """ClosureMetrics (`surfsplat.metrics.closure`) from the context cameras (at most `max_views`,
         evenly spread): does the surface keep its alpha when rendered at each factor?"""
-        from ..metrics.closure import closure_metrics, views_of_pixels
+        from ..geometry.pixels import views_of_pixels
+        from ..metrics.closure import closure_metrics
 
         n = len(self.cameras)
         picked = torch.linspace(0, n - 1, min(n, max_views)).round().long().unique()

@@ -18,7 +18,8 @@ import torch
 from torch import Tensor, nn
 
 from ..export.figures import image_grid
-from ..metrics.closure import at_bounds, pixel_footprints, undersized, views_of_pixels
+from ..geometry.pixels import pixel_footprints, views_of_pixels
+from ..metrics.closure import at_bounds, undersized
 from ..metrics.depth import depth_metrics
 from ..metrics.hrrc import METRICS, HrrcConfig, HrrcEvaluator, upsample_ground_truth
 from ..metrics.lpips import Lpips, LpipsUnavailable
