@@ -9,10 +9,17 @@ shared machine wall time alone says little.
     python benchmarks/render.py                       # every backend that runs here, surfel + ewa, 256/512/1024
     python benchmarks/render.py --backends cpu --modes surfel --resolutions 256
     python benchmarks/render.py --multiview 16 --resolutions 64 128 256   # one 16-view call vs 16 calls
+    python benchmarks/render.py --backends cpu --modes surfel --resolutions 1024 --passes forward_backward \
+        --precisions float32 float64                                         # float32 against float64
+
+`--precisions`: the Gaussians and cameras are given to the renderer in each of these dtypes (the
+compiled CPU backend composites in float32 for float32 inputs and in float64 for float64 ones);
+the table ends with each configuration's float32 / float64 throughput ratio.
 
 `--multiview V`: the compiled CPU backend's forward+backward of one call rendering V cameras (a
 fan of views around the target) against V calls of one camera each, in the same process, at each
-resolution: seconds of both and their ratio.
+resolution and precision: seconds of both and their ratio, and each against V float64 one-camera
+calls (the renderer as it was before float32 compositing).
 """
 
 from __future__ import annotations
@@ -91,15 +98,18 @@ def available_backends() -> list[str]:
     return names
 
 
-def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict:
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def worker(backend: str, mode: str, res: int, passes: str, repeats: int, precision: str = "float32") -> dict:
     """Measure one configuration in this process (threads are set by the caller)."""
     from surfsplat import Gaussians
     from surfsplat.evaluation import peak_rss_bytes
     from surfsplat.render import render
 
     scene = _scene()
-    g = scene.gaussians
-    cam = scene.target.scaled(res / 256)
+    g = scene.gaussians.to(DTYPES[precision])
+    cam = scene.target.to(DTYPES[precision]).scaled(res / 256)
     base_rss = peak_rss_bytes() / 2**20
     threads = torch.get_num_threads()
 
@@ -128,6 +138,7 @@ def worker(backend: str, mode: str, res: int, passes: str, repeats: int) -> dict
         "mode": mode,
         "resolution": res,
         "passes": passes,
+        "precision": precision,
         "seconds": statistics.median(times),
         "seconds_all": times,
         "warmup_seconds": warm,
@@ -149,14 +160,14 @@ def camera_fan(cameras, views: int):
     return Cameras(c2w, cameras.K[:1].repeat(views, 1, 1))
 
 
-def multiview_worker(views: int, res: int, repeats: int) -> dict:
+def multiview_worker(views: int, res: int, repeats: int, precision: str = "float64") -> dict:
     """One V-camera forward+backward call against V one-camera calls (compiled CPU backend)."""
     from surfsplat import Gaussians
     from surfsplat.render import render
 
     scene = _scene()
-    g = scene.gaussians
-    cams = camera_fan(scene.target.scaled(res / 256), views)
+    g = scene.gaussians.to(DTYPES[precision])
+    cams = camera_fan(scene.target.to(DTYPES[precision]).scaled(res / 256), views)
     params = {
         k: getattr(g, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")
     }
@@ -185,6 +196,7 @@ def multiview_worker(views: int, res: int, repeats: int) -> dict:
     return {
         "views": views,
         "resolution": res,
+        "precision": precision,
         "seconds_one_call": timings["one_call"],
         "seconds_separate_calls": timings["separate_calls"],
         "speedup": timings["separate_calls"] / timings["one_call"],
@@ -202,7 +214,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS / "render.json")
-    parser.add_argument("--worker", nargs=4, metavar=("BACKEND", "MODE", "RES", "PASSES"), help=argparse.SUPPRESS)
+    parser.add_argument("--precisions", nargs="+", default=["float32"], choices=sorted(DTYPES))
+    parser.add_argument(
+        "--worker", nargs=5, metavar=("BACKEND", "MODE", "RES", "PASSES", "PRECISION"), help=argparse.SUPPRESS
+    )
     parser.add_argument("--multiview", type=int, default=None, metavar="V", help="one V-camera call vs V calls")
     args = parser.parse_args()
 
@@ -212,13 +227,25 @@ def main() -> None:
         rows = []
         with cpu_threads(args.threads):
             for res in args.resolutions:
-                rows.append(multiview_worker(args.multiview, res, args.repeats))
-                r = rows[-1]
-                print(
-                    f"{r['views']} views at {res}^2: one call {r['seconds_one_call']:.3f} s, "
-                    f"{r['views']} calls {r['seconds_separate_calls']:.3f} s, x{r['speedup']:.2f}",
-                    flush=True,
-                )
+                # float64 first: its separate calls are the baseline of every precision's row.
+                for precision in sorted(args.precisions, key=lambda p: p != "float64"):
+                    rows.append(multiview_worker(args.multiview, res, args.repeats, precision))
+                    r = rows[-1]
+                    baseline = next((b for b in rows if b["resolution"] == res and b["precision"] == "float64"), None)
+                    if baseline is not None:
+                        r["speedup_vs_float64_separate_calls"] = (
+                            baseline["seconds_separate_calls"] / r["seconds_one_call"]
+                        )
+                    versus = (
+                        f", x{r['speedup_vs_float64_separate_calls']:.2f} vs {r['views']} float64 calls"
+                        if baseline is not None
+                        else ""
+                    )
+                    print(
+                        f"{r['views']} views at {res}^2 {precision}: one call {r['seconds_one_call']:.3f} s, "
+                        f"{r['views']} calls {r['seconds_separate_calls']:.3f} s, x{r['speedup']:.2f}{versus}",
+                        flush=True,
+                    )
         out = args.out.with_name("render_multiview.json")
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows}, indent=2))
@@ -228,9 +255,9 @@ def main() -> None:
     if args.worker:
         from surfsplat.train.loop import cpu_threads
 
-        backend, mode, res, passes = args.worker
+        backend, mode, res, passes, precision = args.worker
         with cpu_threads(args.threads):  # torch's and the compiled renderer's
-            print(json.dumps(worker(backend, mode, int(res), passes, args.repeats)))
+            print(json.dumps(worker(backend, mode, int(res), passes, args.repeats, precision)))
         return
 
     torch.set_num_threads(args.threads)
@@ -240,39 +267,48 @@ def main() -> None:
     for mode in args.modes:
         for res in args.resolutions:
             pairs = contributing_pairs(scene.gaussians, scene.target.scaled(res / 256), res, res, mode)
-            for backend in args.backends:
-                for passes in args.passes:
-                    # A fresh process per measurement, so peak memory belongs to this configuration.
-                    cmd = [
-                        sys.executable,
-                        __file__,
-                        "--worker",
-                        backend,
-                        mode,
-                        str(res),
-                        passes,
-                        "--repeats",
-                        str(args.repeats),
-                        "--threads",
-                        str(args.threads),
-                    ]
-                    proc = subprocess.run(cmd, capture_output=True, text=True)
-                    if proc.returncode != 0:
-                        row = {
-                            "backend": backend,
-                            "mode": mode,
-                            "resolution": res,
-                            "passes": passes,
-                            "error": proc.stderr.strip().splitlines()[-1]
-                            if proc.stderr.strip()
-                            else f"exit {proc.returncode}",
-                        }
-                    else:
-                        row = json.loads(proc.stdout.strip().splitlines()[-1])
-                        row["pairs_per_second"] = pairs / row["seconds"]
-                    row["contributing_pairs"] = pairs
-                    rows.append(row)
-                    print(_format_row(row), flush=True)
+            configurations = [(b, p, d) for b in args.backends for p in args.passes for d in args.precisions]
+            for backend, passes, precision in configurations:
+                # A fresh process per measurement, so peak memory belongs to this configuration.
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    "--worker",
+                    backend,
+                    mode,
+                    str(res),
+                    passes,
+                    precision,
+                    "--repeats",
+                    str(args.repeats),
+                    "--threads",
+                    str(args.threads),
+                ]
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    row = {
+                        "backend": backend,
+                        "mode": mode,
+                        "resolution": res,
+                        "passes": passes,
+                        "precision": precision,
+                        "error": proc.stderr.strip().splitlines()[-1]
+                        if proc.stderr.strip()
+                        else f"exit {proc.returncode}",
+                    }
+                else:
+                    row = json.loads(proc.stdout.strip().splitlines()[-1])
+                    row["pairs_per_second"] = pairs / row["seconds"]
+                row["contributing_pairs"] = pairs
+                rows.append(row)
+                print(_format_row(row), flush=True)
+
+    ratios = _precision_ratios(rows)
+    for r in ratios:
+        print(
+            f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16}  "
+            f"float32 / float64 throughput x{r['float32_over_float64']:.2f}"
+        )
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {
@@ -285,12 +321,32 @@ def main() -> None:
         },
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
-    args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
+    args.out.write_text(json.dumps({"meta": meta, "results": rows, "precision_ratios": ratios}, indent=2))
     print(f"\nwrote {args.out}")
 
 
+def _precision_ratios(rows: list[dict]) -> list[dict]:
+    """Per configuration measured in both precisions, float32 pairs per second over float64's."""
+    timed = {
+        (r["backend"], r["mode"], r["resolution"], r["passes"], r["precision"]): r["seconds"]
+        for r in rows
+        if "error" not in r
+    }
+    return [
+        {
+            "backend": b,
+            "mode": m,
+            "resolution": res,
+            "passes": p,
+            "float32_over_float64": timed[(b, m, res, p, "float64")] / seconds,
+        }
+        for (b, m, res, p, precision), seconds in timed.items()
+        if precision == "float32" and (b, m, res, p, "float64") in timed
+    ]
+
+
 def _format_row(r: dict) -> str:
-    head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16}"
+    head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16} {r['precision']:>7}"
     if "error" in r:
         return f"{head}  ERROR {r['error']}"
     return (

@@ -158,16 +158,116 @@ def test_float32_agrees_with_reference_and_with_float64(mode):
     g32 = Gaussians(**{k: getattr(g64, k).float() for k in PARAMS})
     cams64 = camera(35.0, W, H)
     cams32 = camera(35.0, W, H, dtype=torch.float32)
-    ours = render(g32, cams32, W, H, mode=mode, backend="cpu")
+    ours = render(g32, cams32, W, H, mode=mode, backend="cpu")  # "auto": float32 compositing
+    wide = render(g32, cams32, W, H, mode=mode, backend="cpu", settings=CpuRenderSettings(precision="float64"))
     ref = render(g32, cams32, W, H, mode=mode, backend="torch")
     exact = render(g64, cams64, W, H, mode=mode, backend="cpu")
-    assert ours.color.dtype == torch.float32
+    assert ours.color.dtype == wide.color.dtype == torch.float32
     for name in ("color", "alpha", "depth", "normal"):
-        a, b, c = getattr(ours, name), getattr(ref, name), getattr(exact, name)
-        # The kernels work in float64 from the float32 inputs: closer to the float64 result than
-        # the float32 reference is, and within float32 noise of it.
+        a, w, b, c = (getattr(o, name) for o in (ours, wide, ref, exact))
         assert_close_relative(a.double(), b.double(), 2e-5, name)
-        assert float((a.double() - c).abs().max()) <= float((b.double() - c).abs().max()) + 1e-6, name
+        assert_close_relative(w.double(), b.double(), 2e-5, name)
+        # Compositing in float64 from the float32 inputs: closer to the float64 result than the
+        # float32 reference is.
+        assert float((w.double() - c).abs().max()) <= float((b.double() - c).abs().max()) + 1e-6, name
+
+
+# --------------------------------------------------------------------------- float32 compositing
+
+
+def _precision_pair(g, cams, W, H, mode, weights, threshold=0.001):
+    """Maps and gradients of the same Gaussians composited in float32 ("auto" on float32 inputs)
+    and in float64 (the reference), as float64 tensors, plus the float32 run's own dtypes."""
+    runs = []
+    for precision in ("auto", "float64"):
+        params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
+        out = render(
+            Gaussians(**params),
+            cams,
+            W,
+            H,
+            mode=mode,
+            backend="cpu",
+            alpha_threshold=threshold,
+            settings=CpuRenderSettings(precision=precision),
+        )
+        maps = (out.color, out.alpha, out.depth, out.normal)
+        sum((m * w).sum() for m, w in zip(maps, weights)).backward()
+        runs.append((maps, {k: p.grad for k, p in params.items()}))
+    (maps32, grads32), (maps64, grads64) = runs
+    dtypes = {t.dtype for t in (*maps32, *grads32.values())}
+    return maps32, grads32, maps64, grads64, dtypes
+
+
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+@pytest.mark.parametrize(
+    ("seed", "size", "f", "scale"),
+    [(0, (37, 29), 30.0, 1.0), (1, (64, 48), 45.0, 1.0), (2, (23, 41), 20.0, 4.0), (3, (50, 50), 70.0, 2.5)],
+)
+def test_float32_compositing_agrees_with_float64(mode, seed, size, f, scale):
+    # The scenes of the reference test (no edge-on surfels: their side is decided by rounding),
+    # rendered from float32 inputs at x1 and, scaled, up to 184 px: float32 compositing against
+    # float64 compositing of the very same inputs.
+    W, H = round(size[0] * scale), round(size[1] * scale)
+    g = scene(70, seed, sh_degree=seed, behind=5, dtype=torch.float32)
+    cams = camera(f, size[0], size[1], dtype=torch.float32).scaled(scale)
+    weights = random_weights(cams, W, H, torch.float32)
+    maps32, grads32, maps64, grads64, dtypes = _precision_pair(g, cams, W, H, mode, weights)
+    assert dtypes == {torch.float32}
+    assert float(maps64[1].detach().max()) > 0.5  # the scene covers the view
+    for name, a, b in zip(("color", "alpha"), maps32, maps64):
+        err = float((a.detach().double() - b.detach().double()).abs().max())
+        assert err <= 1e-4, f"{name}: float32 vs float64 compositing differ by {err:.3g}"
+    # Computed in float32, not float64 rounded at the end: the two float32 results differ, by
+    # float32 rounding (~1e-7 of values near 1).
+    assert not torch.equal(maps32[0], maps64[0])
+    for name, a, b in zip(("depth", "normal"), maps32[2:], maps64[2:]):
+        assert_close_relative(a.double(), b.double(), 1e-4, name)
+    for name in PARAMS:
+        assert float(grads64[name].abs().max()) > 0, name
+        assert_close_relative(grads32[name].double(), grads64[name].double(), 5e-4, f"d/d{name}")
+
+
+def test_float32_is_the_default_for_float32_inputs_and_float64_for_float64():
+    from surfsplat.render.cpu.backend import compositing_dtype
+
+    auto = CpuRenderSettings()
+    assert compositing_dtype(auto, torch.float32) is np.float32
+    assert compositing_dtype(auto, torch.bfloat16) is np.float32
+    assert compositing_dtype(auto, torch.float64) is np.float64
+    assert compositing_dtype(CpuRenderSettings(precision="float64"), torch.float32) is np.float64
+    assert compositing_dtype(CpuRenderSettings(precision="float32"), torch.float64) is np.float32
+    # float64 inputs with float32 compositing: float64 outputs and gradients, float32-close.
+    g = scene(40, 12, sh_degree=1, behind=2)
+    cams = camera(30.0, 32, 24)
+    ref = render(g, cams, 32, 24, backend="cpu")
+    params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
+    out = render(Gaussians(**params), cams, 32, 24, backend="cpu", settings=CpuRenderSettings(precision="float32"))
+    assert out.color.dtype == torch.float64
+    assert 0 < float((out.color.detach() - ref.color).abs().max()) <= 1e-4
+    out.color.sum().backward()
+    assert all(p.grad.dtype == torch.float64 for p in params.values())
+    with pytest.raises(SurfSplatInputError, match="settings.precision: expected 'auto', 'float32' or 'float64'"):
+        CpuRenderSettings(precision="half")
+
+
+def test_float32_kernels_compute_in_float32():
+    # The compiled renderer has float32 specialisations of its compositing kernels, and the pixel
+    # loop compiled for float32 coefficients has no float64 arithmetic (a float64 literal would
+    # have widened every lane). Checked on a fresh, uncached compile: cached code has no IR.
+    g = scene(20, 13, sh_degree=0, dtype=torch.float32)
+    render(g, camera(20.0, 16, 16, dtype=torch.float32), 16, 16, backend="cpu")
+    for kernel in (kernels.composite_forward, kernels.composite_backward):
+        assert any(sig[1] == numba.float32[:, ::1] for sig in kernel.signatures), kernel
+    fresh = numba.njit(error_model="numpy")(kernels._box_alpha.py_func)
+    f32 = np.float32
+    tile = np.zeros(16 * 16, dtype=f32)
+    for surfel in (True, False):
+        fresh(surfel, np.zeros(kernels.GEOM_SIZE, f32), 0, 0, 4, tile, tile, tile.copy(), tile.copy(), tile.copy())
+    for sig in fresh.signatures:
+        ir = fresh.inspect_llvm(sig)
+        assert " float" in ir
+        assert "double" not in ir.replace("double*", ""), "float64 arithmetic in the float32 pixel loop"
 
 
 # --------------------------------------------------------------------------- independent twins
@@ -283,15 +383,17 @@ def test_result_does_not_depend_on_tile_size_or_threads():
             assert_close_relative(grads[name], g_base[name], 1e-12, f"d/d{name}")
 
 
-def test_gradients_are_bitwise_identical_for_any_thread_count_and_schedule():
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_gradients_are_bitwise_identical_for_any_thread_count_and_schedule(dtype):
     # Per-(tile, Gaussian) gradient rows are summed in a fixed order, so neither the number of
-    # threads nor which thread took which tile changes a bit (what exact training resume needs).
+    # threads nor which thread took which tile changes a bit (what exact training resume needs),
+    # in float64 and in float32 compositing alike.
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba was started with one thread (NUMBA_NUM_THREADS=1)")
     W, H = 96, 80
-    g = scene(600, 21, sh_degree=2, behind=4, edge_on=10)
-    cams = camera(70.0, W, H)
-    weights = random_weights(cams, W, H, torch.float64)
+    g = scene(600, 21, sh_degree=2, behind=4, edge_on=10, dtype=dtype)
+    cams = camera(70.0, W, H, dtype=dtype)
+    weights = random_weights(cams, W, H, dtype)
     threads = numba.get_num_threads()
     results = []
     try:
@@ -302,6 +404,7 @@ def test_gradients_are_bitwise_identical_for_any_thread_count_and_schedule():
         numba.set_num_threads(threads)
     (base, g_base), rest = results[0], results[1:]
     assert sum(int((grad != 0).sum()) for grad in g_base.values()) > 1000  # the scene has real gradients
+    assert base[0].dtype == g_base["means"].dtype == dtype
     for maps, grads in rest:
         for a, b in zip(maps, base):
             assert torch.equal(a, b)
@@ -360,8 +463,13 @@ def test_contributing_pair_count_matches_brute_force():
 
 def test_polynomial_exp_is_accurate_over_the_used_range():
     x = np.linspace(kernels.LOG_ALPHA_MIN - 2.0, 0.0, 20001)
-    ours = np.array([kernels._exp_nonpositive(v) for v in x])
+    ours = np.array([kernels._exp_nonpositive(v, np.float64) for v in x])
     assert np.max(np.abs(ours / np.exp(x) - 1)) < 1e-14
+    # float32: the series' roundings, squared five times (relative errors add up 32-fold).
+    x32 = x.astype(np.float32)
+    ours32 = np.array([kernels._exp_nonpositive(v, np.float32) for v in x32])
+    assert np.max(np.abs(ours32 / np.exp(x32.astype(np.float64)) - 1)) < 5e-6
+    assert numba.float32 in {sig.return_type for sig in kernels._exp_nonpositive.nopython_signatures}
 
 
 def test_degenerate_geometry_has_finite_forward_and_backward():

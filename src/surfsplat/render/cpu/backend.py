@@ -2,11 +2,17 @@
 
 No torch op runs per Gaussian: quaternion to rotation, camera transform, SH colour, normal
 orientation, projection, culling, sorting, binning, compositing and all their gradients run in the
-kernels of `kernels.py`, in float64, on every core. Torch only hands tensors over (a NumPy view
-or one cast) - which also keeps torch's own thread pool out of the way of the kernels'. The inputs
-are converted and the rotations built once per call, whatever the number of cameras; the
-backward sums every camera's gradients into one set of buffers, camera after camera, so the
-result is the same for any number of threads and no per-camera gradient is ever materialised.
+kernels of `kernels.py`, on every core. Torch only hands tensors over (a NumPy view or one cast) -
+which also keeps torch's own thread pool out of the way of the kernels'. The inputs are converted
+and the rotations built once per call, whatever the number of cameras; the backward sums every
+camera's gradients into one set of buffers, camera after camera, so the result is the same for any
+number of threads and no per-camera gradient is ever materialised.
+
+Precision (`CpuRenderSettings.precision`): the per-Gaussian work (projection and its chain rule,
+under a tenth of the time) always runs in float64 from float64 copies of the inputs; the per-pair
+work (compositing forward and backward, the rest) runs in float64 or float32, the latter from
+per-Gaussian coefficients rounded once to float32 about their stored centres - the torch
+backend's split, which keeps sub-pixel accuracy on large images. float64 is the exact reference.
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ _NP_DTYPES = {
 
 @dataclass
 class _Camera:
-    """One camera as the kernels take it (float64 NumPy)."""
+    """One camera as the kernels take it (float64 NumPy, whatever the precision)."""
 
     R_cw: np.ndarray  # [3, 3] world-to-camera rotation
     t_cw: np.ndarray  # [3]
@@ -52,9 +58,9 @@ class _Plan:
     """Survivors of culling, front to back (survivor m is the m-th nearest), and their tile lists:
     the work of one camera."""
 
-    geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients
+    geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients (the compositing dtype)
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
-    features: np.ndarray  # [M, 6] survivors' colour and oriented normal
+    features: np.ndarray  # [M, 6] survivors' colour and oriented normal (the compositing dtype)
     flip: np.ndarray  # [N] +-1: the sign given to each normal
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] survivors m touching each tile, front to back
@@ -64,12 +70,24 @@ class _Plan:
     tiles_x: int
 
 
-def _np64(t: Tensor) -> np.ndarray:
+def _np(t: Tensor, dtype: type[np.floating] = np.float64) -> np.ndarray:
     # NumPy casts single-threaded; a torch cast would wake torch's thread pool for every tensor.
     t = t.detach()
     if t.dtype == torch.bfloat16:  # NumPy has no bfloat16
         t = t.float()
-    return np.ascontiguousarray(t.numpy(), dtype=np.float64)
+    return np.ascontiguousarray(t.numpy(), dtype=dtype)
+
+
+def _np64(t: Tensor) -> np.ndarray:
+    return _np(t, np.float64)
+
+
+def compositing_dtype(settings: CpuRenderSettings, dtype: torch.dtype) -> type[np.floating]:
+    """The float type of the per-pair work for inputs of `dtype`: `settings.precision`, where
+    "auto" is float64 for float64 inputs and float32 for any other float."""
+    if settings.precision == "auto":
+        return np.float64 if dtype == torch.float64 else np.float32
+    return np.float64 if settings.precision == "float64" else np.float32
 
 
 def _tensor(a: np.ndarray, dtype: torch.dtype) -> Tensor:
@@ -117,16 +135,24 @@ def _rotations(quats: np.ndarray) -> np.ndarray:
     return rot
 
 
-def _prepare(surfel: bool, inputs: tuple, rot: np.ndarray, camera: _Camera, settings: CpuRenderSettings) -> _Plan:
-    """Projection, culling, depth sort and tile lists of one camera (the kernels' first half)."""
+def _prepare(
+    surfel: bool,
+    inputs: tuple,
+    rot: np.ndarray,
+    camera: _Camera,
+    settings: CpuRenderSettings,
+    dtype: type[np.floating],
+) -> _Plan:
+    """Projection, culling, depth sort and tile lists of one camera (the kernels' first half),
+    with the survivors' coefficients and features in `dtype` (the depth sort key stays float64)."""
     x, q, sc, op, shc, cov = inputs
     n = x.shape[0]
     threads = numba.get_num_threads()
-    geom = np.empty((n, kernels.GEOM_SIZE))
+    geom = np.empty((n, kernels.GEOM_SIZE), dtype=dtype)
     box = np.empty((n, 4), dtype=np.int64)
     keep = np.empty(n, dtype=np.bool_)
     depth = np.empty(n)
-    features = np.empty((n, kernels.FEATURES))
+    features = np.empty((n, kernels.FEATURES), dtype=dtype)
     flip = np.empty(n)
     kernels.project(
         surfel,
@@ -182,7 +208,8 @@ class _Rasterize(torch.autograd.Function):
     Inputs: means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, 3, B],
     covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
     Outputs (un-normalized, the means' dtype): colour [C, 3, H, W], alpha [C, 1, H, W],
-    depth [C, 1, H, W], normal [C, 3, H, W].
+    depth [C, 1, H, W], normal [C, 3, H, W]. Compositing runs in `compositing_dtype`; gradients
+    come back in each input's dtype.
     """
 
     @staticmethod
@@ -200,13 +227,14 @@ class _Rasterize(torch.autograd.Function):
     ):
         inputs = _inputs(means, quats, scales, opacities, sh, covariances)
         rot = _rotations(inputs[1])
+        ft = compositing_dtype(settings, means.dtype)
         C, W, H = len(cameras), cameras[0].width, cameras[0].height
-        color, normal = np.empty((C, 3, H, W)), np.empty((C, 3, H, W))
-        depth, trans = np.empty((C, 1, H, W)), np.empty((C, 1, H, W))
+        color, normal = np.empty((C, 3, H, W), dtype=ft), np.empty((C, 3, H, W), dtype=ft)
+        depth, trans = np.empty((C, 1, H, W), dtype=ft), np.empty((C, 1, H, W), dtype=ft)
         last = np.empty((C, H, W), dtype=np.int64)
         plans = []
         for c, camera in enumerate(cameras):
-            plan = _prepare(surfel, inputs, rot, camera, settings)
+            plan = _prepare(surfel, inputs, rot, camera, settings, ft)
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_forward(
                     surfel,
@@ -237,11 +265,12 @@ class _Rasterize(torch.autograd.Function):
         settings: CpuRenderSettings = ctx.settings
         saved = ctx.saved_tensors  # raises if an input was modified in place since the forward
         x, q, sc, op, shc, cov = ctx.inputs  # the forward's float64 copies (or views of float64 inputs)
+        ft = ctx.trans.dtype.type  # the compositing dtype
         C, H, W = ctx.last.shape
         n = x.shape[0]
         threads = numba.get_num_threads()
         upstream = [
-            np.zeros(shape) if g is None else _np64(g)
+            np.zeros(shape, dtype=ft) if g is None else _np(g, ft)
             for g, shape in (
                 (g_color, (C, 3, H, W)),
                 (g_normal, (C, 3, H, W)),
@@ -253,7 +282,7 @@ class _Rasterize(torch.autograd.Function):
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
         for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
-            pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE))  # every row gets written
+            pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE), dtype=ft)  # every row gets written
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_backward(
                     ctx.surfel,
@@ -376,8 +405,9 @@ def contributing_pairs(
     inputs = _inputs(g.means, g.quats, g.scales, g.opacities, g.sh, g.explicit_covariances if mode == "ewa" else None)
     rot = _rotations(inputs[1])
     counts = []
+    ft = compositing_dtype(settings, g.means.dtype)
     for cam in _cameras(cameras, width, height):
-        plan = _prepare(mode == "surfel", inputs, rot, cam, settings)
+        plan = _prepare(mode == "surfel", inputs, rot, cam, settings, ft)
         counts.append(
             int(
                 kernels.count_contributing_pairs(

@@ -1,7 +1,10 @@
-"""Numba kernels of the compiled CPU renderer (float64 throughout, both modes, forward and backward).
+"""Numba kernels of the compiled CPU renderer (both modes, forward and backward).
 
-The kernels compute the function of the torch reference (`render/torch_backend.py`) pair by pair,
-the way the CUDA rasterizers of 3DGS/2DGS do, but shaped for a CPU core:
+Written by hand rather than as torch ops: the work is per (pixel, Gaussian) pair with early
+termination and data-dependent footprints, which tensor ops can only do padded and with every
+intermediate stored. The kernels compute the function of the torch reference
+(`render/torch_backend.py`) pair by pair, the way the CUDA rasterizers of 3DGS/2DGS do, but
+shaped for a CPU core:
 
 * `quats_to_rotations`, `project`: one pass over the Gaussians (parallel) giving each one's
   camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
@@ -26,6 +29,14 @@ Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
           h(p) = A_c + (p_x - c_x) B + (p_y - c_y) C stays exact far from the image origin,
           and the centre c_lp of the low-pass term rho2d = 2 |p - c_lp|^2.
   ewa:    projected centre, log opacity, centre depth and the inverse 2D covariance (a, b, c).
+
+Precision: the per-Gaussian kernels compute in float64. The compositing kernels are generic in the
+dtype of `geom` (numba compiles one specialisation per dtype): float64 is the exact reference,
+float32 halves the memory per pair and doubles the SIMD lanes of `_box_alpha`. Every literal and
+work array there takes that dtype (`ft = geom.dtype.type`, `ft(0.5)`, `np.empty(n, dtype=ft)`),
+since in numba a float32 meeting a float64 literal or an integer becomes float64. `project` writes
+the coefficients in that dtype and expands h about the centre as stored, so a pixel's offset from
+it is exact in float32 too.
 """
 
 from __future__ import annotations
@@ -376,7 +387,10 @@ def project(
             tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
                 mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
             )
-            cx, cy = tx2 / safe_z, ty2 / safe_z
+            # The centre as stored (rounded once where the geometry is float32): h is expanded about
+            # it, so a pixel's offset from the stored centre is exact and large images stay sub-pixel.
+            g[GEOM_CX], g[GEOM_CY] = tx2 / safe_z, ty2 / safe_z
+            cx, cy = float(g[GEOM_CX]), float(g[GEOM_CY])
             lx, ly, _ = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, cx, cy, lowpass_sigma)
             # Box: the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
             # T diag(1, 1, -1/k^2) T^T; its tangent lines give the exact box while it is an ellipse.
@@ -549,17 +563,19 @@ _TAYLOR = (
 # Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loop
 # of `_box_alpha` vectorizes; it miscompiled larger array-writing helpers inside prange bodies.
 @njit(cache=True, inline="always", error_model="numpy")
-def _exp_nonpositive(x):
-    """e^x for x in [_EXP_MIN, 0] (relative error < 1e-14), clamped below at _EXP_MIN.
+def _exp_nonpositive(x, ft):
+    """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (relative
+    error < 1e-14 in float64, a few float32 roundings times 32 in float32).
 
     Plain multiply-adds, so a box of pixels evaluates in SIMD lanes (a libm call per pixel was
     60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms), then
     squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
+    Every constant is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
     """
-    y = max(x, _EXP_MIN) * 0.03125
-    p = _TAYLOR[11]
+    y = max(x, ft(_EXP_MIN)) * ft(0.03125)
+    p = ft(_TAYLOR[11])
     for k in range(10, -1, -1):
-        p = p * y + _TAYLOR[k]
+        p = p * y + ft(_TAYLOR[k])
     p = p * p
     p = p * p
     p = p * p
@@ -568,11 +584,11 @@ def _exp_nonpositive(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _box_tables(tile):
+def _box_tables(tile, ft):
     """Row-major walks of every box shape that fits a tile, indexed [columns - 1, step]:
-    the step's row and column within the box (as floats) and its offset in the tile's pixel state."""
-    rows = np.empty((tile, tile * tile))
-    cols = np.empty((tile, tile * tile))
+    the step's row and column within the box (as floats of type ft) and its offset in the tile's pixel state."""
+    rows = np.empty((tile, tile * tile), dtype=ft)
+    cols = np.empty((tile, tile * tile), dtype=ft)
     offsets = np.empty((tile, tile * tile), dtype=np.int64)
     for nc in range(1, tile + 1):
         for step in range(tile * tile):
@@ -597,9 +613,13 @@ def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
     inv_hz is 1 / hz on the ray-splat branch and 0 on the filter branch (and for ewa), so the
     backward pass takes the very branch the forward pass took.
     Returns whether any pixel of the box has alpha > 0.
+    Computes in the dtype of g (alpha, depth, inv_hz, rows and cols share it), constants included.
     """
+    ft = g.dtype.type
+    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
+    rho_scale, log_alpha_min, alpha_max = ft(LOWPASS_RHO_SCALE), ft(LOG_ALPHA_MIN), ft(ALPHA_MAX)
     cx, cy, log_o, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO], g[GEOM_DEPTH]
-    fc0, fr0 = float(c0), float(r0)
+    fc0, fr0 = ft(c0), ft(r0)
     hit = False
     if surfel:
         A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
@@ -607,33 +627,33 @@ def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
         b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
         lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
         for j in range(n):
-            dx = (fc0 + cols[j]) + 0.5 - cx
-            dy = (fr0 + rows[j]) + 0.5 - cy
+            dx = (fc0 + cols[j]) + half - cx
+            dy = (fr0 + rows[j]) + half - cy
             hx = (A0 + dy * C0) + dx * b0
             hy = (A1 + dy * C1) + dx * b1
             hz = (A2 + dy * C2) + dx * b2
-            ex = (fc0 + cols[j]) + 0.5 - lx
-            ey = (fr0 + rows[j]) + 0.5 - ly
-            rho2d = LOWPASS_RHO_SCALE * ex * ex + LOWPASS_RHO_SCALE * ey * ey
+            ex = (fc0 + cols[j]) + half - lx
+            ey = (fr0 + rows[j]) + half - ly
+            rho2d = rho_scale * ex * ex + rho_scale * ey * ey
             q = hx * hx + hy * hy
             use3d = q < rho2d * (hz * hz)
-            inv = 1.0 / (hz if use3d else 1.0)
-            log_alpha = log_o - 0.5 * (q * inv * inv if use3d else rho2d)
-            ok = log_alpha >= LOG_ALPHA_MIN
-            alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
+            inv = one / (hz if use3d else one)
+            log_alpha = log_o - half * (q * inv * inv if use3d else rho2d)
+            ok = log_alpha >= log_alpha_min
+            alpha[j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
             depth[j] = det * inv if use3d else z
-            inv_hz[j] = inv if use3d else 0.0
+            inv_hz[j] = inv if use3d else zero
             hit |= ok
     else:
         ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
         for j in range(n):
-            dx = (fc0 + cols[j]) + 0.5 - cx
-            dy = (fr0 + rows[j]) + 0.5 - cy
-            log_alpha = log_o - 0.5 * (ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy)
-            ok = log_alpha >= LOG_ALPHA_MIN
-            alpha[j] = min(_exp_nonpositive(log_alpha), ALPHA_MAX) if ok else 0.0
+            dx = (fc0 + cols[j]) + half - cx
+            dy = (fr0 + rows[j]) + half - cy
+            log_alpha = log_o - half * (ca * dx * dx + two * cb * dx * dy + cc * dy * dy)
+            ok = log_alpha >= log_alpha_min
+            alpha[j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
             depth[j] = z
-            inv_hz[j] = 0.0
+            inv_hz[j] = zero
             hit |= ok
     return hit
 
@@ -661,19 +681,22 @@ def composite_forward(
     geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
     Writes the blended out_color [3, H, W], out_normal [3, H, W], out_depth [H, W], the final
     transmittance out_trans [H, W] and out_last [H, W] (1 + position in the tile list of the last
-    blended Gaussian).
+    blended Gaussian). Computes in the dtype of geom, which features and the float outputs share.
     """
+    ft = geom.dtype.type
+    zero, one, t_min = ft(0.0), ft(1.0), ft(TRANSMITTANCE_MIN)
     n_tiles = tile_start.shape[0] - 1
-    rows, cols, offsets = _box_tables(tile)
+    rows, cols, offsets = _box_tables(tile, ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
         # Tile-local pixel state, one row per pixel: features 0-5, depth, transmittance (negated
         # once the pixel has stopped), so a pair touches one cache line.
-        state = np.zeros((tile * tile, FEATURES + 2))
-        state[:, FEATURES + 1] = 1.0
+        state = np.zeros((tile * tile, FEATURES + 2), dtype=ft)
+        state[:, FEATURES + 1] = one
         last = np.zeros(tile * tile, dtype=np.int64)
-        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
+        alpha = np.empty(tile * tile, dtype=ft)
+        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
         active = (x1 - x0) * (y1 - y0)
         start = tile_start[t]
         for k in range(start, tile_start[t + 1]):
@@ -694,17 +717,17 @@ def composite_forward(
             offset = offsets[nc - 1]
             for j in range(n):
                 a = alpha[j]
-                if a == 0.0:
+                if a == zero:
                     continue
                 p = base + offset[j]
                 s = state[p]
                 T = s[FEATURES + 1]
-                if T < 0.0:
+                if T < zero:
                     continue  # stopped
-                T_next = T * (1.0 - a)
+                T_next = T * (one - a)
                 # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
                 # ends the pixel and is itself not blended.
-                if T_next < TRANSMITTANCE_MIN:
+                if T_next < t_min:
                     s[FEATURES + 1] = -T
                     active -= 1
                     continue
@@ -758,17 +781,21 @@ def composite_backward(
     g_depth [H, W] are the upstream gradients. pair_grads [pairs, GRAD_SIZE] receives, for every
     entry k of tile_ids, the gradient sums of that Gaussian over that tile's pixels (zeros where it
     contributed nothing): each row is written once, by the one thread that owns the tile, so no two
-    threads touch the same memory and the result does not depend on scheduling.
+    threads touch the same memory and the result does not depend on scheduling. Computes in the
+    dtype of geom, which every float argument shares.
     """
+    ft = geom.dtype.type
+    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
+    alpha_max, two_rho_scale = ft(ALPHA_MAX), ft(2.0 * LOWPASS_RHO_SCALE)
     n_tiles = tile_start.shape[0] - 1
     S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
-    rows, cols, offsets = _box_tables(tile)
+    rows, cols, offsets = _box_tables(tile, ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
         # Tile-local pixel state: upstream dL/dfeatures (6), T (walked back), the weighted sum
         # behind, dL/dT_out T_out, dL/ddepth.
-        state = np.zeros((tile * tile, FEATURES + 4))
+        state = np.zeros((tile * tile, FEATURES + 4), dtype=ft)
         last_px = np.zeros(tile * tile, dtype=np.int64)
         n_last = 0
         for r in range(y0, y1):
@@ -782,10 +809,11 @@ def composite_backward(
                 state[p, S_GDEPTH] = g_depth[r, c]
                 last_px[p] = last[r, c]
                 n_last = max(n_last, last[r, c])
-        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
+        alpha = np.empty(tile * tile, dtype=ft)
+        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
         start = tile_start[t]
         for k in range(start + n_last, tile_start[t + 1]):
-            pair_grads[k, :] = 0.0  # behind every pixel's last blended Gaussian
+            pair_grads[k, :] = zero  # behind every pixel's last blended Gaussian
         for k in range(start + n_last - 1, start - 1, -1):
             pos = k - start
             m = tile_ids[k]
@@ -796,9 +824,9 @@ def composite_backward(
             b0, b1 = g[GEOM_B], g[GEOM_B + 1]
             ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
             # Per-Gaussian sums kept in registers (GRAD_* columns).
-            s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = 0.0  # surfel h; ewa conic in s_h
-            s_cx = s_cy = s_det = s_depth = s_logo = 0.0
-            s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = 0.0
+            s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = zero  # surfel h; ewa conic in s_h
+            s_cx = s_cy = s_det = s_depth = s_logo = zero
+            s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = zero
             c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
             nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
             n = nc * nr if nc > 0 and nr > 0 else 0
@@ -809,10 +837,10 @@ def composite_backward(
                 for j in range(n):
                     a = alpha[j]
                     p = base + offset[j]
-                    if a == 0.0 or pos >= last_px[p]:
+                    if a == zero or pos >= last_px[p]:
                         continue  # below 1/255, or behind this pixel's last blended Gaussian
                     s = state[p]
-                    inv_one_minus = 1.0 / (1.0 - a)
+                    inv_one_minus = one / (one - a)
                     T = s[S_T] * inv_one_minus
                     s[S_T] = T
                     w = a * T
@@ -829,22 +857,22 @@ def composite_backward(
                     behind = s[S_BEHIND]
                     g_a = T * g_w - (behind + s[S_GOUT]) * inv_one_minus
                     s[S_BEHIND] = behind + w * g_w
-                    g_rho = 0.0
-                    if a < ALPHA_MAX:  # alpha = min(exp(.), 0.99): a clamped pair passes nothing on
+                    g_rho = zero
+                    if a < alpha_max:  # alpha = min(exp(.), 0.99): a clamped pair passes nothing on
                         g_log_alpha = g_a * a
                         s_logo += g_log_alpha
-                        g_rho = -0.5 * g_log_alpha
+                        g_rho = -half * g_log_alpha
                     g_dpair = w * g_d
                     # The pixel's offset from the centre, computed as in `_box_alpha` (every bit equal).
-                    dx = (float(c0) + col_f[j]) + 0.5 - cx
-                    dy = (float(r0) + row_f[j]) + 0.5 - cy
+                    dx = (ft(c0) + col_f[j]) + half - cx
+                    dy = (ft(r0) + row_f[j]) + half - cy
                     if surfel:
                         inv = inv_hz[j]
-                        if inv != 0.0:
+                        if inv != zero:
                             # rho = (hx^2 + hy^2) / hz^2, depth = det / hz (1 / hz is inv)
                             hx = (g[GEOM_A] + dy * g[GEOM_C]) + dx * b0
                             hy = (g[GEOM_A + 1] + dy * g[GEOM_C + 1]) + dx * b1
-                            sc = 2.0 * g_rho * inv * inv
+                            sc = two * g_rho * inv * inv
                             g_hx, g_hy = sc * hx, sc * hy
                             g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
                             s_h0 += g_hx
@@ -859,16 +887,16 @@ def composite_backward(
                             s_det += g_dpair * inv
                         else:
                             # rho = 2 |p - c_lp|^2, depth = centre depth; GRAD_CX, GRAD_CY are dL/dc_lp
-                            sc = 2.0 * LOWPASS_RHO_SCALE * g_rho
-                            s_cx -= sc * ((float(c0) + col_f[j]) + 0.5 - g[GEOM_LP])
-                            s_cy -= sc * ((float(r0) + row_f[j]) + 0.5 - g[GEOM_LP + 1])
+                            sc = two_rho_scale * g_rho
+                            s_cx -= sc * ((ft(c0) + col_f[j]) + half - g[GEOM_LP])
+                            s_cy -= sc * ((ft(r0) + row_f[j]) + half - g[GEOM_LP + 1])
                             s_depth += g_dpair
                     else:
                         s_h0 += g_rho * dx * dx
-                        s_h1 += 2.0 * g_rho * dx * dy
+                        s_h1 += two * g_rho * dx * dy
                         s_h2 += g_rho * dy * dy
-                        s_cx -= 2.0 * g_rho * (ca * dx + cb * dy)
-                        s_cy -= 2.0 * g_rho * (cb * dx + cc * dy)
+                        s_cx -= two * g_rho * (ca * dx + cb * dy)
+                        s_cy -= two * g_rho * (cb * dx + cc * dy)
                         s_depth += g_dpair
             row = pair_grads[k]
             row[GRAD_H] = s_h0
@@ -1192,12 +1220,14 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     A property of the scene and the view (the benchmark's measure of work), not of a backend.
     """
     n_tiles = tile_start.shape[0] - 1
+    ft = geom.dtype.type
     per_tile = np.zeros(n_tiles, dtype=np.int64)
-    rows, cols, _ = _box_tables(tile)
+    rows, cols, _ = _box_tables(tile, ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        alpha, depth, inv_hz = np.empty(tile * tile), np.empty(tile * tile), np.empty(tile * tile)
+        alpha = np.empty(tile * tile, dtype=ft)
+        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
         count = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             m = tile_ids[k]
@@ -1207,6 +1237,6 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
                 n = nc * nr
                 if _box_alpha(surfel, geom[m], c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
                     for j in range(n):
-                        count += alpha[j] > 0.0
+                        count += alpha[j] > ft(0.0)
         per_tile[t] = count
     return per_tile.sum()

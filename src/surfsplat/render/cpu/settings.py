@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from ...utils.checks import SurfSplatInputError
 from ..types import RenderConventions
+
+Precision = Literal["auto", "float32", "float64"]
 
 
 @dataclass
@@ -14,6 +17,9 @@ class CpuRenderSettings(RenderConventions):
     near_plane: float = 0.01  # Gaussians closer than this (camera z) are culled, as in the torch backend
     far_plane: float = 1e10  # Gaussians farther than this are culled
     parallel_chunk: int = 4  # tiles a thread takes at a time (small chunks balance uneven tiles)
+    # Float type of the compositing (the per-pixel work): "auto" follows the Gaussians (float64 for
+    # float64, float32 for any other); the per-Gaussian geometry is float64 either way.
+    precision: Precision = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -25,3 +31,7 @@ class CpuRenderSettings(RenderConventions):
             )
         if not isinstance(self.parallel_chunk, int) or self.parallel_chunk <= 0:
             raise SurfSplatInputError(f"settings.parallel_chunk: expected a positive int, got {self.parallel_chunk!r}")
+        if self.precision not in get_args(Precision):
+            raise SurfSplatInputError(
+                f"settings.precision: expected 'auto', 'float32' or 'float64', got {self.precision!r}"
+            )
