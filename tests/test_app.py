@@ -327,3 +327,34 @@ def _png(data: bytes):
     import imageio.v3 as iio
 
     return iio.imread(io.BytesIO(data))
+
+
+def _photo(path: Path, size: tuple[int, int]) -> Path:
+    import imageio.v3 as iio
+
+    iio.imwrite(path, np.random.default_rng(0).integers(0, 255, (*size, 3), dtype=np.uint8))
+    return path
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda d: [_photo(d / "a.png", (40, 60))], "expected at least 2 images, got 1"),
+        (lambda d: [_photo(d / "a.png", (40, 60)), _photo(d / "b.png", (60, 40))], "all images must have one size"),
+        (lambda d: [_photo(d / "a.png", (40, 60)), d / "b.png"], "b.png: cannot read image header"),
+    ],
+)
+def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, make, message):
+    """What a run refuses before any heavy work, as the page shows it (`page._one_line`)."""
+    from surfsplat.app.page import _one_line
+    from surfsplat.app.run import RunSettings, run_capture
+
+    source = tmp_path / "browser"
+    source.mkdir()
+    (source / "b.png").write_bytes(b"not a PNG")
+    session = tmp_path / "session"
+    uploads = prepare_uploads(make(source), None, session, 10**9)
+    with pytest.raises(SurfSplatInputError) as err:
+        run_capture(uploads, RunSettings(working_size=64), session / "outputs")
+    line = _one_line(err.value, session)
+    assert message in line and str(tmp_path) not in line and "\n" not in line
