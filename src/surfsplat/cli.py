@@ -55,6 +55,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "convert a dataset (dtu, llff, blender, colmap, dl3dv, scannet) into chunks",
     ),
     "weights": ("surfsplat.commands.weights", "pretrained weights by name: list, download, path, info"),
+    "app": ("surfsplat.commands.app", "a browser app (gradio): photos or a video -> the scene on a page, downloads"),
 }
 
 

@@ -19,6 +19,11 @@ carriage-return redraws would fill the log, so it writes one info line instead e
 `LINE_PERCENT` of the work is done or `LINE_SECONDS` have passed, and one when it ends. Under
 torchrun only rank 0 shows progress and info; other ranks log warnings and errors, prefixed with
 their rank. --quiet hides bars too.
+
+An application showing its own progress (a web page) wraps the work in
+`with listen_progress(callback):`; every `progress` loop inside it then also calls
+`callback(desc, done, total)` as it starts, advances and ends, shown on stderr or not, in the
+thread (and context) that runs the work only.
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import Any, TypeVar
 
 from tqdm import tqdm
@@ -245,9 +252,64 @@ def progress(
     periodic log lines elsewhere, nothing when `enabled` is False, under --quiet, or on ranks other
     than 0. The object has tqdm's update / set_postfix / close and is a context manager."""
     if not enabled or rank() != 0 or _quiet():
-        return tqdm(iterable, total=total, initial=initial, disable=True)
-    if _on_terminal():
-        return tqdm(
+        bar = tqdm(iterable, total=total, initial=initial, disable=True)
+    elif _on_terminal():
+        bar = tqdm(
             iterable, total=total, desc=desc or None, unit=unit, initial=initial, dynamic_ncols=True, leave=leave
         )
-    return LogProgress(iterable, total, desc, unit, initial)
+    else:
+        bar = LogProgress(iterable, total, desc, unit, initial)
+    listener = _listener.get()
+    return bar if listener is None else _Reported(bar, iterable, total, desc, initial, listener)
+
+
+ProgressListener = Callable[[str, float, float | None], None]  # (desc, done, total or None)
+_listener: ContextVar[ProgressListener | None] = ContextVar("surfsplat_progress_listener", default=None)
+
+
+@contextmanager
+def listen_progress(callback: ProgressListener) -> Iterator[None]:
+    """Within: every `progress` loop of this thread also reports `callback(desc, done, total)` when it
+    starts, after each step and when it ends (disabled bars too: the listener has its own display).
+    An exception raised by the callback ends the loop that called it (how an application cancels)."""
+    token = _listener.set(callback)
+    try:
+        yield
+    finally:
+        _listener.reset(token)
+
+
+class _Reported:
+    """A progress bar that also tells a listener how far it is (same interface as the bar)."""
+
+    def __init__(self, bar: Any, iterable: Iterable[Any] | None, total, desc: str, initial: int, listener) -> None:
+        if total is None and iterable is not None:
+            try:
+                total = len(iterable)  # type: ignore[arg-type]
+            except TypeError:
+                total = None
+        self.bar, self.total, self.desc, self.n, self.listener = bar, total, desc, initial, listener
+        self.listener(desc, self.n, total)
+
+    def __iter__(self) -> Iterator[Any]:
+        for item in self.bar:
+            yield item
+            self.n += 1
+            self.listener(self.desc, self.n, self.total)
+
+    def update(self, n: float = 1) -> None:
+        self.bar.update(n)
+        self.n += n
+        self.listener(self.desc, self.n, self.total)
+
+    def __len__(self) -> int:
+        return len(self.bar)
+
+    def __enter__(self) -> _Reported:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
+
+    def __getattr__(self, name: str) -> Any:  # set_postfix, set_description, close: the bar's own
+        return getattr(self.bar, name)
