@@ -17,8 +17,8 @@ import pytest
 
 from surfsplat.app.files import SessionFolders, prepare_uploads, safe_name
 from surfsplat.app.run import STAGES, RunCancelled, StageTracker, closure_table, weights_choices
-from surfsplat.checks import SurfSplatInputError
-from surfsplat.log import listen_progress, progress
+from surfsplat.utils.checks import SurfSplatInputError
+from surfsplat.utils.log import listen_progress, progress
 
 FERN = Path(__file__).resolve().parent / "data" / "llff_fern" / "images_16"
 

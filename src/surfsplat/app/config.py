@@ -6,7 +6,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..capture.video import VIDEO_SUFFIXES
-from ..checks import SurfSplatInputError
 from ..data.images import IMAGE_SUFFIXES
+from ..utils.checks import SurfSplatInputError
 
 CAMERA_SUFFIXES = (".json",)  # the camera file `surfsplat poses` and `reconstruct` write
 MAX_NAME = 80  # characters kept of an upload's stem

@@ -13,8 +13,8 @@ import logging
 import threading
 from pathlib import Path
 
-from ..atomic import OutputError
-from ..checks import SurfSplatInputError
+from ..utils.atomic import OutputError
+from ..utils.checks import SurfSplatInputError
 from .config import AppConfig
 from .files import SessionFolders, prepare_uploads
 from .run import RunCancelled, RunSettings, closure_table, run_capture, weights_choices, weights_note

@@ -4,7 +4,7 @@ fly-through, the downloads and a zip of the whole folder).
 
     result = run_capture(uploads, RunSettings(working_size=128), out_dir, report=print)
 
-Progress follows the library's own stages: `surfsplat.log.listen_progress` reports every progress
+Progress follows the library's own stages: `surfsplat.utils.log.listen_progress` reports every progress
 loop of the run (forward passes, refinement, the viewer bake, the renders of the export), and
 `StageTracker` turns them into one fraction and a line naming the stage; the stages without a loop
 (cameras, closure figures, mesh) are announced around them.
@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..checks import SurfSplatInputError
+from ..utils.checks import SurfSplatInputError
 from .files import Uploads
 
 logger = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ class RunResult:
 
 
 class StageTracker:
-    """A listener for `surfsplat.log.listen_progress` that reports (fraction, text) to `report` as
+    """A listener for `surfsplat.utils.log.listen_progress` that reports (fraction, text) to `report` as
     the run goes through STAGES, and raises RunCancelled once `cancelled()` says so."""
 
     def __init__(self, report: Callable[[float, str], None], cancelled: Callable[[], bool] = lambda: False):
@@ -174,10 +174,10 @@ def run_capture(
     `out_dir`, and add the page's grid, camera plot and zip. Bad input raises SurfSplatInputError
     (the library's one line); `cancelled()` turning true raises RunCancelled at the next step."""
     from ..capture import RefineConfig
-    from ..commands.export import ExportOptions
     from ..export.bake import BakeConfig
-    from ..log import listen_progress
+    from ..export.flow import ExportOptions
     from ..reconstruction import CaptureOptions, reconstruct
+    from ..utils.log import listen_progress
     from .view import write_view_ply
 
     start = time.perf_counter()
@@ -246,8 +246,8 @@ def write_grid(scene, path: Path, zoom: int) -> Path:
 
 def write_camera_plot(scene, path: Path) -> Path:
     """The context cameras seen from above (the plot of the capture report), as an SVG file."""
+    from ..data.cameras import CameraSet
     from ..export.figures import write_text
-    from ..export.paths import CameraSet
     from ..poses.report import top_view_svg
 
     cameras = CameraSet(scene.cameras, scene.width, scene.height, list(scene.names))
