@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -164,3 +165,25 @@ def test_interpolation_needs_two_views():
     with pytest.raises(SurfSplatInputError, match="num_frames"):
         interpolate_cameras(_cams([_rz(0.0)] * 2, [[0, 0, 0], [1, 0, 0]]), 1)
     assert math.isclose(float(axis_angle_matrix(torch.tensor([0.0, 0.0, 2.0]), math.pi / 2)[0, 1]), -1.0, abs_tol=1e-7)
+
+
+@pytest.mark.parametrize("folder, images", [("llff_fern", "images_16"), ("dtu_scan24", "images_16")])
+def test_scene_folder_cameras_decode_no_pixel_and_match_the_scene(monkeypatch, folder, images):
+    """load_cameras on a scene folder reads camera records and image headers only, and returns the
+    cameras load_scene gives for the same folder."""
+    import surfsplat.data.formats.common as common
+    import surfsplat.data.formats.dtu as dtu
+    from surfsplat.data.load import load_scene
+
+    root = Path(__file__).parent / "data" / folder
+    scene = load_scene(root, images=images, dtype=torch.float64)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a pixel was decoded")
+
+    monkeypatch.setattr(common, "read_image", refuse)
+    monkeypatch.setattr(dtu, "read_image", refuse)
+    cams = load_cameras(root, images=images)
+    assert torch.equal(cams.cameras.c2w, scene.cameras.c2w) and torch.equal(cams.cameras.K, scene.cameras.K)
+    assert (cams.width, cams.height, cams.names) == (scene.width, scene.height, scene.names)
+    assert cams.near == float(scene.near.min()) and cams.far == float(scene.far.max())

@@ -8,7 +8,7 @@ converters and the procedural synthetic world.
 from .chunks import ChunkWriter, example_to_scene, load_example, read_chunk, read_index, scene_to_example, write_chunks
 from .dataset import ChunkDataset, ChunkDatasetConfig, DatasetSummary, views_to_cameras
 from .eval_index import EvaluationEntry, EvaluationIndex
-from .load import detect_format, load_scene
+from .load import detect_format, load_scene, load_scene_cameras
 from .scene import Scene
 from .synthetic import SyntheticDataset, SyntheticDatasetConfig, make_scene, render_synthetic, write_synthetic_chunks
 from .transforms import center_crop, horizontal_flip, rescale_and_crop, resize_views
@@ -33,6 +33,7 @@ __all__ = [
     "NotEnoughViews",
     "Scene",
     "StepCounter",
+    "load_scene_cameras",
     "SyntheticDataset",
     "SyntheticDatasetConfig",
     "center_crop",

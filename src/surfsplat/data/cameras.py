@@ -122,12 +122,9 @@ def load_cameras(path: str | os.PathLike, images: str | None = None) -> CameraSe
     model = find_model(path)
     if model is not None and model == path and not (path / "images").is_dir():
         return _load_colmap_model(path)
-    from .load import load_scene
+    from .load import load_scene_cameras
 
-    scene = load_scene(path, images=images, dtype=torch.float64)
-    near = float(scene.near.min()) if scene.near is not None else None
-    far = float(scene.far.max()) if scene.far is not None else None
-    return CameraSet(scene.cameras, scene.width, scene.height, list(scene.names), near, far)
+    return load_scene_cameras(path, images=images)
 
 
 def _load_camera_json(path: Path) -> CameraSet:

@@ -1,4 +1,5 @@
-"""`load_scene`: one entry point for every single-scene format, with format auto-detection."""
+"""`load_scene`: one entry point for every single-scene format, with format auto-detection;
+`load_scene_cameras`: the same scene's cameras alone, from camera records and image headers."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Literal
 import torch
 
 from ..utils.checks import SurfSplatInputError
+from .cameras import CameraSet
 from .formats.blender import is_blender, load_blender
 from .formats.colmap import is_colmap, load_colmap
 from .formats.dtu import is_dtu, load_dtu
@@ -71,18 +73,40 @@ def load_scene(
     frames: RealEstate10K: the folder of extracted frames, when not beside the .txt.
     dtype: dtype of the cameras (float64 keeps the source precision).
     """
+    options = dict(images=images, split=split, apply_scale_mat=apply_scale_mat, frames=frames, dtype=dtype)
+    return _read(path, format, background=background, cameras_only=False, **options)
+
+
+def load_scene_cameras(
+    path: str | Path,
+    format: SceneFormat | None = None,
+    *,
+    images: str | None = None,
+    split: str = "train",
+    apply_scale_mat: bool = True,
+    frames: str | Path | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> CameraSet:
+    """The cameras of a scene folder `load_scene` reads, as a `CameraSet`: from the format's camera
+    records and the images' headers, without decoding a pixel. Options as for `load_scene`."""
+    options = dict(images=images, split=split, apply_scale_mat=apply_scale_mat, frames=frames, dtype=dtype)
+    return _read(path, format, background=None, cameras_only=True, **options)
+
+
+def _read(path, format, *, images, background, split, apply_scale_mat, frames, dtype, cameras_only):
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: not found")
     fmt = format or detect_format(path)
+    only = {"dtype": dtype, "cameras_only": cameras_only}
     if fmt == "llff":
-        return load_llff(path, images=images, dtype=dtype)
+        return load_llff(path, images=images, **only)
     if fmt == "dtu":
-        return load_dtu(path, images=images, apply_scale_mat=apply_scale_mat, dtype=dtype)
+        return load_dtu(path, images=images, apply_scale_mat=apply_scale_mat, **only)
     if fmt == "blender":
-        return load_blender(path, split=split, images=images, background=background, dtype=dtype)
+        return load_blender(path, split=split, images=images, background=background or (1.0, 1.0, 1.0), **only)
     if fmt == "colmap":
-        return load_colmap(path, images=images, dtype=dtype)
+        return load_colmap(path, images=images, **only)
     if fmt == "re10k":
-        return load_re10k_raw(path, frames=Path(frames) if frames is not None else None, dtype=dtype)
+        return load_re10k_raw(path, frames=Path(frames) if frames is not None else None, **only)
     raise SurfSplatInputError(f"format: expected one of {sorted(DETECTORS)}, got {format!r}")

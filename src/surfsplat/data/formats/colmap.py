@@ -24,7 +24,7 @@ from ...geometry.cameras import rigid_inverse
 from ...geometry.rotations import quat_to_matrix
 from ...utils.checks import SurfSplatInputError
 from ..scene import Scene, downscale_from_folder, fit_intrinsics
-from .common import image_sizes, load_image_stack, make_cameras
+from .common import camera_set, image_sizes, load_image_stack, make_cameras
 
 # model id -> (name, number of parameters, indices of the distortion parameters); COLMAP's table.
 CAMERA_MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
@@ -261,6 +261,7 @@ def load_colmap(
     path: Path,
     images: str | None = None,
     dtype: torch.dtype = torch.float32,
+    cameras_only: bool = False,
 ) -> Scene:
     """Read a COLMAP capture (see module doc); `images` names the image folder under the root
     (default `images`; `images_N` folders are accepted as uniform downscales)."""
@@ -338,6 +339,8 @@ def load_colmap(
             far = torch.tensor([b[1] for b in bounds], dtype=dtype)
             far = torch.where(far > near, far, near * 1.01)
 
+    if cameras_only:
+        return camera_set(cams, paths, sizes, [r.name for r in ordered], near, far)
     rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
     return Scene(
         images=rgb,

@@ -75,3 +75,32 @@ def load_image_stack(
     if any(a is not None for a in alphas):
         alpha_stack = torch.stack([torch.ones_like(rgbs[0][:1]) if a is None else a for a in alphas])
     return torch.stack(rgbs), alpha_stack
+
+
+def camera_set(
+    cameras: Cameras,
+    paths: list[Path],
+    sizes: list[tuple[int, int]],
+    names: list[str],
+    near: Tensor | None = None,
+    far: Tensor | None = None,
+):
+    """A reader's `cameras_only` result: a CameraSet from its camera records and the images'
+    headers (`sizes`, (width, height) each), without decoding a pixel."""
+    from ..cameras import CameraSet
+
+    if len(set(sizes)) != 1:
+        (w0, h0), bad = sizes[0], next(i for i, s in enumerate(sizes) if s != sizes[0])
+        w, h = sizes[bad]
+        raise SurfSplatInputError(
+            f"{paths[bad]}: image is {w}x{h} but {paths[0].name} is {w0}x{h0}; all views of a scene must share one size"
+        )
+    width, height = sizes[0]
+    return CameraSet(
+        cameras,
+        width,
+        height,
+        names,
+        float(near.min()) if near is not None else None,
+        float(far.max()) if far is not None else None,
+    )

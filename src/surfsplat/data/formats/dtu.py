@@ -21,7 +21,7 @@ from torch import Tensor
 from ...utils.checks import SurfSplatInputError
 from ..images import list_images, read_image
 from ..scene import Scene, fit_intrinsics
-from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder
+from .common import camera_set, image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 DTU_SENSOR_SIZE = (1600, 1200)  # (W, H) at which DTU's calibration (and IDR's world_mat) is expressed
@@ -87,6 +87,7 @@ def load_dtu(
     apply_scale_mat: bool = True,
     calibrated_size: tuple[int, int] = DTU_SENSOR_SIZE,
     dtype: torch.dtype = torch.float32,
+    cameras_only: bool = False,
 ) -> Scene:
     """Read a DTU scan in IDR packaging (see module doc).
 
@@ -154,6 +155,9 @@ def load_dtu(
             near[i] = max(z - radius, 0.01 * (z + radius))
     cameras = make_cameras(c2w, torch.stack(Ks), str(cam_path), dtype)
 
+    if cameras_only:
+        bounds = (near.to(dtype), far.to(dtype)) if has_sphere else (None, None)
+        return camera_set(cameras, paths, sizes, [p.name for p in paths], *bounds)
     rgb, _ = load_image_stack(paths, background=None)
     masks = None
     if (root / "mask").is_dir():

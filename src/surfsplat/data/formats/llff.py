@@ -16,7 +16,7 @@ from ...geometry.cameras import Cameras, validate_c2w
 from ...utils.checks import SurfSplatInputError
 from ..images import list_images
 from ..scene import Scene, check_finite_rows, fit_intrinsics
-from .common import image_sizes, load_image_stack, make_cameras, pick_image_folder
+from .common import camera_set, image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 POSES_FILE = "poses_bounds.npy"
 
@@ -44,6 +44,7 @@ def load_llff(
     root: Path,
     images: str | None = None,
     dtype: torch.dtype = torch.float32,
+    cameras_only: bool = False,
 ) -> Scene:
     """Read an LLFF capture (see module doc); `images` picks the image folder by name."""
     poses_path = root / POSES_FILE
@@ -74,6 +75,9 @@ def load_llff(
         Ks.append(fit_intrinsics(K[i], calibrated, size, str(p), allow_downscale=True))
     cameras = make_cameras(c2w, torch.stack(Ks), str(poses_path), dtype)
 
+    near, far = bounds[:, 0].to(dtype), bounds[:, 1].to(dtype)
+    if cameras_only:
+        return camera_set(cameras, paths, sizes, [p.name for p in paths], near, far)
     rgb, _ = load_image_stack(paths, background=None)
     near, far = bounds[:, 0].to(dtype), bounds[:, 1].to(dtype)
     if bool((near <= 0).any()) or bool((far <= near).any()):

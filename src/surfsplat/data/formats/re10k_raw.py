@@ -17,7 +17,7 @@ from ...geometry.cameras import Cameras, rigid_inverse, validate_c2w
 from ...utils.checks import SurfSplatInputError
 from ..images import is_image_file
 from ..scene import Scene, check_finite_rows
-from .common import image_sizes, load_image_stack, make_cameras
+from .common import camera_set, image_sizes, load_image_stack, make_cameras
 
 
 def find_camera_file(path: Path) -> Path | None:
@@ -95,6 +95,7 @@ def load_re10k_raw(
     path: Path,
     frames: Path | None = None,
     dtype: torch.dtype = torch.float32,
+    cameras_only: bool = False,
 ) -> Scene:
     """Read a raw RealEstate10K/ACID camera file and its extracted frames (see module doc)."""
     txt = find_camera_file(path)
@@ -116,6 +117,8 @@ def load_re10k_raw(
         raise SurfSplatInputError(f"{folder}: frames have different sizes {sorted(set(sizes))}")
     width, height = sizes[0]
     cameras = rows_to_cameras(rows, width, height, str(txt), dtype)
+    if cameras_only:
+        return camera_set(cameras, paths, sizes, [str(ts) for ts in timestamps.tolist()])
     rgb, _ = load_image_stack(paths, background=None)
     return Scene(
         images=rgb,
