@@ -35,8 +35,8 @@ SIZES = {400: (400, 300), 1000: (1000, 750)}
 def orbit(n: int, width: int, height: int, step_deg: float = 40.0 / 7, fov_deg: float = 60.0):
     import torch
 
-    from surfsplat.data.synthetic.scene import look_at
-    from surfsplat.geometry.cameras import Cameras
+    from surfsplat.data.synthetic.scene import WORLD_DOWN
+    from surfsplat.geometry.cameras import Cameras, look_at
 
     target = torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64)
     spread = step_deg * (n - 1)
@@ -44,7 +44,7 @@ def orbit(n: int, width: int, height: int, step_deg: float = 40.0 / 7, fov_deg: 
     eyes = torch.stack([2 * torch.cos(angles), 2 * torch.sin(angles), torch.full_like(angles, 1.4)], -1)
     f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    return Cameras(look_at(eyes, target.expand(n, 3)), K.repeat(n, 1, 1))
+    return Cameras(look_at(eyes, target.expand(n, 3), WORLD_DOWN), K.repeat(n, 1, 1))
 
 
 def write_views(folder: Path, n: int, width: int, height: int) -> list[Path]:

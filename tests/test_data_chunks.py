@@ -30,7 +30,8 @@ from surfsplat.data import (
     write_chunks,
 )
 from surfsplat.data.scene import Scene
-from surfsplat.data.synthetic.scene import look_at
+from surfsplat.data.synthetic.scene import WORLD_DOWN
+from surfsplat.geometry.cameras import look_at
 
 
 def make_example(key: str, num_views: int, seed: int, size: tuple[int, int] = (12, 16)) -> dict:
@@ -38,7 +39,7 @@ def make_example(key: str, num_views: int, seed: int, size: tuple[int, int] = (1
     g = torch.Generator().manual_seed(seed)
     h, w = size
     eyes = torch.stack([torch.linspace(0, 1, num_views), torch.zeros(num_views), torch.zeros(num_views)], -1)
-    c2w = look_at(eyes.double(), eyes.double() + torch.tensor([0.2, 0.1, 5.0], dtype=torch.float64)).float()
+    c2w = look_at(eyes.double(), eyes.double() + torch.tensor([0.2, 0.1, 5.0], dtype=torch.float64), WORLD_DOWN).float()
     K = torch.tensor([[1.2 * w, 0, w / 2], [0, 1.2 * w, h / 2], [0, 0, 1.0]]).repeat(num_views, 1, 1)
     scene = Scene(
         images=torch.rand(num_views, 3, h, w, generator=g),

@@ -68,10 +68,12 @@ def test_rescale_and_crop_matches_the_release_geometry() -> None:
 
 def test_horizontal_flip_mirrors_projections() -> None:
     g = torch.Generator().manual_seed(1)
-    from surfsplat.data.synthetic.scene import look_at
+    from surfsplat.geometry.cameras import look_at
 
     c2w = look_at(
-        torch.tensor([[0.3, -2.0, 0.5]], dtype=torch.float64), torch.tensor([[0.0, 0.0, 0.2]], dtype=torch.float64)
+        torch.tensor([[0.3, -2.0, 0.5]], dtype=torch.float64),
+        torch.tensor([[0.0, 0.0, 0.2]], dtype=torch.float64),
+        (0.0, 0.0, -1.0),
     )
     K = torch.tensor([[[60.0, 0.7, 30.0], [0.0, 58.0, 22.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
     W = 64

@@ -16,9 +16,9 @@ from PIL import Image
 from surfsplat.cli import main
 from surfsplat.data.synthetic.primitives import Primitive
 from surfsplat.data.synthetic.render import render_synthetic
-from surfsplat.data.synthetic.scene import Lighting, SyntheticConfig, SyntheticScene, look_at, make_scene
+from surfsplat.data.synthetic.scene import WORLD_DOWN, Lighting, SyntheticConfig, SyntheticScene, make_scene
 from surfsplat.data.synthetic.textures import random_texture
-from surfsplat.geometry.cameras import Cameras
+from surfsplat.geometry.cameras import Cameras, look_at
 from surfsplat.poses import PoseConfig, estimate_cameras, exif_focal, relative_pose_errors
 from surfsplat.utils.checks import SurfSplatInputError
 
@@ -29,7 +29,7 @@ FAST = PoseConfig(min_extraction_size=400)  # no upscaling: for the error paths,
 def _cameras(eyes: torch.Tensor, targets: torch.Tensor, fov_deg: float = 60.0) -> Cameras:
     f = 0.5 * W / math.tan(math.radians(fov_deg) / 2)
     K = torch.tensor([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    return Cameras(look_at(eyes.double(), targets.double()), K.repeat(len(eyes), 1, 1))
+    return Cameras(look_at(eyes.double(), targets.double(), WORLD_DOWN), K.repeat(len(eyes), 1, 1))
 
 
 def _orbit(n: int, spread_deg: float, radius: float = 2.0) -> Cameras:

@@ -17,13 +17,13 @@ from surfsplat.data.synthetic import (
     Texture,
     Viewpoints,
     geometry_truth,
-    look_at,
     render_synthetic,
     scene_from_key,
     seen_by,
     surface_samples,
 )
-from surfsplat.data.synthetic.scene import SyntheticConfig, _frame_with_normal
+from surfsplat.data.synthetic.scene import WORLD_DOWN, SyntheticConfig, _frame_with_normal
+from surfsplat.geometry.cameras import look_at
 from surfsplat.utils.checks import SurfSplatInputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -48,7 +48,7 @@ def _room_with_sphere(radius: float = 0.5) -> SyntheticScene:
 
 
 def _camera(eye: tuple[float, float, float], target: tuple[float, float, float], size: int, f: float) -> Cameras:
-    c2w = look_at(torch.tensor([eye]), torch.tensor([target]))
+    c2w = look_at(torch.tensor([eye]), torch.tensor([target]), WORLD_DOWN)
     K = torch.tensor([[[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]]])
     return Cameras(c2w, K)
 

@@ -21,8 +21,8 @@ import argparse
 from pathlib import Path
 
 from ..utils.checks import SurfSplatInputError, check_output_dir
-from ..utils.precision import PRECISIONS
 from .export import add_compact_argument
+from .options import add_depth_range, add_precision, add_release_options, add_size
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,27 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="several checkpoints or adapter ablations side by side (e.g. 'w/o FAB=runs/x:opacity_max=1.0')",
     )
-    which.add_argument(
-        "--preset", default=None, help="encoder preset of release .ckpt/.pth files given by path (default small)"
-    )
-    which.add_argument(
-        "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
-    )
+    add_release_options(which, "release .ckpt/.pth files")
     data = parser.add_argument_group("data")
     data.add_argument("--data", nargs="+", required=True, type=Path, help="chunk folders (*.torch + index.json)")
     data.add_argument(
         "--index", required=True, type=Path, help="evaluation index JSON (context/target views per scene)"
     )
-    data.add_argument(
-        "--size",
-        nargs=2,
-        type=int,
-        metavar=("H", "W"),
-        default=None,
-        help="rescale and centre-crop views to H x W first (the release uses 256 256 for RE10K)",
-    )
-    data.add_argument("--near", type=float, default=0.5, help="near depth bound (RealEstate10K: 0.5)")
-    data.add_argument("--far", type=float, default=100.0, help="far depth bound (RealEstate10K: 100)")
+    add_size(data, "rescale and centre-crop views to H x W first (the release uses 256 256 for RE10K)")
+    add_depth_range(data, 0.5, 100.0, "near depth bound (RealEstate10K: 0.5)", "far depth bound (RealEstate10K: 100)")
     data.add_argument("--max-entries", type=int, default=None, help="evaluate only the first N entries")
     metric = parser.add_argument_group("metrics")
     metric.add_argument(
@@ -94,12 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", type=Path, default=Path("outputs/eval"), help="folder for metrics.json, per_scene.csv, table.txt"
     )
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument(
-        "--precision",
-        choices=PRECISIONS,
-        default="auto",
-        help="forward-pass precision (auto: bf16 where the device has fast bf16, else fp32); rendering is fp32",
-    )
+    add_precision(parser)
     parser.add_argument("--no-progress", action="store_true")
 
 

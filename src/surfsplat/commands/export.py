@@ -25,17 +25,17 @@ from ..compaction import DEFAULT_LEVEL, LEVELS
 from ..export.bake import BakeConfig
 from ..export.flow import FORMATS, ExportOptions, export_reconstruction, output_names
 from ..utils.checks import SurfSplatInputError, check_output_dir
+from .options import add_cameras
 
 logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("ply", type=Path, help="surfels written by reconstruct (surfels.ply)")
-    parser.add_argument(
-        "--cameras",
-        type=Path,
+    add_cameras(
+        parser,
+        "the reconstruction's cameras.json, another JSON camera file, a COLMAP model or a scene folder",
         required=True,
-        help="the reconstruction's cameras.json, another JSON camera file, a COLMAP model or a scene folder",
     )
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: beside the PLY)")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=["ply", "video", "mesh"], help="what to write")

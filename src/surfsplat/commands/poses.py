@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 from ..utils.checks import SurfSplatInputError, check_output_file
+from .options import add_depth_range
 
 
 def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,8 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
     parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
     add_pose_arguments(parser)
-    parser.add_argument("--near", type=float, default=None, help="nearest depth (default: from the 3D points)")
-    parser.add_argument("--far", type=float, default=None, help="farthest depth (default: from the 3D points)")
+    add_depth_range(
+        parser,
+        None,
+        None,
+        "nearest depth (default: from the 3D points)",
+        "farthest depth (default: from the 3D points)",
+    )
 
 
 def estimate_from_args(args: argparse.Namespace):

@@ -29,8 +29,8 @@ from pathlib import Path
 
 from ..export.flow import FORMATS, output_names
 from ..utils.checks import check_output_dir
-from ..utils.precision import PRECISIONS
 from .export import add_export_arguments, options_from_args, print_written
+from .options import add_cameras, add_depth_range, add_precision, add_release_options, add_size
 from .poses import add_pose_arguments
 
 
@@ -44,43 +44,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", nargs="+", type=Path, help="two or more context images, or one folder of images")
     source.add_argument("--video", type=Path, help="a video of the scene (frames chosen by motion and sharpness)")
-    parser.add_argument(
-        "--cameras",
-        default=None,
-        type=Path,
-        help="JSON camera file, COLMAP model or scene folder (default: estimate them from the images)",
-    )
+    add_cameras(parser, "JSON camera file, COLMAP model or scene folder (default: estimate them from the images)")
     parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
     parser.add_argument(
         "--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)"
     )
-    parser.add_argument(
-        "--size",
-        nargs=2,
-        type=int,
-        metavar=("H", "W"),
-        default=None,
-        help="network input size (multiples of 16; default: the largest crop of the images)",
+    add_size(parser, "network input size (multiples of 16; default: the largest crop of the images)")
+    add_depth_range(
+        parser,
+        None,
+        None,
+        "nearest scene depth (default: from the cameras, else 0.5)",
+        "farthest scene depth (default: from the cameras, else 100)",
     )
-    parser.add_argument(
-        "--near", type=float, default=None, help="nearest scene depth (default: from the cameras, else 0.5)"
-    )
-    parser.add_argument(
-        "--far", type=float, default=None, help="farthest scene depth (default: from the cameras, else 100)"
-    )
-    parser.add_argument(
-        "--preset", default=None, help="encoder preset of a release .ckpt/.pth given by path (default small)"
-    )
-    parser.add_argument(
-        "--trust-pickle", action="store_true", help="allow unpickling a release .ckpt's hyper-parameters"
-    )
+    add_release_options(parser)
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument(
-        "--precision",
-        choices=PRECISIONS,
-        default="auto",
-        help="forward-pass precision (auto: bf16 where the device has fast bf16, else fp32); rendering is fp32",
-    )
+    add_precision(parser)
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
     add_pose_arguments(parser)

@@ -20,13 +20,14 @@ import torch
 
 from ..utils.checks import SurfSplatInputError, check_output_dir
 from ..utils.log import progress
+from .options import add_cameras
 
 logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("ply", type=Path, help="surfels (2DGS or 3DGS layout PLY)")
-    parser.add_argument("--cameras", type=Path, required=True, help="JSON camera file, COLMAP model or scene folder")
+    add_cameras(parser, "JSON camera file, COLMAP model or scene folder", required=True)
     parser.add_argument("--scale", type=float, default=1.0, help="resolution factor over the cameras' image size")
     parser.add_argument(
         "--views", nargs="+", type=int, default=None, help="indices of the cameras to render (default: all)"

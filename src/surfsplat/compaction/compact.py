@@ -10,7 +10,7 @@ from torch import Tensor
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..geometry.pixels import pixel_cells
-from ..render.types import BACKENDS, Backend, RenderMode
+from ..render.types import Backend, RenderMode, check_render_args
 from ..utils.checks import SurfSplatInputError
 from .cells import cell_footprints, floor_scales
 from .config import DEFAULT_LEVEL, CompactConfig, level_config
@@ -156,16 +156,7 @@ def _rounds(
 def _validate(
     g: Gaussians, cameras: Cameras, height: int, width: int, cells: Tensor | None, mode: str, backend: str
 ) -> Tensor:
-    if not isinstance(g, Gaussians) or g.means.ndim != 2:
-        raise SurfSplatInputError("compact: expected unbatched surfsplat.Gaussians ([N, 3] means)")
-    if not isinstance(cameras, Cameras):
-        raise SurfSplatInputError(f"compact: context_cameras must be surfsplat.Cameras, got {type(cameras).__name__}")
-    if height < 1 or width < 1:
-        raise SurfSplatInputError(f"compact: expected a positive height and width, got {height} x {width}")
-    if mode not in ("surfel", "ewa"):
-        raise SurfSplatInputError(f"compact: mode expected 'surfel' or 'ewa', got {mode!r}")
-    if backend not in BACKENDS:
-        raise SurfSplatInputError(f"compact: backend expected one of {BACKENDS}, got {backend!r}")
+    check_render_args("compact", g, cameras, width, height, mode, backend)
     views = len(cameras)
     if cells is None:
         if len(g) != views * height * width:

@@ -542,7 +542,7 @@ def novel_viewpoint(pred, orbit_degrees: float = 25.0, lift: float = 0.35) -> Ca
     """A camera no input saw: the first target camera orbited about the vertical axis (the rooms
     are z-up) through the point it looks at (median rendered depth along its optical axis), raised
     by `lift` metres and aimed back at that point. Same intrinsics and image size as the inputs."""
-    from ..data.synthetic.surfel_scene import look_at
+    from ..geometry.cameras import look_at
 
     r = pred.renders[1]
     c2w = pred.sample.target_cameras.c2w[0].double()

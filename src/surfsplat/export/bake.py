@@ -35,7 +35,7 @@ from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..geometry.pixels import pixel_footprints
 from ..geometry.sh import SH_C0
-from ..render.types import BACKENDS, LOWPASS_RHO_SCALE, Backend, RenderMode
+from ..render.types import LOWPASS_RHO_SCALE, Backend, RenderMode, check_render_args
 from ..utils.checks import SurfSplatInputError
 from ..utils.log import progress
 
@@ -337,16 +337,9 @@ def bake_for_viewers(
 
 
 def _validate(g: Gaussians, cameras: Cameras, height: int, width: int, mode: str, backend: str) -> None:
-    if not isinstance(g, Gaussians) or g.means.ndim != 2:
-        raise SurfSplatInputError("bake: expected unbatched surfsplat.Gaussians ([N, 3] means)")
-    if not isinstance(cameras, Cameras) or len(cameras) < 1:
-        raise SurfSplatInputError("bake: cameras must be surfsplat.Cameras with at least one camera")
-    if height < 1 or width < 1:
-        raise SurfSplatInputError(f"bake: expected a positive height and width, got {height} x {width}")
-    if mode not in ("surfel", "ewa"):
-        raise SurfSplatInputError(f"bake: mode expected 'surfel' or 'ewa', got {mode!r}")
-    if backend not in BACKENDS:
-        raise SurfSplatInputError(f"bake: backend expected one of {BACKENDS}, got {backend!r}")
+    check_render_args("bake", g, cameras, width, height, mode, backend)
+    if len(cameras) < 1:
+        raise SurfSplatInputError("bake: cameras: expected at least one camera")
     if len(g) == 0:
         raise SurfSplatInputError("bake: no Gaussians to bake")
 

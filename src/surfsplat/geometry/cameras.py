@@ -215,3 +215,21 @@ def validate_intrinsics(name: str, K: Tensor) -> None:
     if bool(layout_bad.any()):
         i = int(layout_bad.nonzero()[0])
         raise SurfSplatInputError(f"{name}[{i}]: expected a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+
+
+def look_at(eyes: Tensor, targets: Tensor, down: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> Tensor:
+    """OpenCV camera-to-world [..., 4, 4] at eyes [..., 3] looking at targets [..., 3], without
+    roll: the image's y axis as close to the world direction `down` as it can be.
+
+    z (forward) = normalize(target - eye); x (right) = normalize(down x z); y = z x x, so that x, y,
+    z is right-handed. A world with z up passes down = (0, 0, -1).
+    """
+    z = torch.nn.functional.normalize(targets - eyes, dim=-1)
+    d = torch.tensor(down, dtype=z.dtype, device=z.device).expand_as(z)
+    x = torch.nn.functional.normalize(torch.linalg.cross(d, z, dim=-1), dim=-1)
+    y = torch.linalg.cross(z, x, dim=-1)
+    c2w = torch.zeros(*z.shape[:-1], 4, 4, dtype=z.dtype, device=z.device)
+    c2w[..., :3, 0], c2w[..., :3, 1], c2w[..., :3, 2] = x, y, z
+    c2w[..., :3, 3] = eyes.expand_as(z)
+    c2w[..., 3, 3] = 1
+    return c2w

@@ -14,7 +14,7 @@ from ..utils.checks import SurfSplatInputError, check_tensor
 from .cpu import CpuRenderSettings
 from .cpu import backend_unavailable as cpu_backend_unavailable
 from .torch_backend import TorchRenderSettings, render_torch
-from .types import BACKENDS, Backend, RenderConventions, RenderMode, RenderOutput
+from .types import BACKENDS, Backend, RenderConventions, RenderMode, RenderOutput, check_render_args
 
 __all__ = [
     "render",
@@ -196,19 +196,4 @@ def _background(background: Tensor | Sequence[float] | None, dtype: torch.dtype,
 def _validate(
     g: Gaussians, cameras: Cameras, width: int, height: int, mode: str, alpha_threshold: float | None
 ) -> None:
-    if not isinstance(g, Gaussians):
-        raise SurfSplatInputError(f"gaussians: expected surfsplat.Gaussians, got {type(g).__name__}")
-    if not isinstance(cameras, Cameras):
-        raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cameras).__name__}")
-    if g.means.ndim != 2:
-        raise SurfSplatInputError(
-            f"gaussians: expected unbatched Gaussians with means [N, 3], got {tuple(g.means.shape)}; "
-            "render one scene at a time (Gaussians.select(b))"
-        )
-    for name, value in (("width", width), ("height", height)):
-        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-            raise SurfSplatInputError(f"{name}: expected a positive int, got {value!r}")
-    if mode not in ("surfel", "ewa"):
-        raise SurfSplatInputError(f"mode: expected 'surfel' or 'ewa', got {mode!r}")
-    if alpha_threshold is not None and not 0 < alpha_threshold <= 1:
-        raise SurfSplatInputError(f"alpha_threshold: expected a value in (0, 1] or None, got {alpha_threshold!r}")
+    check_render_args("", g, cameras, width, height, mode, alpha_threshold=alpha_threshold)

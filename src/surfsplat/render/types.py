@@ -74,3 +74,39 @@ class RenderOutput:
     alpha: Tensor
     depth: Tensor
     normal: Tensor
+
+
+def check_render_args(
+    where: str,
+    gaussians: object,
+    cameras: object,
+    width: object,
+    height: object,
+    mode: object,
+    backend: object = "auto",
+    alpha_threshold: object = None,
+) -> None:
+    """The checks every entry point that renders makes (`render`, compaction, the bake): unbatched
+    Gaussians, Cameras, a positive integer size, a known mode and backend, and an alpha threshold in
+    (0, 1] or None. `where` names the entry point in each message ("" for `render` itself)."""
+    from ..geometry.cameras import Cameras
+    from ..geometry.gaussians import Gaussians
+
+    p = f"{where}: " if where else ""
+    if not isinstance(gaussians, Gaussians):
+        raise SurfSplatInputError(f"{p}gaussians: expected surfsplat.Gaussians, got {type(gaussians).__name__}")
+    if gaussians.means.ndim != 2:
+        raise SurfSplatInputError(
+            f"{p}gaussians: expected unbatched Gaussians with means [N, 3], got {tuple(gaussians.means.shape)}; "
+            "use one scene at a time (Gaussians.select(b))"
+        )
+    if not isinstance(cameras, Cameras):
+        raise SurfSplatInputError(f"{p}cameras: expected surfsplat.Cameras, got {type(cameras).__name__}")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
+        raise SurfSplatInputError(f"{p}height and width: expected positive integers, got {height!r} x {width!r}")
+    if mode not in get_args(RenderMode):
+        raise SurfSplatInputError(f"{p}mode: expected 'surfel' or 'ewa', got {mode!r}")
+    if backend not in BACKENDS:
+        raise SurfSplatInputError(f"{p}backend: expected one of {BACKENDS}, got {backend!r}")
+    if alpha_threshold is not None and not (isinstance(alpha_threshold, (int, float)) and 0 < alpha_threshold <= 1):
+        raise SurfSplatInputError(f"{p}alpha_threshold: expected a value in (0, 1] or None, got {alpha_threshold!r}")

@@ -44,7 +44,7 @@ from torch import Tensor, nn
 from ..model.checkpoint import save_checkpoint as save_model
 from ..model.checkpoint import training_metadata
 from ..model.surfsplat import SurfSplat
-from ..utils.atomic import output_error
+from ..utils.atomic import fsync_dir, output_error
 from ..utils.checks import SurfSplatInputError
 
 FORMAT_NAME = "surfsplat-train-state"
@@ -180,14 +180,6 @@ def _fsync_file(path: Path) -> None:
         os.fsync(f.fileno())
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -270,7 +262,7 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
         manifest = temp / MANIFEST
         manifest.write_text(json.dumps({"format": FORMAT_NAME, "step": state.step, "files": files}, indent=1))
         _fsync_file(manifest)
-        _fsync_dir(temp)
+        fsync_dir(temp, strict=True)
     except BaseException as err:
         # Interrupted (Ctrl-C, SIGTERM) or failed (full disk, NaN weights): the unpublished folder goes.
         shutil.rmtree(temp, ignore_errors=True)
@@ -286,7 +278,7 @@ def save_training_checkpoint(out_dir: str | Path, model: SurfSplat, state: Train
         shutil.rmtree(stale)
     else:
         temp.rename(final)
-    _fsync_dir(root)
+    fsync_dir(root, strict=True)
     if keep > 0:
         for old in list_checkpoints(out_dir)[:-keep]:
             # Unpublish with one rename before deleting: a kill during rmtree must not leave a

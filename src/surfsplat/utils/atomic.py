@@ -49,7 +49,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     finally:
         # Gone after a rename; after any failure (KeyboardInterrupt included) no partial file stays.
         tmp.unlink(missing_ok=True)
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -96,17 +96,22 @@ def _fsync(path: Path) -> None:
         os.close(fd)
 
 
-def _fsync_dir(folder: Path) -> None:
-    # Makes the rename itself durable. Not every platform opens folders and some file systems
-    # refuse fsync on one; the rename is atomic either way, so that is only noted.
+def fsync_dir(folder: Path, strict: bool = False) -> None:
+    """Make the renames inside `folder` durable. Not every platform opens folders and some file
+    systems refuse fsync on one; the rename is atomic either way, so by default that is only noted
+    (`strict`: raised, for training checkpoints, whose folder must be on disk before it is trusted)."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError as err:
+        if strict:
+            raise
         logger.debug("%s: folder not synced (%s)", folder, err)
         return
     try:
         os.fsync(fd)
     except OSError as err:
+        if strict:
+            raise
         logger.debug("%s: folder not synced (%s)", folder, err)
     finally:
         os.close(fd)

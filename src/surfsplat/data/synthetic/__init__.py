@@ -13,7 +13,7 @@ ray-cast in PyTorch with exact depth and normals at any resolution.
 from .dataset import SyntheticDataset, SyntheticDatasetConfig, write_synthetic_chunks
 from .primitives import Primitive
 from .render import SyntheticRender, cast_rays, pixel_rays, ray_geometry, render_rays, render_synthetic
-from .scene import Lighting, SyntheticConfig, SyntheticScene, Trajectory, look_at, make_scene, make_trajectory
+from .scene import Lighting, SyntheticConfig, SyntheticScene, Trajectory, make_scene, make_trajectory
 from .textures import Texture, albedo, fbm, value_noise
 from .truth import (
     GeometryTruth,
@@ -42,7 +42,6 @@ __all__ = [
     "cast_rays",
     "fbm",
     "geometry_truth",
-    "look_at",
     "make_scene",
     "make_trajectory",
     "pixel_rays",

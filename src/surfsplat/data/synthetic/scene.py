@@ -12,12 +12,12 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from ...geometry.cameras import Cameras
+from ...geometry.cameras import Cameras, look_at
 from ...utils.checks import SurfSplatInputError
 from .primitives import Primitive
 from .textures import random_texture
 
-WORLD_UP = (0.0, 0.0, 1.0)
+WORLD_DOWN = (0.0, 0.0, -1.0)  # world z is up; the cameras' image y axis leans down (no roll)
 
 
 @dataclass
@@ -163,24 +163,6 @@ def make_scene(seed: int, config: SyntheticConfig | None = None) -> SyntheticSce
     )
 
 
-def look_at(eyes: Tensor, targets: Tensor) -> Tensor:
-    """OpenCV camera-to-world [N, 4, 4] at eyes [N, 3] looking at targets [N, 3], no roll, world z up.
-
-    z (forward) = normalize(target - eye); x (right) = normalize(forward x up); y (down) = z x x,
-    so that x, y, z is right-handed.
-    """
-    forward = torch.nn.functional.normalize(targets - eyes, dim=-1)
-    up = torch.tensor(WORLD_UP, dtype=eyes.dtype).expand_as(forward)
-    right = torch.nn.functional.normalize(torch.linalg.cross(forward, up, dim=-1), dim=-1)
-    down = torch.linalg.cross(forward, right, dim=-1)
-    c2w = torch.eye(4, dtype=eyes.dtype).repeat(eyes.shape[0], 1, 1)
-    c2w[:, :3, 0] = right
-    c2w[:, :3, 1] = down
-    c2w[:, :3, 2] = forward
-    c2w[:, :3, 3] = eyes
-    return c2w
-
-
 def _clearance(scene: SyntheticScene, eyes: Tensor) -> Tensor:
     """Distance [N] from each eye to the nearest surface (walls exactly, objects by their signed distance)."""
     dists = torch.stack([prim.signed_distance(eyes) for prim in scene.primitives], -1)
@@ -203,7 +185,7 @@ class Trajectory:
         s = s.to(torch.float64)[:, None]
         eyes = self.eye0.double() * (1 - s) + self.eye1.double() * s
         targets = self.target0.double() * (1 - s) + self.target1.double() * s
-        c2w = look_at(eyes, targets).float()
+        c2w = look_at(eyes, targets, WORLD_DOWN).float()
         f = 0.5 * width / math.tan(math.radians(self.fov_deg) / 2)
         K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]]).repeat(len(s), 1, 1)
         return Cameras(c2w, K)

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ...geometry.cameras import Cameras
+from ...geometry.cameras import Cameras, look_at
 from ...geometry.gaussians import Gaussians
 from ...geometry.rotations import matrix_to_quat
 from ...geometry.sh import rgb_to_sh_dc
@@ -30,16 +30,6 @@ class SurfelScene:
     sources: Cameras  # the views the surfels were made from
     target: Cameras  # a nearby novel view
     resolution: int  # source image size (square)
-
-
-def look_at(eye: Tensor, target: Tensor, down: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> Tensor:
-    """OpenCV camera-to-world [4, 4] at `eye` looking at `target`, image y axis as close to `down` as possible."""
-    z = F.normalize(target - eye, dim=0)
-    x = F.normalize(torch.linalg.cross(torch.tensor(down, dtype=z.dtype), z), dim=0)
-    y = torch.linalg.cross(z, x)
-    c2w = torch.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
-    return c2w
 
 
 def texture(points: Tensor) -> Tensor:
