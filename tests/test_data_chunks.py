@@ -29,7 +29,7 @@ from surfsplat.data import (
     scene_to_example,
     write_chunks,
 )
-from surfsplat.data.scene import Scene
+from surfsplat.data.posed_images import PosedImages
 from surfsplat.data.synthetic.scene import WORLD_DOWN
 from surfsplat.geometry.cameras import look_at
 
@@ -41,7 +41,7 @@ def make_example(key: str, num_views: int, seed: int, size: tuple[int, int] = (1
     eyes = torch.stack([torch.linspace(0, 1, num_views), torch.zeros(num_views), torch.zeros(num_views)], -1)
     c2w = look_at(eyes.double(), eyes.double() + torch.tensor([0.2, 0.1, 5.0], dtype=torch.float64), WORLD_DOWN).float()
     K = torch.tensor([[1.2 * w, 0, w / 2], [0, 1.2 * w, h / 2], [0, 0, 1.0]]).repeat(num_views, 1, 1)
-    scene = Scene(
+    scene = PosedImages(
         images=torch.rand(num_views, 3, h, w, generator=g),
         cameras=Cameras(c2w, K),
         names=[str(i) for i in range(num_views)],
@@ -82,7 +82,7 @@ def test_png_example_decodes_to_the_written_pixels() -> None:
     g = torch.Generator().manual_seed(0)
     images = torch.randint(0, 256, (2, 3, 10, 14), generator=g).float() / 255
     cams = Cameras(torch.eye(4).repeat(2, 1, 1), torch.tensor([[20.0, 0, 7], [0, 20, 5], [0, 0, 1]]).repeat(2, 1, 1))
-    ex = scene_to_example(Scene(images, cams, ["0", "1"]), key="k", image_format="png")
+    ex = scene_to_example(PosedImages(images, cams, ["0", "1"]), key="k", image_format="png")
     back = example_to_scene(ex)
     assert torch.equal(back.images, images)
     torch.testing.assert_close(back.cameras.K, cams.K)

@@ -12,7 +12,7 @@ import torch
 from surfsplat import Cameras, Gaussians
 from surfsplat.data.chunks import ChunkWriter, scene_to_example
 from surfsplat.data.eval_index import EvaluationIndex
-from surfsplat.data.scene import Scene
+from surfsplat.data.posed_images import PosedImages
 from surfsplat.data.synthetic import (
     SyntheticDataset,
     SyntheticDatasetConfig,
@@ -100,7 +100,7 @@ def data(tmp_path_factory):
     cams = dataset.trajectory(0).cameras(torch.linspace(0, 1, 4, dtype=torch.float64), SIZE, SIZE)
     out = render_synthetic(dataset.scene(0), cams, SIZE, SIZE)
     with ChunkWriter(root / "other") as writer:
-        record = Scene(images=out.image, cameras=cams, names=list("0123"), depths=out.depth)
+        record = PosedImages(images=out.image, cameras=cams, names=list("0123"), depths=out.depth)
         writer.add(scene_to_example(record, key="capture-0", image_format="png"))
     entries = {key: {"context": [0, 3], "target": [1, 2]} for key in [*keys, "capture-0"]}
     return root, EvaluationIndex.from_dict(entries, "geometry test index"), keys

@@ -9,7 +9,7 @@ from .chunks import ChunkWriter, example_to_scene, load_example, read_chunk, rea
 from .dataset import ChunkDataset, ChunkDatasetConfig, DatasetSummary, views_to_cameras
 from .eval_index import EvaluationEntry, EvaluationIndex
 from .load import detect_format, load_scene, load_scene_cameras
-from .scene import Scene
+from .posed_images import PosedImages
 from .synthetic import SyntheticDataset, SyntheticDatasetConfig, make_scene, render_synthetic, write_synthetic_chunks
 from .transforms import center_crop, horizontal_flip, rescale_and_crop, resize_views
 from .view_sampler import (
@@ -31,7 +31,7 @@ __all__ = [
     "EvaluationIndex",
     "EvaluationViewSampler",
     "NotEnoughViews",
-    "Scene",
+    "PosedImages",
     "StepCounter",
     "load_scene_cameras",
     "SyntheticDataset",

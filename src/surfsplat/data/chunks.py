@@ -28,7 +28,7 @@ from ..utils.atomic import write_text as atomic_write_text
 from ..utils.checks import SurfSplatInputError, read_json
 from .formats.re10k_raw import rows_to_cameras
 from .images import decode_depth_png, decode_image_bytes, encode_depth_png, encode_image, image_bytes_size
-from .scene import Scene
+from .posed_images import PosedImages
 
 Example = dict[str, Any]
 REQUIRED_KEYS = ("url", "timestamps", "cameras", "images", "key")
@@ -157,8 +157,8 @@ def decode_depths(example: Example, views: list[int], source: str) -> Tensor | N
     return torch.stack([decode_depth_png(example["depths"][v], f"{where} depth {v}") for v in views])[:, None]
 
 
-def example_to_scene(example: Example, source: str = "chunk", views: list[int] | None = None) -> Scene:
-    """Decode an example (or some of its views) into a Scene; names are the timestamps."""
+def example_to_scene(example: Example, source: str = "chunk", views: list[int] | None = None) -> PosedImages:
+    """Decode an example (or some of its views) into PosedImages; names are the timestamps."""
     validate_example(example, source)
     views = list(range(example["cameras"].shape[0])) if views is None else list(views)
     images = decode_views(example, views, source)
@@ -167,7 +167,7 @@ def example_to_scene(example: Example, source: str = "chunk", views: list[int] |
     depths = decode_depths(example, views, source)
     if depths is not None and depths.shape[2:] != images.shape[2:]:
         depths = torch.nn.functional.interpolate(depths, size=(h, w), mode="nearest-exact")
-    return Scene(
+    return PosedImages(
         images=images,
         cameras=cameras,
         names=[str(int(example["timestamps"][v])) for v in views],
@@ -178,14 +178,14 @@ def example_to_scene(example: Example, source: str = "chunk", views: list[int] |
 
 
 def scene_to_example(
-    scene: Scene,
+    scene: PosedImages,
     key: str,
     url: str = "",
     image_format: str = "jpeg",
     quality: int = 95,
     timestamps: Tensor | None = None,
 ) -> Example:
-    """Encode a Scene as a chunk example (cameras normalized by the image size, as the format wants)."""
+    """Encode PosedImages as a chunk example (cameras normalized by the image size, as the format wants)."""
     rows = scene.cameras.to(torch.float64).to_re10k(scene.width, scene.height).to(torch.float32)
     example: Example = {
         "url": url,

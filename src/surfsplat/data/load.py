@@ -16,7 +16,7 @@ from .formats.colmap import is_colmap, load_colmap
 from .formats.dtu import is_dtu, load_dtu
 from .formats.llff import is_llff, load_llff
 from .formats.re10k_raw import is_re10k_raw, load_re10k_raw
-from .scene import Scene
+from .posed_images import PosedImages
 
 SceneFormat = Literal["llff", "dtu", "blender", "colmap", "re10k"]
 
@@ -61,8 +61,8 @@ def load_scene(
     apply_scale_mat: bool = True,
     frames: str | Path | None = None,
     dtype: torch.dtype = torch.float32,
-) -> Scene:
-    """Read one captured scene into a `Scene` (images [N, 3, H, W] in [0, 1], OpenCV c2w, pixel K).
+) -> PosedImages:
+    """Read one captured scene into a `PosedImages` (images [N, 3, H, W] in [0, 1], OpenCV c2w, pixel K).
 
     format: "llff" | "dtu" | "blender" | "colmap" | "re10k" (raw camera .txt), or None to detect.
     images: image folder name under the scene (`images_8` for LLFF, `images_4` for DTU, a

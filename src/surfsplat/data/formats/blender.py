@@ -18,7 +18,7 @@ import torch
 
 from ...geometry.cameras import Cameras
 from ...utils.checks import SurfSplatInputError, read_json
-from ..scene import Scene, check_finite_rows, downscale_from_folder, fit_intrinsics
+from ..posed_images import PosedImages, check_finite_rows, downscale_from_folder, fit_intrinsics
 from .common import camera_set, image_sizes, load_image_stack, make_cameras
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -154,7 +154,7 @@ def load_blender(
     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
     dtype: torch.dtype = torch.float32,
     cameras_only: bool = False,
-) -> Scene:
+) -> PosedImages:
     """Read a transforms.json capture; `split` picks transforms_{split}.json when there is no
     transforms.json, `images` substitutes a downscaled image folder (nerfstudio `images_4`),
     `background` is the colour RGBA images are composited on."""
@@ -163,7 +163,7 @@ def load_blender(
         names = [p.name for p in parsed.paths]
         return camera_set(parsed.cameras, parsed.paths, image_sizes(parsed.paths), names)
     rgb, alpha = load_image_stack(parsed.paths, background=background)
-    return Scene(
+    return PosedImages(
         images=rgb,
         cameras=parsed.cameras,
         names=[p.name for p in parsed.paths],

@@ -23,7 +23,7 @@ import torch
 from ...geometry.cameras import rigid_inverse
 from ...geometry.rotations import quat_to_matrix
 from ...utils.checks import SurfSplatInputError
-from ..scene import Scene, downscale_from_folder, fit_intrinsics
+from ..posed_images import PosedImages, downscale_from_folder, fit_intrinsics
 from .common import camera_set, image_sizes, load_image_stack, make_cameras
 
 # model id -> (name, number of parameters, indices of the distortion parameters); COLMAP's table.
@@ -262,7 +262,7 @@ def load_colmap(
     images: str | None = None,
     dtype: torch.dtype = torch.float32,
     cameras_only: bool = False,
-) -> Scene:
+) -> PosedImages:
     """Read a COLMAP capture (see module doc); `images` names the image folder under the root
     (default `images`; `images_N` folders are accepted as uniform downscales)."""
     model_dir = find_model(path)
@@ -342,7 +342,7 @@ def load_colmap(
     if cameras_only:
         return camera_set(cams, paths, sizes, [r.name for r in ordered], near, far)
     rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
-    return Scene(
+    return PosedImages(
         images=rgb,
         cameras=cams,
         names=[r.name for r in ordered],

@@ -10,7 +10,7 @@ from torch import Tensor
 from ...geometry.cameras import Cameras, validate_c2w, validate_intrinsics
 from ...utils.checks import SurfSplatInputError
 from ..images import read_image, read_image_size
-from ..scene import check_finite_rows
+from ..posed_images import check_finite_rows
 
 
 def make_cameras(c2w: Tensor, K: Tensor, source: str, dtype: torch.dtype) -> Cameras:

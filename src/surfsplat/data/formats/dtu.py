@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ...utils.checks import SurfSplatInputError
 from ..images import list_images, read_image
-from ..scene import Scene, fit_intrinsics
+from ..posed_images import PosedImages, fit_intrinsics
 from .common import camera_set, image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
@@ -88,7 +88,7 @@ def load_dtu(
     calibrated_size: tuple[int, int] = DTU_SENSOR_SIZE,
     dtype: torch.dtype = torch.float32,
     cameras_only: bool = False,
-) -> Scene:
+) -> PosedImages:
     """Read a DTU scan in IDR packaging (see module doc).
 
     apply_scale_mat: express the world in IDR's normalized frame (object inside the unit sphere);
@@ -167,7 +167,7 @@ def load_dtu(
     }
     if scale:
         extras["scale_mats"] = torch.stack([torch.from_numpy(scale[i].astype(np.float64)) for i in sorted(scale)])
-    return Scene(
+    return PosedImages(
         images=rgb,
         cameras=cameras,
         names=[p.name for p in paths],

@@ -15,7 +15,7 @@ import torch
 from ...geometry.cameras import Cameras, validate_c2w
 from ...utils.checks import SurfSplatInputError
 from ..images import list_images
-from ..scene import Scene, check_finite_rows, fit_intrinsics
+from ..posed_images import PosedImages, check_finite_rows, fit_intrinsics
 from .common import camera_set, image_sizes, load_image_stack, make_cameras, pick_image_folder
 
 POSES_FILE = "poses_bounds.npy"
@@ -45,7 +45,7 @@ def load_llff(
     images: str | None = None,
     dtype: torch.dtype = torch.float32,
     cameras_only: bool = False,
-) -> Scene:
+) -> PosedImages:
     """Read an LLFF capture (see module doc); `images` picks the image folder by name."""
     poses_path = root / POSES_FILE
     poses, bounds = read_poses_bounds(poses_path)
@@ -82,7 +82,7 @@ def load_llff(
     near, far = bounds[:, 0].to(dtype), bounds[:, 1].to(dtype)
     if bool((near <= 0).any()) or bool((far <= near).any()):
         raise SurfSplatInputError(f"{poses_path}: depth bounds must satisfy 0 < near < far in every row")
-    return Scene(
+    return PosedImages(
         images=rgb,
         cameras=cameras,
         names=[p.name for p in paths],

@@ -16,7 +16,7 @@ from torch import Tensor
 from ...geometry.cameras import Cameras, rigid_inverse, validate_c2w
 from ...utils.checks import SurfSplatInputError
 from ..images import is_image_file
-from ..scene import Scene, check_finite_rows
+from ..posed_images import PosedImages, check_finite_rows
 from .common import camera_set, image_sizes, load_image_stack, make_cameras
 
 
@@ -96,7 +96,7 @@ def load_re10k_raw(
     frames: Path | None = None,
     dtype: torch.dtype = torch.float32,
     cameras_only: bool = False,
-) -> Scene:
+) -> PosedImages:
     """Read a raw RealEstate10K/ACID camera file and its extracted frames (see module doc)."""
     txt = find_camera_file(path)
     if txt is None:
@@ -120,7 +120,7 @@ def load_re10k_raw(
     if cameras_only:
         return camera_set(cameras, paths, sizes, [str(ts) for ts in timestamps.tolist()])
     rgb, _ = load_image_stack(paths, background=None)
-    return Scene(
+    return PosedImages(
         images=rgb,
         cameras=cameras,
         names=[str(ts) for ts in timestamps.tolist()],

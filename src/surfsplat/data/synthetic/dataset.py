@@ -18,7 +18,7 @@ from ...geometry.cameras import Cameras
 from ...utils.checks import SurfSplatInputError
 from ..chunks import ChunkWriter, scene_to_example
 from ..dataset import Sample, mix_seed
-from ..scene import Scene
+from ..posed_images import PosedImages
 from .render import render_synthetic
 from .scene import SyntheticConfig, SyntheticScene, Trajectory, make_scene, make_trajectory
 
@@ -191,7 +191,9 @@ def write_synthetic_chunks(
             scene = dataset.scene(i)
             cams = dataset.trajectory(i, scene).cameras(torch.linspace(0, 1, num_frames, dtype=torch.float64), w, h)
             out = render_synthetic(scene, cams, w, h, supersample=supersample)
-            record = Scene(images=out.image, cameras=cams, names=[str(k) for k in range(num_frames)], depths=out.depth)
+            record = PosedImages(
+                images=out.image, cameras=cams, names=[str(k) for k in range(num_frames)], depths=out.depth
+            )
             writer.add(
                 scene_to_example(record, key=f"synthetic-{seed}-{i}", url="synthetic", image_format=image_format)
             )

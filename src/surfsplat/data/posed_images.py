@@ -1,4 +1,4 @@
-"""`Scene`: posed images of one capture in the package's conventions, whatever the source format."""
+"""`PosedImages`: posed images of one capture in the package's conventions, whatever the source format."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from ..utils.checks import SurfSplatInputError, check_tensor
 
 
 @dataclass
-class Scene:
+class PosedImages:
     """N posed images.
 
     images:  [N, 3, H, W] float32 in [0, 1]
@@ -69,7 +69,7 @@ class Scene:
     def width(self) -> int:
         return self.images.shape[3]
 
-    def select(self, indices: list[int] | Tensor) -> Scene:
+    def select(self, indices: list[int] | Tensor) -> PosedImages:
         """The sub-scene of the given views, in the given order."""
         idx = torch.as_tensor(indices, dtype=torch.long)
         if idx.numel() and (int(idx.min()) < -len(self) or int(idx.max()) >= len(self)):
@@ -80,7 +80,7 @@ class Scene:
         def pick(t: Tensor | None) -> Tensor | None:
             return None if t is None else t[idx]
 
-        return Scene(
+        return PosedImages(
             images=self.images[idx],
             cameras=self.cameras[idx],
             names=[self.names[i] for i in idx.tolist()],
