@@ -1,7 +1,7 @@
 """Renderer agreement table: every backend, mode and dtype against the field's reference and each other.
 
 On this machine (CPU), with the conventions aligned through public options
-(`lowpass_center_sigma=1`, `ewa_support="alpha"`, as in tests/test_render_gsplat_reference.py):
+(`lowpass_center_sigma=1`, `ewa_support="alpha"`, as in tests/render/test_gsplat_reference.py):
 - the torch and compiled CPU backends against gsplat's own pure-PyTorch reference of 2DGS ("surfel")
   and 3DGS ("ewa") on three seeded scenes (200-2,000 surfels, SH 0 and 3, 64x48 and 128x96), in
   float64 and float32: largest differences of colour, alpha, normal and depth;

@@ -27,7 +27,6 @@ import math
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -45,10 +44,9 @@ from surfsplat.metrics.image import psnr
 from surfsplat.model.decoder import decoder_mode
 from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.render import render
+from surfsplat.testing.browser import Browser, chromium
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # the DevTools-driven headless browser of the viewer tests
-from _browser import Browser, chromium  # noqa: E402
 
 SPLAT_TRANSFORM = "npx --yes @playcanvas/splat-transform@2.7.1"
 # The SuperSplat viewer turns every scene by 180 degrees about z (3DGS scenes have y down) and keeps

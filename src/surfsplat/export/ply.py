@@ -26,6 +26,24 @@ from ..utils.checks import SurfSplatInputError
 Precision = Literal["float32", "float64"]
 
 
+# The vertex fields every surfel PLY carries (2DGS layout: two scales); normals nx, ny, nz are optional.
+SURFEL_FIELDS = (
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+)
+
+
 def save_ply(gaussians: Gaussians, path: str | os.PathLike, precision: Precision = "float32") -> Path:
     """Write unbatched Gaussians to `path` (atomically: a temporary file is renamed into place).
 
@@ -93,29 +111,14 @@ def load_ply(path: str | os.PathLike, dtype: torch.dtype = torch.float32) -> Gau
     except (PlyParseError, ValueError, KeyError, EOFError, OSError, struct.error) as err:
         raise SurfSplatInputError(f"{path}: not a readable PLY file ({err})") from None
     names = set(v.data.dtype.names)
-    required = {
-        "x",
-        "y",
-        "z",
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        "opacity",
-        "scale_0",
-        "scale_1",
-        "rot_0",
-        "rot_1",
-        "rot_2",
-        "rot_3",
-    }
-    missing = sorted(required - names)
+    missing = sorted(set(SURFEL_FIELDS) - names)
     if missing:
         raise SurfSplatInputError(f"{path}: not a Gaussian-splat PLY, missing vertex properties {missing}")
 
     def col(name: str) -> torch.Tensor:
         return torch.from_numpy(np.asarray(v[name], dtype=np.float64))
 
-    used = [p.name for p in v.properties if p.name in required or p.name.startswith("f_rest_") or p.name == "scale_2"]
+    used = [p.name for p in v.properties if p.name in SURFEL_FIELDS or p.name.startswith("f_rest_") or p.name == "scale_2"]
     for name in used:
         bad = np.flatnonzero(~np.isfinite(np.asarray(v[name], dtype=np.float64)))
         if len(bad):

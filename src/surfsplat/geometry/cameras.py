@@ -1,6 +1,6 @@
 """Pinhole cameras in one convention, with converters at the boundary.
 
-Convention (pinned by tests/test_conventions.py):
+Convention (pinned by tests/geometry/test_conventions.py):
 - `c2w` is camera-to-world with OpenCV axes: x right, y down, z forward.
 - `K` is in pixels for a stated image size; pixel (row i, column j) has its centre at
   (j + 0.5, i + 0.5), so rendering at s times the resolution uses K' = diag(s, s, 1) K exactly.
