@@ -19,20 +19,17 @@ import argparse
 import dataclasses
 import json
 import platform
-import sys
 from pathlib import Path
 
 import torch
 
+from common import REAL, RESULTS
+from compact import real_scenes  # the captures and views of the compaction figures
 from surfsplat.export.bake import BakeConfig, bake_for_viewers, thin_gaussians, viewer_figures
 from surfsplat.export.figures import write_text
 from surfsplat.model.decoder import decoder_mode
 from surfsplat.model.loading import ModelSpec, load_model
 from surfsplat.render import render
-
-ROOT = Path(__file__).resolve().parent
-sys.path.insert(0, str(ROOT))
-from compact import REAL, real_scenes  # noqa: E402  (the same captures and views)
 
 FACTORS = (1, 2)
 GRID = [  # --grid: (steps, factors, nearby views, jittered views), the export's default first
@@ -55,7 +52,7 @@ def main() -> None:
     parser.add_argument("--real-size", nargs=2, type=int, default=(192, 256), metavar=("H", "W"))
     parser.add_argument("--steps", type=int, default=BakeConfig().steps, help="Adam steps of the bake")
     parser.add_argument("--scenes", nargs="+", default=sorted(REAL), choices=sorted(REAL))
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "bake.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "bake.json")
     parser.add_argument(
         "--grid", action="store_true", help="the cost curve: every GRID setting (steps, factors, fitted views) in turn"
     )

@@ -52,7 +52,8 @@ from pathlib import Path
 
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import RESULTS
+
 SIZE = 64
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from common import REAL
 from surfsplat.compaction import LEVELS, compact_surfels
 from surfsplat.export.figures import write_text
 from surfsplat.export.ply import save_ply
@@ -45,12 +46,6 @@ from surfsplat.render.cpu.backend import contributing_pairs
 ROOT = Path(__file__).resolve().parents[1]
 FACTORS = (1, 4)
 REPEATS = 3  # renders timed per factor (the median is reported)
-# Real captures: (folder, image folder, context views, target views); DTU's views follow the
-# community's scan evaluation index (context 33 and 31), LLFF's are neighbours along the capture.
-REAL = {
-    "fern": ("llff_fern", "images_8", [4, 10], [6, 7, 8]),
-    "dtu_scan24": ("dtu_scan24", "images_4", [33, 31], [32, 24, 23]),
-}
 
 
 def main() -> None:

@@ -27,9 +27,9 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import RESULTS
+
 LEVERS = {  # --levers: the standard CPU levers, each alone and together, against today's no_grad forward
     "none": (),
     "inference_mode": ("inference_mode",),

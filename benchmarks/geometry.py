@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common import RESULTS
 from surfsplat.data.synthetic import (
     SyntheticDataset,
     SyntheticDatasetConfig,
@@ -38,8 +39,6 @@ from surfsplat.data.synthetic import (
 )
 from surfsplat.metrics.geometry import sample_mesh, surface_metrics, view_geometry
 from surfsplat.train.loop import cpu_threads
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def timed(fn: Callable[[], object], repeats: int) -> dict[str, object]:

@@ -26,9 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from common import RESULTS
 from encoder import idle_fraction, wait_for_idle  # the benchmarks' shared idle gauge (same folder)
 
-RESULTS = Path(__file__).resolve().parent / "results"
 SIZES = {400: (400, 300), 1000: (1000, 750)}
 
 

@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import RESULTS
 
 # name -> encoder parts kept in float32 under bf16 autocast (None: no autocast, the float32 model)
 CONFIGS: dict[str, tuple[str, ...] | None] = {

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import RESULTS
 
 
 def _scene():

@@ -31,9 +31,8 @@ from pathlib import Path
 
 import torch
 
+from common import RESULTS
 from surfsplat.render.types import BACKENDS
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def measure(

@@ -35,11 +35,10 @@ from surfsplat.data.synthetic.surfel_scene import make_scene
 from surfsplat.export.images import write_png
 from surfsplat.export.mesh import load_mesh
 from surfsplat.export.ply import load_ply, save_ply
-from surfsplat.model import SurfSplat, load_checkpoint, save_checkpoint
-from surfsplat.train import fit
+from surfsplat.model import SurfSplat, save_checkpoint
 from surfsplat.train.checkpoint import list_checkpoints, verify_checkpoint
-from surfsplat.utils import atomic
-from tests.helpers.training import quick_config
+from tests.helpers.files import no_temporaries
+from tests.helpers.training import quick_train_argv
 
 SIZE = 64  # every image of the corpus is 64 x 64
 SLOW_WRITER = Path(__file__).resolve().parents[1] / "helpers" / "slow_writer.py"
@@ -197,13 +196,7 @@ def _eval(w: World, out, *extra: str, checkpoint=None, index=None, data=None) ->
 
 
 def _train(out: Path, **sets) -> list[str]:
-    """`surfsplat train` of the tiny preset cut to seconds (32x32 rooms, 3 steps, a checkpoint each)."""
-    quick = {"steps": 3, "checkpoint_every": 1, "val_every": 0, "image_every": 0, "log_every": 1}
-    quick |= {"data.image_shape": [32, 32], "data.num_target_views": 1, "data.synthetic_length": 2}
-    argv = ["train", "--preset", "tiny", "--out", str(out), "--no-progress"]
-    for key, value in (quick | sets).items():
-        argv += ["--set", f"{key}={json.dumps(value)}"]
-    return argv
+    return quick_train_argv(out, **sets)
 
 
 def _copied_ply(tmp: Path, w: World) -> Path:
@@ -515,11 +508,6 @@ def _interrupt(argv: list[str], hold: str, sig: int, tmp: Path) -> tuple[int, st
     return proc.returncode, err
 
 
-def _no_temporaries(folder: Path) -> None:
-    left = [p for p in folder.rglob("*") if atomic.is_temporary(p) or p.name.startswith(".tmp-")]
-    assert not left, left
-
-
 def _assert_interrupted(code: int, err: str, command: str, sig: int) -> None:
     lines = err.strip().splitlines()
     assert code == 128 + sig, err
@@ -533,7 +521,7 @@ def test_export_interrupted_mid_write_keeps_earlier_files_and_no_partial_one(wor
     code, err = _interrupt(argv, "mesh.ply", sig, tmp_path)
     _assert_interrupted(code, err, "export", sig)
     assert not (out / "mesh.ply").exists()
-    _no_temporaries(out)
+    no_temporaries(out)
     # What was complete before the signal is intact: the surfels read back as they were written.
     torch.testing.assert_close(load_ply(out / "surfels.ply").means, load_ply(world.ply).means)
     assert json.loads((out / "cameras.json").read_text())["frames"]
@@ -546,7 +534,7 @@ def test_reconstruct_interrupted_has_no_summary(world, tmp_path):
     # reconstruction.json is written last: its absence tells a reader the run did not finish.
     assert (out / "surfels.ply").is_file() and not (out / "reconstruction.json").exists()
     assert len(load_ply(out / "surfels.ply")) == 2 * SIZE * SIZE
-    _no_temporaries(out)
+    no_temporaries(out)
 
 
 def test_eval_interrupted_has_no_metrics(world, tmp_path):
@@ -554,7 +542,7 @@ def test_eval_interrupted_has_no_metrics(world, tmp_path):
     code, err = _interrupt(_eval(world, out, "--factors", "1"), "table.txt", signal.SIGINT, tmp_path)
     _assert_interrupted(code, err, "eval", signal.SIGINT)
     assert (out / "per_scene.csv").is_file() and not (out / "metrics.json").exists()  # metrics.json: the marker
-    _no_temporaries(out)
+    no_temporaries(out)
 
 
 def test_train_interrupted_while_checkpointing_keeps_the_last_checkpoint(tmp_path):
@@ -574,14 +562,14 @@ def test_train_interrupted_while_checkpointing_keeps_the_last_checkpoint(tmp_pat
     _assert_interrupted(proc.returncode, err, "train", signal.SIGTERM)
     assert [p.name for p in list_checkpoints(out)] == ["step-00000001"]
     verify_checkpoint(out / "checkpoints" / "step-00000001")
-    _no_temporaries(out)
+    no_temporaries(out)
 
 
 # Holds the second write of model.safetensors (the step-2 checkpoint) open, as helpers/slow_writer.py does the first.
 _SECOND_WRITE = """
 import sys, time
 from pathlib import Path
-from surfsplat import atomic
+from surfsplat.utils import atomic
 from surfsplat.cli import main
 ready, seen, real = Path(sys.argv[1]), [], atomic._fsync
 def held(path):
@@ -601,7 +589,7 @@ def test_demo_interrupted_while_writing_its_data(tmp_path):
     code, err = _interrupt(["demo", "--quick", "--out", str(out)], ".torch", signal.SIGINT, tmp_path)
     _assert_interrupted(code, err, "demo", signal.SIGINT)
     assert not list(out.rglob("*.torch")) and not (out / "metrics.json").exists()
-    _no_temporaries(out)
+    no_temporaries(out)
 
 
 # -------------------------------------------------------------------------------------------- full disk
@@ -627,33 +615,7 @@ def test_full_disk_is_one_line_naming_the_file(world, tmp_path, capsys, monkeypa
         "nothing was written under this name"
     ]
     assert not (out / "mesh.ply").exists() and len(load_ply(out / "surfels.ply")) == len(load_ply(world.ply))
-    _no_temporaries(out)
-
-
-def test_full_disk_while_writing_a_text_file(tmp_path, monkeypatch):
-    """ENOSPC from write() itself, part-way through: the earlier version of the file stays."""
-    target = tmp_path / "metrics.json"
-    atomic.write_text(target, '{"old": 1}')
-
-    class FullFile:
-        def __init__(self, *args, **kwargs):
-            self.inner = open(*args, **kwargs)
-
-        def write(self, data: bytes) -> int:
-            self.inner.write(data[: len(data) // 2])
-            raise OSError(errno.ENOSPC, "No space left on device")
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            self.inner.close()
-
-    monkeypatch.setattr(atomic, "open", FullFile, raising=False)
-    with pytest.raises(atomic.OutputError, match="metrics.json: cannot write .no space left"):
-        atomic.write_text(target, '{"new": "a longer document"}')
-    assert target.read_text() == '{"old": 1}'
-    _no_temporaries(tmp_path)
+    no_temporaries(out)
 
 
 def test_full_disk_while_checkpointing_keeps_the_last_checkpoint(tmp_path, capsys, monkeypatch):
@@ -677,89 +639,7 @@ def test_full_disk_while_checkpointing_keeps_the_last_checkpoint(tmp_path, capsy
     ]
     assert [p.name for p in list_checkpoints(out)] == ["step-00000001"]
     verify_checkpoint(out / "checkpoints" / "step-00000001")
-    _no_temporaries(out)
-
-
-# ------------------------------------------------------------------------------------- NaN in training
-def _quick(out: Path, **changes) -> object:
-    return quick_config(out, {"steps": 3, "checkpoint_every": 1, **changes})
-
-
-def _poison_loss(monkeypatch, bad_calls: set[int]) -> None:
-    """The loss of the given (1-based) steps becomes NaN, as a diverging batch would make it."""
-    from surfsplat.train import loop
-
-    real, calls = loop.cascade_loss, [0]
-
-    def poisoned(*args, **kwargs):
-        calls[0] += 1
-        loss, terms = real(*args, **kwargs)
-        return (loss * float("nan"), terms) if calls[0] in bad_calls else (loss, terms)
-
-    monkeypatch.setattr(loop, "cascade_loss", poisoned)
-
-
-def _weights(checkpoint: Path) -> dict[str, torch.Tensor]:
-    return load_file(str(checkpoint / "model.safetensors"))
-
-
-def test_nonfinite_loss_skips_the_step_and_counts_it(tmp_path, monkeypatch):
-    _poison_loss(monkeypatch, {2})
-    result = fit(_quick(tmp_path / "run", max_nonfinite_steps=1))
-    assert result.step == 3 and result.nonfinite_steps == [(2, "loss is nan")]
-    assert [s for s, _ in result.losses] == [0, 2]  # the skipped step has no loss entry
-    first, second, third = (_weights(p) for p in list_checkpoints(tmp_path / "run"))
-    for key in first:  # step 2 changed nothing, steps 1 and 3 did; every checkpoint is finite
-        assert torch.equal(first[key], second[key]) and bool(torch.isfinite(third[key]).all())
-    assert any(not torch.equal(second[k], third[k]) for k in second)
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert {"step": 2, "train/nonfinite_steps": 1.0} in rows  # also a TensorBoard scalar of that name
-
-
-def test_nonfinite_gradient_is_named_by_parameter(tmp_path, monkeypatch):
-    from surfsplat.train import loop
-
-    real_build = loop.build_model
-    named = {}
-
-    def build(config):
-        model = real_build(config)
-        name, param = next((n, p) for n, p in model.named_parameters() if n.endswith("weight"))
-        named["name"] = name
-        param.register_hook(lambda g: torch.full_like(g, float("inf")))
-        return model
-
-    monkeypatch.setattr(loop, "build_model", build)
-    with pytest.raises(FloatingPointError) as caught:
-        fit(_quick(tmp_path / "run", max_nonfinite_steps=1))
-    message = str(caught.value)
-    assert f"gradient of {named['name']} holds NaN or inf" in message and "2 steps in a row" in message
-    # Step 1 was skipped, so its checkpoint holds the initial weights: finite, the last good one.
-    assert "last good checkpoint:" in message and message.endswith("step-00000001 (lower optim.lr, or check the data)")
-    assert [p.name for p in list_checkpoints(tmp_path / "run")] == ["step-00000001"]
-
-
-def test_too_many_nonfinite_steps_stop_with_the_last_good_checkpoint(tmp_path, monkeypatch, capsys):
-    _poison_loss(monkeypatch, {2, 3})
-    out = tmp_path / "run"
-    assert main(_train(out, max_nonfinite_steps=1, steps=3)) == 1
-    warning, *err = capsys.readouterr().err.strip().splitlines()
-    assert "step 2: skipped, loss is nan (1 in a row)" in warning  # a skipped step is a warning
-    # Step 2 was skipped (one in a row is allowed), so its checkpoint holds step 1's weights; step 3 stops.
-    good = out / "checkpoints" / "step-00000002"
-    assert len(err) == 1 and "2 steps in a row not finite" in err[0] and f"last good checkpoint: {good}" in err[0]
-    assert list_checkpoints(out) == [out / "checkpoints" / "step-00000001", good]
-    verify_checkpoint(good)
-    load_checkpoint(good / "model")  # loading refuses NaN/inf tensors, so this proves the weights finite
-
-
-def test_a_model_holding_nan_is_never_saved(tmp_path):
-    model = SurfSplat.from_preset("tiny")
-    with torch.no_grad():
-        next(model.parameters()).view(-1)[0] = float("nan")
-    with pytest.raises(FloatingPointError, match="not written, the weights hold NaN"):
-        save_checkpoint(model, tmp_path / "m")
-    assert list(tmp_path.iterdir()) == []
+    no_temporaries(out)
 
 
 # ----------------------------------------------------------------------------------- degenerate scenes

@@ -3,6 +3,7 @@ reliability tests: 32x32 synthetic rooms, one target view, two scenes, no progre
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from surfsplat.train import TrainConfig, override, train_preset
@@ -24,3 +25,12 @@ def quick_config(out: Path, changes: dict | None = None, **more) -> TrainConfig:
     """`train_preset("tiny")` writing to `out` with QUICK's settings, then `changes` (dotted keys)
     and `more` (top-level fields) over them."""
     return override(train_preset("tiny"), {"out_dir": str(out), **QUICK, **(changes or {}), **more})
+
+
+def quick_train_argv(out: Path, **sets) -> list[str]:
+    """`surfsplat train` of QUICK's tiny preset for three steps with a checkpoint each, `sets` over it."""
+    settings = {**QUICK, "steps": 3, "checkpoint_every": 1, **sets}
+    argv = ["train", "--preset", "tiny", "--out", str(out), "--no-progress"]
+    for key, value in settings.items():
+        argv += ["--set", f"{key}={json.dumps(value)}"]
+    return argv

@@ -1,0 +1,73 @@
+"""What the benchmarks share: where results go, the machine they ran on, tables, and the real
+captures (DTU scan 24, LLFF fern) they measure on.
+
+Each benchmark is a script (`python benchmarks/NAME.py`); Python puts this folder first on its
+path, so `from common import ...` needs no path edit.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = Path(__file__).resolve().parent / "results"
+SHARED_DATA = ROOT.parent / "shared" / "data"  # the full sample captures, where they sit beside the repository
+FIXTURE_DATA = ROOT / "tests" / "data"  # their reduced copies in the repository
+
+# The real captures the compaction and bake figures are measured on: name -> (folder, image folder,
+# context views, target views). DTU's views follow the community's scan evaluation index (context
+# 33 and 31); LLFF's are neighbours along the capture.
+REAL = {
+    "fern": ("llff_fern", "images_8", [4, 10], [6, 7, 8]),
+    "dtu_scan24": ("dtu_scan24", "images_4", [33, 31], [32, 24, 23]),
+}
+
+
+def sample_data(path: Path | None = None) -> Path:
+    """The folder holding the real captures: `path`, else the full samples, else the repository's copies."""
+    if path is not None:
+        return path
+    return SHARED_DATA if SHARED_DATA.is_dir() else FIXTURE_DATA
+
+
+def machine() -> dict:
+    """What ran the benchmark, for its JSON: wall times mean little without the machine and its load."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+
+
+def write_results(name: str, document: dict, folder: Path = RESULTS) -> Path:
+    """`folder/name` (.json added when missing) holding `document`, indented; returns its path."""
+    path = folder / (name if name.endswith(".json") else f"{name}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(document, indent=1) + "\n")
+    return path
+
+
+def text_table(headers: list[str], rows: list[list[object]]) -> str:
+    """A plain-text table: columns as wide as their widest cell, numbers right-aligned."""
+    cells = [[str(h) for h in headers]] + [[_cell(v) for v in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    numeric = [all(isinstance(row[i], (int, float)) for row in rows) for i in range(len(headers))]
+
+    def line(row: list[str]) -> str:
+        return "  ".join(c.rjust(w) if n else c.ljust(w) for c, w, n in zip(row, widths, numeric)).rstrip()
+
+    return "\n".join([line(cells[0]), line(["-" * w for w in widths])] + [line(r) for r in cells[1:]])
+
+
+def _cell(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return "" if value is None else str(value)
