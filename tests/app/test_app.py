@@ -358,3 +358,22 @@ def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, m
         run_capture(uploads, RunSettings(working_size=64), session / "outputs")
     line = _one_line(err.value, session)
     assert message in line and str(tmp_path) not in line and "\n" not in line
+
+
+def test_the_space_is_the_package_and_the_app(tmp_path):
+    """scripts/make_space.py lays out a Space whose requirements install the copy beside them."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "make_space.py"
+    spec = importlib.util.spec_from_file_location("make_space", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.make_space(tmp_path / "space")
+    space = tmp_path / "space"
+    assert (space / "src" / "surfsplat" / "app" / "__init__.py").is_file() and (space / "pyproject.toml").is_file()
+    requirements = (space / "requirements.txt").read_text().split("\n")
+    assert "torch==2.13.0" in requirements and ".[app]" in requirements
+    front = (space / "README.md").read_text().split("---")[1]
+    assert "sdk: gradio" in front and "app_file: app.py" in front and (space / "app.py").is_file()
+    with pytest.raises(SystemExit, match="not empty"):
+        module.make_space(space)
