@@ -336,13 +336,35 @@ def _photo(path: Path, size: tuple[int, int]) -> Path:
     return path
 
 
+def _still_video(path: Path) -> Path:
+    """Five identical frames: the camera never moved, so one frame is usable."""
+    import imageio.v3 as iio
+
+    iio.imwrite(path, np.full((5, 64, 96, 3), 128, np.uint8), fps=5)
+    return path
+
+
+def _noise(path: Path, seed: int) -> Path:
+    """A photo of pure noise: nothing in it matches another such photo."""
+    import imageio.v3 as iio
+
+    iio.imwrite(path, np.random.default_rng(seed).integers(0, 255, (64, 96, 3), dtype=np.uint8))
+    return path
+
+
 @pytest.mark.parametrize(
     "make, message",
     [
         (lambda d: [_photo(d / "a.png", (40, 60))], "expected at least 2 images, got 1"),
         (lambda d: [_photo(d / "a.png", (40, 60)), _photo(d / "b.png", (60, 40))], "all images must have one size"),
         (lambda d: [_photo(d / "a.png", (40, 60)), d / "b.png"], "b.png: cannot read image header"),
+        (lambda d: [_still_video(d / "still.mp4")], "only 1 usable frame among 5"),
+        (
+            lambda d: [_noise(d / "a.png", 1), _noise(d / "b.png", 2)],
+            "only 0 verified matches (0 putative), at least 30 are needed: take the photos closer together",
+        ),
     ],
+    ids=["one photo", "two sizes", "not an image", "video without motion", "cameras not estimable"],
 )
 def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, make, message):
     """What a run refuses before any heavy work, as the page shows it (`page._one_line`)."""
