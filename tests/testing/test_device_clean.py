@@ -367,7 +367,7 @@ LINALG = "linalg error check (info read on the host)"
 EXPECTED_SYNCS = {
     # Input validation of the public forward: finite images, their [0, 1] range (min and max),
     # finite positive near and far (two reads each), near < far.
-    ("checks.py (check_tensor)", SCALAR): 8,  # finite checks: images (1), the adapter's 7 below
+    ("utils/checks.py (check_tensor)", SCALAR): 8,  # finite checks: images (1), the adapter's 7 below
     ("model/surfsplat.py (forward)", SCALAR): 3,  # images.min(), images.max(), near < far
     ("model/surfsplat.py (_depth_bound)", SCALAR): 4,  # near, far: finite, positive
     # The adapter validates what the encoder hands it: depths, raw, images, K, c2w finite

@@ -2,15 +2,8 @@
 
     surfsplat export out/surfels.ply --cameras out/cameras.json --formats mesh video --out out/export
 
-The files are those of `surfsplat.export.flow.export_reconstruction`, which `reconstruct` and
-`demo` call too:
-    surfels.ply            the surfels (2DGS layout: two scales per surfel)
-    surfels_3dgs.ply       the surfels baked for standard 3DGS viewers (3DGS layout; `--raw-3dgs`: unbaked)
-    surfels_3dgs.json      the bake's figures: standard viewers' alpha and colour PSNR against our render
-    cameras.json           the context cameras (JSON camera file)
-    renders/               colour, depth and normal PNGs of every context view
-    path/                  frames of the interpolated camera path; path.mp4, turntable.mp4
-    mesh.ply               TSDF fusion of rendered depth, marching cubes
+It writes the files of `surfsplat.export.flow.export_reconstruction` (see its module for the list),
+as `reconstruct` and `demo` do.
 """
 
 from __future__ import annotations
