@@ -22,13 +22,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import time
 
-from common import RESULTS
+from common import machine, text_table, write_results
 
 LEVERS = {  # --levers: the standard CPU levers, each alone and together, against today's no_grad forward
     "none": (),
@@ -203,31 +202,33 @@ def main() -> int:
     report = {
         "benchmark": "encoder forward",
         "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "load_average": os.getloadavg(),
-            "torch": torch.__version__,
+            **machine(),
             "cuda_device": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
         },
         "results": rows,
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / f"encoder_{args.device.split(':')[0]}.json"
-    out.write_text(json.dumps(report, indent=2))
+    out = write_results(f"encoder_{args.device.split(':')[0]}", report)
 
-    print(
-        f"{'preset':<7} {'precision':>9} {'lever':>14} {'first call s':>12} {'params':>12} {'views':>5} {'size':>5} {'forward s (median, min)':>24} "
-        f"{'x base':>7} {'encoder s':>10} {'peak MB':>9} {'idle before':>12}"
-    )
-    for r in rows:
-        idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
-        timing = f"{r['forward_median_s']:.3f}, {min(r['forward_s']):.3f}"
-        ratio = "-" if r["forward_vs_fp32"] is None else f"{r['forward_vs_fp32']:.2f}"
-        print(
-            f"{r['preset']:<7} {r['precision']:>9} {r['lever']:>14} {r['first_call_s']:>12.2f} {r['parameters']:>12,} {r['views']:>5} {r['size']:>5} {timing:>24} "
-            f"{ratio:>7} {r['encoder_median_s']:>10.3f} {r['peak_mb']:>9.0f} {idle:>12}"
-        )
+    headers = ["preset", "precision", "lever", "first call s", "params", "views", "size", "forward s (median, min)"]
+    headers += ["x base", "encoder s", "peak MB", "idle before"]
+    table = [
+        [
+            r["preset"],
+            r["precision"],
+            r["lever"],
+            round(r["first_call_s"], 2),
+            r["parameters"],
+            r["views"],
+            r["size"],
+            f"{r['forward_median_s']:.3f}, {min(r['forward_s']):.3f}",
+            "-" if r["forward_vs_fp32"] is None else round(r["forward_vs_fp32"], 2),
+            round(r["encoder_median_s"], 3),
+            round(r["peak_mb"]),
+            ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"]),
+        ]
+        for r in rows
+    ]
+    print(text_table(headers, table))
     print(f"({rows[0]['peak_kind']}; load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
     return 0
 

@@ -17,7 +17,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -26,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import RESULTS
+from common import machine, text_table, write_results
 from encoder import idle_fraction, wait_for_idle  # the benchmarks' shared idle gauge (same folder)
 
 SIZES = {400: (400, 300), 1000: (1000, 750)}
@@ -145,34 +144,30 @@ def main() -> int:
     report = {
         "benchmark": "camera estimation (surfsplat.poses.estimate_cameras)",
         "images": "procedural room, seed 0, ray-cast natively at each size, views 5.7 degrees apart on an arc",
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "load_average": os.getloadavg(),
-            "pycolmap": pycolmap.__version__,
-        },
+        "machine": {**machine(), "pycolmap": pycolmap.__version__},
         "results": rows,
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / "poses.json"
-    out.write_text(json.dumps(report, indent=2))
+    out = write_results("poses", report)
 
-    print(
-        f"{'views':>5} {'size':>9} {'SIFT at':>9} {'method':>11} {'seconds (median, min)':>22} {'CPU s':>6} "
-        f"{'extract/match/solve s':>22} {'peak MB':>8} {'points':>7} {'rot err':>8} {'idle before':>12}"
-    )
-    for r in rows:
-        idle = ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"])
-        timing = f"{r['median_s']:.2f}, {min(r['seconds']):.2f}"
-        st = r["stages_s"]
-        stages = f"{st['extract']:.1f}/{st['match']:.1f}/{st['reconstruct']:.1f}"
-        print(
-            f"{r['views']:>5} {r['width']:>4}x{r['height']:<4} {r['extraction_size'][0]:>4}x{r['extraction_size'][1]:<4} "
-            f"{r['method']:>11} {timing:>22} {statistics.median(r['cpu_s']):>6.1f} {stages:>22} "
-            f"{r['peak_mb']:>8.0f} {r['points']:>7} "
-            f"{r['max_rotation_error_deg']:>7.3f}° {idle:>12}"
-        )
+    headers = ["views", "size", "SIFT at", "method", "seconds (median, min)", "CPU s", "extract/match/solve s"]
+    headers += ["peak MB", "points", "rot err deg", "idle before"]
+    table = [
+        [
+            r["views"],
+            f"{r['width']}x{r['height']}",
+            "x".join(map(str, r["extraction_size"])),
+            r["method"],
+            f"{r['median_s']:.2f}, {min(r['seconds']):.2f}",
+            round(statistics.median(r["cpu_s"]), 1),
+            "/".join(f"{r['stages_s'][k]:.1f}" for k in ("extract", "match", "reconstruct")),
+            round(r["peak_mb"]),
+            r["points"],
+            round(r["max_rotation_error_deg"], 3),
+            ",".join("-" if x is None else f"{x:.2f}" for x in r["idle_before"]),
+        ]
+        for r in rows
+    ]
+    print(text_table(headers, table))
     print(f"(load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
     return 0
 
