@@ -332,6 +332,34 @@ def _view_direction(x, cam_center):
     return v0 / norm, v1 / norm, v2 / norm, norm
 
 
+@njit(cache=True, error_model="numpy")
+def _beyond(mu, radius, K, row, border, side):
+    """Whether the sphere of `radius` about mu lies wholly on the `side` (+-1) of the plane through
+    the camera centre that projects onto pixel coordinate `border` along image axis `row` (0: x, 1: y):
+    (K[row] - border K[2]) . X = 0."""
+    n0 = K[row, 0] - border * K[2, 0]
+    n1 = K[row, 1] - border * K[2, 1]
+    n2 = K[row, 2] - border * K[2, 2]
+    return side * (n0 * mu[0] + n1 * mu[1] + n2 * mu[2]) > radius * math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+
+
+@njit(cache=True, error_model="numpy")
+def _surfel_off_image(mu, radius, margin, K, width, height):
+    """Whether a sphere of `radius` about the camera-frame point mu projects entirely outside the
+    image grown by `margin` pixels on every side. Only for a sphere wholly in front of the camera
+    plane: one reaching it has an unbounded projection (a surfel crossing the camera plane may
+    cover every pixel), and is never off-image.
+    """
+    if mu[2] <= radius:
+        return False
+    return (
+        _beyond(mu, radius, K, 0, -margin, -1.0)
+        or _beyond(mu, radius, K, 0, width + margin, 1.0)
+        or _beyond(mu, radius, K, 1, -margin, -1.0)
+        or _beyond(mu, radius, K, 1, height + margin, 1.0)
+    )
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def project(
     surfel,
@@ -383,6 +411,19 @@ def project(
         safe_z = z if abs(z) > _NEAR_ZERO else 1.0
         depth[i] = z
         k2 = _opacity_extent(opacities[i])
+        # Cull before projecting, by rules that keep every Gaussian `keep` below would keep: the
+        # depth and opacity tests themselves, and for surfels a bounding sphere of the k-sigma
+        # ellipse (and of the sigma-ellipse that places the low-pass centre) that projects off the
+        # image grown by the low-pass reach and a pixel. EWA footprints come from the affine
+        # approximation, which a sphere does not bound: those are culled after projecting.
+        culled = not (z > near and z < far and opacities[i] >= ALPHA_MIN)
+        if surfel and not culled:
+            reach = max(math.sqrt(k2), lowpass_sigma) * max(scales[i, 0], scales[i, 1])
+            culled = _surfel_off_image(mu, reach, math.sqrt(k2 / LOWPASS_RHO_SCALE) + 1.0, K, width, height)
+        if culled:
+            keep[i] = False
+            flip[i] = 1.0
+            continue
         g = geom[i]
         g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
         if surfel:
@@ -570,13 +611,17 @@ def _exp_nonpositive(x, ft):
     error < 1e-14 in float64, a few float32 roundings times 32 in float32).
 
     Plain multiply-adds, so a box of pixels evaluates in SIMD lanes (a libm call per pixel was
-    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms), then
-    squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
+    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms in
+    float64, 7 in float32), then squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
     Every constant is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
     """
     y = max(x, ft(_EXP_MIN)) * ft(0.03125)
-    p = ft(_TAYLOR[11])
-    for k in range(10, -1, -1):
+    # float32 needs the series only to y^6: the next term, 0.24^7 / 7! < 1e-8, is below its roundings
+    # (the max error over the range is the same as with all 12 terms). Decided at compile time: the
+    # comparison of two constants folds away.
+    terms = 12 if ft(1.0) + ft(1e-10) != ft(1.0) else 7
+    p = ft(_TAYLOR[terms - 1])
+    for k in range(terms - 2, -1, -1):
         p = p * y + ft(_TAYLOR[k])
     p = p * p
     p = p * p
@@ -592,7 +637,7 @@ def _exp_nonpositive(x, ft):
 # count, no branches (masks and selects) and non-negative in-loop indices, so LLVM vectorizes it
 # whole; each kernel call walks all the chunks of a Gaussian's box, so that the long dependency
 # chains of successive chunks (the exponential's polynomial) overlap in the core.
-LANES = 16
+LANES = 16  # (`_sum_lanes` halves it four times)
 
 # Runs of the per-chunk work rows: alpha, depth and 1 / hz (`_box_alpha`), then the backward's
 # dL/drho, dL/d(pair depth) and contribution mask.
@@ -951,16 +996,20 @@ def _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, ac
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _sum_lanes(acc, row):
     """row [GRAD_SIZE] = the per-lane runs of acc [GRAD_SIZE * LANES] summed over the lanes, by
-    halving (a fixed order, the same for every tile and thread)."""
+    halving: lane j takes lane j + 8, then j + 4, j + 2, j + 1 (a fixed order, the same for every
+    tile and thread). Each halving runs over the whole array, a run's upper lanes included, so that
+    it is one contiguous SIMD loop (a loop over the runs would vectorize across them, as gathers);
+    ascending i reads acc[i + width] before it is overwritten.
+    """
+    n = GRAD_SIZE * LANES
+    for i in range(n - LANES // 2):
+        acc[i] += acc[i + LANES // 2]
+    for i in range(n - LANES // 4):
+        acc[i] += acc[i + LANES // 4]
+    for i in range(n - LANES // 8):
+        acc[i] += acc[i + LANES // 8]
     for f in range(GRAD_SIZE):
-        o = f * LANES
-        for j in range(8):
-            acc[o + j] += acc[o + 8 + j]
-        for j in range(4):
-            acc[o + j] += acc[o + 4 + j]
-        for j in range(2):
-            acc[o + j] += acc[o + 2 + j]
-        row[f] = acc[o] + acc[o + 1]
+        row[f] = acc[f * LANES] + acc[f * LANES + 1]
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
