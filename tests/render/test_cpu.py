@@ -259,15 +259,39 @@ def test_float32_kernels_compute_in_float32():
     render(g, camera(20.0, 16, 16, dtype=torch.float32), 16, 16, backend="cpu")
     for kernel in (kernels.composite_forward, kernels.composite_backward):
         assert any(sig[1] == numba.float32[:, ::1] for sig in kernel.signatures), kernel
-    fresh = numba.njit(error_model="numpy")(kernels._box_alpha.py_func)
     f32 = np.float32
-    tile = np.zeros(16 * 16, dtype=f32)
-    for surfel in (True, False):
-        fresh(surfel, np.zeros(kernels.GEOM_SIZE, f32), 0, 0, 4, tile, tile, tile.copy(), tile.copy(), tile.copy())
-    for sig in fresh.signatures:
-        ir = fresh.inspect_llvm(sig)
-        assert " float" in ir
-        assert "double" not in ir.replace("double*", ""), "float64 arithmetic in the float32 pixel loop"
+    lanes = kernels.LANES
+    work, rows = np.zeros((16, kernels.WORK_RUNS * lanes), f32), np.ones(16, dtype=np.int64)
+    g, lane, acc = (
+        np.zeros(kernels.GEOM_SIZE, f32),
+        np.arange(lanes, dtype=f32),
+        np.zeros(kernels.GRAD_SIZE * lanes, f32),
+    )
+    last, one = np.zeros((16, lanes), dtype=np.int32), (f32(1.0),) * 6
+    box = (0, 0, 1, 0, 3, 0, 3, rows)
+    calls = [
+        (kernels._box_alpha, [(surfel, g, *box, 0, lane, work) for surfel in (True, False)]),
+        (kernels._blend, [(np.zeros((16, kernels.FORWARD_RUNS * lanes), f32), last, work, *box, np.int32(1), *one)]),
+        (
+            kernels._unblend,
+            [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, *box, np.int32(0), *one)],
+        ),
+        (kernels._surfel_grads, [(g, *box, np.int32(0), lane, work, acc)]),
+        (kernels._ewa_grads, [(g, *box, np.int32(0), lane, work, acc)]),
+        (kernels._sum_lanes, [(acc, np.zeros(kernels.GRAD_SIZE, f32))]),
+    ]
+    for kernel, argument_lists in calls:
+        fresh = numba.njit(error_model="numpy", boundscheck=False)(kernel.py_func)
+        for args in argument_lists:
+            fresh(*args)
+        for sig in fresh.signatures:
+            # The compiled function itself, not its Python wrapper (which unboxes float arguments as doubles).
+            functions = fresh.inspect_llvm(sig).split("\ndefine ")[1:]
+            ir = "".join(f for f in functions if "cpython" not in f.split("(")[0])
+            assert " float" in ir, kernel
+            assert "double" not in ir.replace("double*", ""), (
+                f"float64 arithmetic in the float32 pixel loop of {kernel}"
+            )
 
 
 # --------------------------------------------------------------------------- independent twins

@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from surfsplat import Cameras, Gaussians
 from surfsplat.render import render
@@ -106,3 +107,36 @@ def test_close_up_path_towards_a_wall():
         frames.append(c2w)
     K = torch.tensor([[20.0, 0, 16], [0, 20.0, 16], [0, 0, 1]], dtype=d).repeat(len(frames), 1, 1)
     _assert_agree(_both_backends(g, Cameras(torch.stack(frames), K), 32, 32), min_alpha_sum=0.9 * 4 * 32 * 32)
+
+
+def test_culling_before_projection_keeps_every_footprint_that_reaches_the_image():
+    """The compiled backend culls surfels whose bounding sphere projects off the image before it
+    projects them; the torch backend culls nothing early. Surfels scattered past the image borders
+    and across the camera plane (spheres that reach it are never culled early) render the same."""
+    from surfsplat.render.cpu import kernels
+    from surfsplat.render.types import LOWPASS_RHO_SCALE, RenderConventions
+
+    gen = torch.Generator().manual_seed(11)
+    d, n, size, f = torch.float64, 300, 32, 32.0
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], dtype=d)
+    cams = Cameras(c2w=torch.eye(4, dtype=d)[None], K=K[None])
+    z = torch.rand(n, generator=gen, dtype=d) * 3.0 + 0.05
+    u, v = ((torch.rand(2, n, generator=gen, dtype=d) * 2.4 - 0.7) * size - size / 2) * z / f
+    quats = F.normalize(torch.randn(n, 4, generator=gen, dtype=d), dim=-1)
+    g = Gaussians(
+        means=torch.stack((u, v, z), -1),
+        quats=quats,
+        scales=torch.rand(n, 2, generator=gen, dtype=d) * 0.3 + 0.01,
+        opacities=torch.rand(n, generator=gen, dtype=d) * 0.95 + 0.02,
+        sh=torch.randn(n, 3, 1, generator=gen, dtype=d) * 0.3,
+    )
+    _assert_agree(_both_backends(g, cams, size, size), min_alpha_sum=5)
+    # The early cull did take part: some spheres lie off the image, some straddle the camera plane.
+    sigma = RenderConventions().lowpass_center_sigma
+    culled, straddling = 0, 0
+    for mu, s, o in zip(g.means.numpy(), g.scales.numpy(), g.opacities.numpy()):
+        k2 = kernels._opacity_extent(o)
+        reach = max(math.sqrt(k2), sigma) * s.max()
+        culled += kernels._surfel_off_image(mu, reach, math.sqrt(k2 / LOWPASS_RHO_SCALE) + 1.0, K.numpy(), size, size)
+        straddling += mu[2] <= reach
+    assert culled > 30 and straddling > 10

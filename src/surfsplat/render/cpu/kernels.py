@@ -12,14 +12,16 @@ shaped for a CPU core:
 * `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
   tiles, so every tile lists its Gaussians front to back (no global key sort).
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
-  each, only over the pixels of its box: alpha for the whole box in one flat loop that fills SIMD
-  lanes (`_box_alpha`), then front-to-back blending into tile-local pixel state. Pixels stop by
-  the 3DGS rule and the tile stops once all of its pixels have.
+  each, only over the pixels of its box, LANES pixels of a row at a time: alpha for the box
+  (`_box_alpha`), then front-to-back blending into tile-local pixel state (`_blend`), both as
+  branch-free loops over pixel state stored field by field, which LLVM turns into SIMD code.
+  Pixels stop by the 3DGS rule and the tile stops once all of its pixels have.
 * `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
   what lies behind, so no per-pixel-pair state is stored. Each (tile, Gaussian) entry gets its own
-  gradient row (no atomics, no per-thread buffers), and the next kernel sums a Gaussian's rows in
-  a fixed order: gradients are bit-identical for any number of threads and any scheduling.
+  gradient row, summed per SIMD lane and then over the lanes in a fixed order (no atomics, no
+  per-thread buffers), and the next kernel sums a Gaussian's rows in a fixed order: gradients are
+  bit-identical for any number of threads and any scheduling.
 * `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
@@ -32,7 +34,7 @@ Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
 
 Precision: the per-Gaussian kernels compute in float64. The compositing kernels are generic in the
 dtype of `geom` (numba compiles one specialisation per dtype): float64 is the exact reference,
-float32 halves the memory per pair and doubles the SIMD lanes of `_box_alpha`. Every literal and
+float32 halves the memory per pair and doubles the SIMD lanes of every pixel loop. Every literal and
 work array there takes that dtype (`ft = geom.dtype.type`, `ft(0.5)`, `np.empty(n, dtype=ft)`),
 since in numba a float32 meeting a float64 literal or an integer becomes float64. `project` writes
 the coefficients in that dtype and expands h about the centre as stored, so a pixel's offset from
@@ -330,6 +332,34 @@ def _view_direction(x, cam_center):
     return v0 / norm, v1 / norm, v2 / norm, norm
 
 
+@njit(cache=True, error_model="numpy")
+def _beyond(mu, radius, K, row, border, side):
+    """Whether the sphere of `radius` about mu lies wholly on the `side` (+-1) of the plane through
+    the camera centre that projects onto pixel coordinate `border` along image axis `row` (0: x, 1: y):
+    (K[row] - border K[2]) . X = 0."""
+    n0 = K[row, 0] - border * K[2, 0]
+    n1 = K[row, 1] - border * K[2, 1]
+    n2 = K[row, 2] - border * K[2, 2]
+    return side * (n0 * mu[0] + n1 * mu[1] + n2 * mu[2]) > radius * math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+
+
+@njit(cache=True, error_model="numpy")
+def _surfel_off_image(mu, radius, margin, K, width, height):
+    """Whether a sphere of `radius` about the camera-frame point mu projects entirely outside the
+    image grown by `margin` pixels on every side. Only for a sphere wholly in front of the camera
+    plane: one reaching it has an unbounded projection (a surfel crossing the camera plane may
+    cover every pixel), and is never off-image.
+    """
+    if mu[2] <= radius:
+        return False
+    return (
+        _beyond(mu, radius, K, 0, -margin, -1.0)
+        or _beyond(mu, radius, K, 0, width + margin, 1.0)
+        or _beyond(mu, radius, K, 1, -margin, -1.0)
+        or _beyond(mu, radius, K, 1, height + margin, 1.0)
+    )
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def project(
     surfel,
@@ -381,6 +411,19 @@ def project(
         safe_z = z if abs(z) > _NEAR_ZERO else 1.0
         depth[i] = z
         k2 = _opacity_extent(opacities[i])
+        # Cull before projecting, by rules that keep every Gaussian `keep` below would keep: the
+        # depth and opacity tests themselves, and for surfels a bounding sphere of the k-sigma
+        # ellipse (and of the sigma-ellipse that places the low-pass centre) that projects off the
+        # image grown by the low-pass reach and a pixel. EWA footprints come from the affine
+        # approximation, which a sphere does not bound: those are culled after projecting.
+        culled = not (z > near and z < far and opacities[i] >= ALPHA_MIN)
+        if surfel and not culled:
+            reach = max(math.sqrt(k2), lowpass_sigma) * max(scales[i, 0], scales[i, 1])
+            culled = _surfel_off_image(mu, reach, math.sqrt(k2 / LOWPASS_RHO_SCALE) + 1.0, K, width, height)
+        if culled:
+            keep[i] = False
+            flip[i] = 1.0
+            continue
         g = geom[i]
         g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
         if surfel:
@@ -560,21 +603,25 @@ _TAYLOR = (
 )
 
 
-# Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loop
-# of `_box_alpha` vectorizes; it miscompiled larger array-writing helpers inside prange bodies.
+# Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loops
+# of `_box_alpha` vectorize; it miscompiled larger array-writing helpers inside prange bodies.
 @njit(cache=True, inline="always", error_model="numpy")
 def _exp_nonpositive(x, ft):
     """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (relative
     error < 1e-14 in float64, a few float32 roundings times 32 in float32).
 
     Plain multiply-adds, so a box of pixels evaluates in SIMD lanes (a libm call per pixel was
-    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms), then
-    squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
+    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms in
+    float64, 7 in float32), then squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
     Every constant is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
     """
     y = max(x, ft(_EXP_MIN)) * ft(0.03125)
-    p = ft(_TAYLOR[11])
-    for k in range(10, -1, -1):
+    # float32 needs the series only to y^6: the next term, 0.24^7 / 7! < 1e-8, is below its roundings
+    # (the max error over the range is the same as with all 12 terms). Decided at compile time: the
+    # comparison of two constants folds away.
+    terms = 12 if ft(1.0) + ft(1e-10) != ft(1.0) else 7
+    p = ft(_TAYLOR[terms - 1])
+    for k in range(terms - 2, -1, -1):
         p = p * y + ft(_TAYLOR[k])
     p = p * p
     p = p * p
@@ -583,82 +630,152 @@ def _exp_nonpositive(x, ft):
     return p * p
 
 
-@njit(cache=True, error_model="numpy")
-def _box_tables(tile, ft):
-    """Row-major walks of every box shape that fits a tile, indexed [columns - 1, step]:
-    the step's row and column within the box (as floats of type ft) and its offset in the tile's pixel state."""
-    rows = np.empty((tile, tile * tile), dtype=ft)
-    cols = np.empty((tile, tile * tile), dtype=ft)
-    offsets = np.empty((tile, tile * tile), dtype=np.int64)
-    for nc in range(1, tile + 1):
-        for step in range(tile * tile):
-            rows[nc - 1, step] = step // nc
-            cols[nc - 1, step] = step % nc
-            offsets[nc - 1, step] = (step // nc) * tile + step % nc
-    return rows, cols, offsets
+# A tile's pixels are processed in chunks of LANES pixels of one row (a tile row wider than LANES
+# spans several): one AVX-512 register of float32, two of float64 - which is where float32 pays.
+# Pixel state is stored per chunk as LANES-long runs of each field (structure of arrays), chunk b =
+# tile row * chunks + chunk being row b of a 2D array. Every lane loop below has a constant trip
+# count, no branches (masks and selects) and non-negative in-loop indices, so LLVM vectorizes it
+# whole; each kernel call walks all the chunks of a Gaussian's box, so that the long dependency
+# chains of successive chunks (the exponential's polynomial) overlap in the core.
+LANES = 16  # (`_sum_lanes` halves it four times)
+
+# Runs of the per-chunk work rows: alpha, depth and 1 / hz (`_box_alpha`), then the backward's
+# dL/drho, dL/d(pair depth) and contribution mask.
+W_ALPHA, W_DEPTH, W_INV, W_GRHO, W_GDEPTH, W_ON = 0, 1, 2, 3, 4, 5
+WORK_RUNS = 6
+
+# Forward pixel state runs: features 0-5, depth, transmittance (negated once the pixel has stopped).
+S_DEPTH, S_T = FEATURES, FEATURES + 1
+FORWARD_RUNS = FEATURES + 2
+# Backward pixel state runs: upstream dL/dfeatures (0-5), T (walked back), the weighted sum behind,
+# dL/dT_out T_out, dL/ddepth.
+B_T, B_BEHIND, B_GOUT, B_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
+BACKWARD_RUNS = FEATURES + 4
 
 
-@njit(cache=True, error_model="numpy")
-def _box_alpha(surfel, g, c0, r0, n, rows, cols, alpha, depth, inv_hz):
-    """alpha, depth and 1 / hz of the first n pixels of a box walked row-major from pixel (r0, c0)
-    (its rows and columns relative to the box in `rows`, `cols`: a `_box_tables` row).
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _lane_table(ft):
+    """0, 1, ..., LANES - 1 as floats of type ft (a lane's column offset, without an int-to-float cast per pixel)."""
+    lane = np.empty(LANES, dtype=ft)
+    for j in range(LANES):
+        lane[j] = j
+    return lane
 
-    One flat loop over the whole box, not one per row: the footprints of small surfels span a few
-    pixels per row, too few for SIMD lanes, while the whole box fills them.
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, work):
+    """alpha, depth and 1 / hz of Gaussian g at the pixels of its box, columns c0..c1 and rows
+    r0..r1 of the tile at (x0, y0), into the work runs W_ALPHA, W_DEPTH, W_INV of each chunk;
+    lanes outside the box get alpha 0. Rows r with rows[r - y0] <= after are skipped (they have
+    no pixel left to take the Gaussian).
+
     surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
             (the z of the ray-splat intersection) or the centre depth (2DGS).
     ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
-    inv_hz is 1 / hz on the ray-splat branch and 0 on the filter branch (and for ewa), so the
-    backward pass takes the very branch the forward pass took.
-    Returns whether any pixel of the box has alpha > 0.
-    Computes in the dtype of g (alpha, depth, inv_hz, rows and cols share it), constants included.
+    1 / hz is kept on the ray-splat branch and 0 on the filter branch (and for ewa), so the backward
+    pass takes the very branch the forward pass took; lanes with alpha 0 get depth and 1 / hz 0.
+    Returns whether any pixel has alpha > 0. Computes in the dtype of g, constants included.
     """
     ft = g.dtype.type
     zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
     rho_scale, log_alpha_min, alpha_max = ft(LOWPASS_RHO_SCALE), ft(LOG_ALPHA_MIN), ft(ALPHA_MAX)
     cx, cy, log_o, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO], g[GEOM_DEPTH]
-    fc0, fr0 = ft(c0), ft(r0)
+    A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
+    C0, C1, C2 = g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2]
+    b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
+    lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
+    ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
     hit = False
-    if surfel:
-        A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
-        C0, C1, C2 = g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2]
-        b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
-        lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
-        for j in range(n):
-            dx = (fc0 + cols[j]) + half - cx
-            dy = (fr0 + rows[j]) + half - cy
-            hx = (A0 + dy * C0) + dx * b0
-            hy = (A1 + dy * C1) + dx * b1
-            hz = (A2 + dy * C2) + dx * b2
-            ex = (fc0 + cols[j]) + half - lx
-            ey = (fr0 + rows[j]) + half - ly
-            rho2d = rho_scale * ex * ex + rho_scale * ey * ey
-            q = hx * hx + hy * hy
-            use3d = q < rho2d * (hz * hz)
-            inv = one / (hz if use3d else one)
-            log_alpha = log_o - half * (q * inv * inv if use3d else rho2d)
-            ok = log_alpha >= log_alpha_min
-            alpha[j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
-            depth[j] = det * inv if use3d else z
-            inv_hz[j] = inv if use3d else zero
-            hit |= ok
-    else:
-        ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
-        for j in range(n):
-            dx = (fc0 + cols[j]) + half - cx
-            dy = (fr0 + rows[j]) + half - cy
-            log_alpha = log_o - half * (ca * dx * dx + two * cb * dx * dy + cc * dy * dy)
-            ok = log_alpha >= log_alpha_min
-            alpha[j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
-            depth[j] = z
-            inv_hz[j] = zero
-            hit |= ok
+    for r in range(r0, r1 + 1):
+        if rows[r - y0] <= after:
+            continue
+        # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
+        py = ft(r) + half
+        dy = py - cy
+        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            b = (r - y0) * chunks + ch
+            col0 = x0 + ch * LANES
+            fc0, lo, hi = ft(col0), ft(c0 - col0), ft(c1 - col0)
+            if surfel:
+                ey = py - ly
+                a0, a1, a2 = A0 + dy * C0, A1 + dy * C1, A2 + dy * C2
+                for j in range(LANES):
+                    px = (fc0 + lane[j]) + half
+                    dx = px - cx
+                    hx = a0 + dx * b0
+                    hy = a1 + dx * b1
+                    hz = a2 + dx * b2
+                    ex = px - lx
+                    rho2d = rho_scale * ex * ex + rho_scale * ey * ey
+                    q = hx * hx + hy * hy
+                    use3d = q < rho2d * (hz * hz)
+                    inv = one / (hz if use3d else one)
+                    log_alpha = log_o - half * (q * inv * inv if use3d else rho2d)
+                    ok = (lane[j] >= lo) & (lane[j] <= hi) & (log_alpha >= log_alpha_min)
+                    work[b, W_ALPHA * LANES + j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
+                    work[b, W_DEPTH * LANES + j] = (det * inv if use3d else z) if ok else zero
+                    work[b, W_INV * LANES + j] = inv if use3d & ok else zero
+                    hit |= ok
+            else:
+                for j in range(LANES):
+                    dx = ((fc0 + lane[j]) + half) - cx
+                    log_alpha = log_o - half * (ca * dx * dx + two * cb * dx * dy + cc * dy * dy)
+                    ok = (lane[j] >= lo) & (lane[j] <= hi) & (log_alpha >= log_alpha_min)
+                    work[b, W_ALPHA * LANES + j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
+                    work[b, W_DEPTH * LANES + j] = z if ok else zero
+                    work[b, W_INV * LANES + j] = zero
+                    hit |= ok
     return hit
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
+    """Front-to-back blending of one Gaussian (features f0-f5, alpha and depth in the work rows) into
+    the chunks of its box: state [chunks, FORWARD_RUNS * LANES], last [chunks, LANES] (1 + the
+    tile-list position of each pixel's last blended Gaussian); rows [tile] counts the pixels of each
+    tile row still running (rows at 0 are skipped) and loses those that stop here.
+    Returns how many pixels stopped.
+
+    The 3DGS/2DGS rule: a pixel takes the Gaussian when alpha > 0 and it has not stopped; the
+    Gaussian that would take its transmittance below the floor ends the pixel and is itself not
+    blended. Masks select what a branch would have skipped, so a pixel's sums are those of the
+    one-pixel-at-a-time loop, bit for bit.
+    """
+    ft = state.dtype.type
+    zero, one, t_min = ft(0.0), ft(1.0), ft(TRANSMITTANCE_MIN)
+    total = 0
+    for r in range(r0, r1 + 1):
+        if rows[r - y0] <= 0:
+            continue
+        stopped = np.int32(0)
+        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            b = (r - y0) * chunks + ch
+            for j in range(LANES):
+                a = work[b, W_ALPHA * LANES + j]
+                T = state[b, S_T * LANES + j]
+                T_next = T * (one - a)
+                takes = (a > zero) & (T > zero)
+                ends = takes & (T_next < t_min)
+                blends = takes & (T_next >= t_min)
+                w = a * T
+                state[b, j] += w * f0 if blends else zero
+                state[b, LANES + j] += w * f1 if blends else zero
+                state[b, 2 * LANES + j] += w * f2 if blends else zero
+                state[b, 3 * LANES + j] += w * f3 if blends else zero
+                state[b, 4 * LANES + j] += w * f4 if blends else zero
+                state[b, 5 * LANES + j] += w * f5 if blends else zero
+                state[b, S_DEPTH * LANES + j] += w * work[b, W_DEPTH * LANES + j] if blends else zero
+                state[b, S_T * LANES + j] = T_next if blends else (-T if ends else T)
+                last[b, j] = position if blends else last[b, j]
+                stopped += np.int32(ends)
+        rows[r - y0] -= stopped
+        total += stopped
+    return total
+
+
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def composite_forward(
     surfel,
     geom,
@@ -682,77 +799,220 @@ def composite_forward(
     Writes the blended out_color [3, H, W], out_normal [3, H, W], out_depth [H, W], the final
     transmittance out_trans [H, W] and out_last [H, W] (1 + position in the tile list of the last
     blended Gaussian). Computes in the dtype of geom, which features and the float outputs share.
+    Inside a tile the loop runs over its Gaussians, front to back, and for each over the chunks of
+    the rows of its box that still have a pixel running; the tile stops once all of its pixels have.
     """
     ft = geom.dtype.type
-    zero, one, t_min = ft(0.0), ft(1.0), ft(TRANSMITTANCE_MIN)
     n_tiles = tile_start.shape[0] - 1
-    rows, cols, offsets = _box_tables(tile, ft)
+    chunks = -(-tile // LANES)
+    lane = _lane_table(ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        # Tile-local pixel state, one row per pixel: features 0-5, depth, transmittance (negated
-        # once the pixel has stopped), so a pair touches one cache line.
-        state = np.zeros((tile * tile, FEATURES + 2), dtype=ft)
-        state[:, FEATURES + 1] = one
-        last = np.zeros(tile * tile, dtype=np.int64)
-        alpha = np.empty(tile * tile, dtype=ft)
-        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
+        state = np.zeros((tile * chunks, FORWARD_RUNS * LANES), dtype=ft)
+        state[:, S_T * LANES :] = ft(1.0)
+        last = np.zeros((tile * chunks, LANES), dtype=np.int32)
+        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
+        rows = np.zeros(tile, dtype=np.int64)  # pixels of each tile row still running
+        rows[: y1 - y0] = x1 - x0
         active = (x1 - x0) * (y1 - y0)
         start = tile_start[t]
         for k in range(start, tile_start[t + 1]):
             if active == 0:
                 break  # every pixel of the tile has reached the transmittance floor
             m = tile_ids[k]
-            g = geom[m]
-            f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
-            f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
-            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
-            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
-            if nc <= 0 or nr <= 0:
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
+            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            if c0 > c1 or r0 > r1:
                 continue
-            n = nc * nr
-            if not _box_alpha(surfel, g, c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
-                continue
-            base = (r0 - y0) * tile + c0 - x0
-            offset = offsets[nc - 1]
-            for j in range(n):
-                a = alpha[j]
-                if a == zero:
-                    continue
-                p = base + offset[j]
-                s = state[p]
-                T = s[FEATURES + 1]
-                if T < zero:
-                    continue  # stopped
-                T_next = T * (one - a)
-                # 3DGS/2DGS rule: the Gaussian that would take transmittance below the floor
-                # ends the pixel and is itself not blended.
-                if T_next < t_min:
-                    s[FEATURES + 1] = -T
-                    active -= 1
-                    continue
-                w = a * T
-                s[0] += w * f0
-                s[1] += w * f1
-                s[2] += w * f2
-                s[3] += w * f3
-                s[4] += w * f4
-                s[5] += w * f5
-                s[FEATURES] += w * depth[j]
-                s[FEATURES + 1] = T_next
-                last[p] = k - start + 1
+            if _box_alpha(surfel, geom[m], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work):
+                f = features[m]
+                position = np.int32(k - start + 1)
+                active -= _blend(
+                    state,
+                    last,
+                    work,
+                    x0,
+                    y0,
+                    chunks,
+                    c0,
+                    c1,
+                    r0,
+                    r1,
+                    rows,
+                    position,
+                    f[0],
+                    f[1],
+                    f[2],
+                    f[3],
+                    f[4],
+                    f[5],
+                )
         for r in range(y0, y1):
             for c in range(x0, x1):
-                p = (r - y0) * tile + c - x0
+                b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
                 for f in range(3):
-                    out_color[f, r, c] = state[p, f]
-                    out_normal[f, r, c] = state[p, 3 + f]
-                out_depth[r, c] = state[p, FEATURES]
-                out_trans[r, c] = abs(state[p, FEATURES + 1])
-                out_last[r, c] = last[p]
+                    out_color[f, r, c] = state[b, f * LANES + j]
+                    out_normal[f, r, c] = state[b, (3 + f) * LANES + j]
+                out_depth[r, c] = state[b, S_DEPTH * LANES + j]
+                out_trans[r, c] = abs(state[b, S_T * LANES + j])
+                out_last[r, c] = last[b, j]
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
+    """The compositing's chain rule for one Gaussian over the chunks of its box, back to front.
+
+    With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
+      dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
+    A pixel takes part where alpha > 0 and the Gaussian is not behind its last blended one
+    (position < last; rows [tile] holds each tile row's largest last, rows at or below position
+    are skipped). It recovers T_i = T_{i+1} / (1 - a_i) and carries the sum behind in state
+    [chunks, BACKWARD_RUNS * LANES]; the feature and log-opacity sums go to the per-lane runs of
+    acc [GRAD_SIZE * LANES], and dL/drho, dL/d(pair depth) and the mask to the work runs W_GRHO,
+    W_GDEPTH, W_ON for the mode's geometry (`_surfel_grads`, `_ewa_grads`).
+    """
+    ft = state.dtype.type
+    zero, half, one = ft(0.0), ft(0.5), ft(1.0)
+    alpha_max = ft(ALPHA_MAX)
+    for r in range(r0, r1 + 1):
+        if rows[r - y0] <= position:
+            continue
+        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            b = (r - y0) * chunks + ch
+            for j in range(LANES):
+                a = work[b, W_ALPHA * LANES + j]
+                on = (a > zero) & (position < last[b, j])
+                T_behind = state[b, B_T * LANES + j]
+                inv_one_minus = one / (one - a)
+                T = T_behind * inv_one_minus
+                w = a * T
+                d = work[b, W_DEPTH * LANES + j]
+                g_d = state[b, B_GDEPTH * LANES + j]
+                u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
+                u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
+                g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+                behind = state[b, B_BEHIND * LANES + j]
+                g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
+                state[b, B_T * LANES + j] = T if on else T_behind
+                state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
+                acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
+                acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
+                acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
+                acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
+                acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
+                acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
+                # alpha = min(exp(.), 0.99): a clamped pair passes nothing on to rho or the opacity.
+                passes = on & (a < alpha_max)
+                g_log_alpha = g_a * a
+                acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
+                work[b, W_GRHO * LANES + j] = -half * g_log_alpha if passes else zero
+                work[b, W_GDEPTH * LANES + j] = w * g_d if on else zero
+                work[b, W_ON * LANES + j] = one if on else zero
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _surfel_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc):
+    """Surfel geometry gradients over the chunks of the box from the work runs W_GRHO, W_GDEPTH,
+    W_ON (`_unblend`), added to the per-lane runs of acc.
+
+    Ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and depth = det / hz give dL/dh,
+    kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and dL/ddet. Filter branch:
+    rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth.
+    """
+    ft = g.dtype.type
+    zero, half, two = ft(0.0), ft(0.5), ft(2.0)
+    two_rho_scale = ft(2.0 * LOWPASS_RHO_SCALE)
+    cx, cy = g[GEOM_CX], g[GEOM_CY]
+    A0, A1, b0, b1, C0, C1 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_B], g[GEOM_B + 1], g[GEOM_C], g[GEOM_C + 1]
+    lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
+    for r in range(r0, r1 + 1):
+        if rows[r - y0] <= position:
+            continue
+        py = ft(r) + half
+        dy, ey = py - cy, py - ly
+        a0, a1 = A0 + dy * C0, A1 + dy * C1
+        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            b = (r - y0) * chunks + ch
+            fc0 = ft(x0 + ch * LANES)
+            for j in range(LANES):
+                on = work[b, W_ON * LANES + j] != zero
+                inv = work[b, W_INV * LANES + j]
+                g_rho = work[b, W_GRHO * LANES + j]
+                g_dpair = work[b, W_GDEPTH * LANES + j]
+                d = work[b, W_DEPTH * LANES + j]
+                px = (fc0 + lane[j]) + half
+                dx = px - cx
+                hx = a0 + dx * b0
+                hy = a1 + dx * b1
+                sc = two * g_rho * inv * inv
+                g_hx, g_hy = sc * hx, sc * hy
+                g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
+                ray = on & (inv != zero)
+                acc[GRAD_H * LANES + j] += g_hx if ray else zero
+                acc[(GRAD_H + 1) * LANES + j] += g_hy if ray else zero
+                acc[(GRAD_H + 2) * LANES + j] += g_hz if ray else zero
+                acc[GRAD_HX * LANES + j] += dx * g_hx if ray else zero
+                acc[(GRAD_HX + 1) * LANES + j] += dx * g_hy if ray else zero
+                acc[(GRAD_HX + 2) * LANES + j] += dx * g_hz if ray else zero
+                acc[GRAD_HY * LANES + j] += dy * g_hx if ray else zero
+                acc[(GRAD_HY + 1) * LANES + j] += dy * g_hy if ray else zero
+                acc[(GRAD_HY + 2) * LANES + j] += dy * g_hz if ray else zero
+                acc[GRAD_DET * LANES + j] += g_dpair * inv if ray else zero
+                lowpass = on & (inv == zero)
+                sc2 = two_rho_scale * g_rho
+                acc[GRAD_CX * LANES + j] -= sc2 * (px - lx) if lowpass else zero
+                acc[GRAD_CY * LANES + j] -= sc2 * ey if lowpass else zero
+                acc[GRAD_DEPTH * LANES + j] += g_dpair if lowpass else zero
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc):
+    """EWA geometry gradients (rho = d^T conic d, d = p - c; centre depth) over the chunks of the
+    box, added to the per-lane runs of acc."""
+    ft = g.dtype.type
+    zero, half, two = ft(0.0), ft(0.5), ft(2.0)
+    cx, cy = g[GEOM_CX], g[GEOM_CY]
+    ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
+    for r in range(r0, r1 + 1):
+        if rows[r - y0] <= position:
+            continue
+        dy = (ft(r) + half) - cy
+        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            b = (r - y0) * chunks + ch
+            fc0 = ft(x0 + ch * LANES)
+            for j in range(LANES):
+                on = work[b, W_ON * LANES + j] != zero
+                g_rho = work[b, W_GRHO * LANES + j]
+                dx = ((fc0 + lane[j]) + half) - cx
+                acc[GRAD_CONIC * LANES + j] += g_rho * dx * dx if on else zero
+                acc[(GRAD_CONIC + 1) * LANES + j] += two * g_rho * dx * dy if on else zero
+                acc[(GRAD_CONIC + 2) * LANES + j] += g_rho * dy * dy if on else zero
+                acc[GRAD_CX * LANES + j] -= two * g_rho * (ca * dx + cb * dy) if on else zero
+                acc[GRAD_CY * LANES + j] -= two * g_rho * (cb * dx + cc * dy) if on else zero
+                acc[GRAD_DEPTH * LANES + j] += work[b, W_GDEPTH * LANES + j] if on else zero
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _sum_lanes(acc, row):
+    """row [GRAD_SIZE] = the per-lane runs of acc [GRAD_SIZE * LANES] summed over the lanes, by
+    halving: lane j takes lane j + 8, then j + 4, j + 2, j + 1 (a fixed order, the same for every
+    tile and thread). Each halving runs over the whole array, a run's upper lanes included, so that
+    it is one contiguous SIMD loop (a loop over the runs would vectorize across them, as gathers);
+    ascending i reads acc[i + width] before it is overwritten.
+    """
+    n = GRAD_SIZE * LANES
+    for i in range(n - LANES // 2):
+        acc[i] += acc[i + LANES // 2]
+    for i in range(n - LANES // 4):
+        acc[i] += acc[i + LANES // 4]
+    for i in range(n - LANES // 8):
+        acc[i] += acc[i + LANES // 8]
+    for f in range(GRAD_SIZE):
+        row[f] = acc[f * LANES] + acc[f * LANES + 1]
+
+
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def composite_backward(
     surfel,
     geom,
@@ -774,151 +1034,84 @@ def composite_backward(
 ):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
-    With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
-      dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
-    Walking back to front, T_i = T_{i+1} / (1 - a_i) and the sum over j > i is carried per pixel,
-    so nothing per pair is stored. g_color [3, H, W], g_normal [3, H, W], g_alpha [H, W] and
-    g_depth [H, W] are the upstream gradients. pair_grads [pairs, GRAD_SIZE] receives, for every
-    entry k of tile_ids, the gradient sums of that Gaussian over that tile's pixels (zeros where it
-    contributed nothing): each row is written once, by the one thread that owns the tile, so no two
-    threads touch the same memory and the result does not depend on scheduling. Computes in the
-    dtype of geom, which every float argument shares.
+    Walking back to front, each pixel recovers the transmittance in front of a Gaussian by dividing
+    out its alpha and carries the weighted sum of what lies behind (`_unblend`), so nothing per
+    pair is stored. g_color [3, H, W], g_normal [3, H, W], g_alpha [H, W] and g_depth [H, W] are
+    the upstream gradients. pair_grads [pairs, GRAD_SIZE] receives, for every entry k of
+    tile_ids, the gradient sums of that Gaussian over that tile's pixels (zeros where it
+    contributed nothing), summed per lane and then over the lanes in a fixed order: each row is
+    written once, by the one thread that owns the tile, so the result does not depend on
+    scheduling. Computes in the dtype of geom, which every float argument shares.
     """
     ft = geom.dtype.type
-    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
-    alpha_max, two_rho_scale = ft(ALPHA_MAX), ft(2.0 * LOWPASS_RHO_SCALE)
+    zero = ft(0.0)
     n_tiles = tile_start.shape[0] - 1
-    S_T, S_BEHIND, S_GOUT, S_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
-    rows, cols, offsets = _box_tables(tile, ft)
+    chunks = -(-tile // LANES)
+    lane = _lane_table(ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        # Tile-local pixel state: upstream dL/dfeatures (6), T (walked back), the weighted sum
-        # behind, dL/dT_out T_out, dL/ddepth.
-        state = np.zeros((tile * tile, FEATURES + 4), dtype=ft)
-        last_px = np.zeros(tile * tile, dtype=np.int64)
-        n_last = 0
+        state = np.zeros((tile * chunks, BACKWARD_RUNS * LANES), dtype=ft)
+        last_px = np.zeros((tile * chunks, LANES), dtype=np.int32)
+        rows = np.zeros(tile, dtype=np.int64)  # the largest `last` of each tile row
         for r in range(y0, y1):
             for c in range(x0, x1):
-                p = (r - y0) * tile + c - x0
+                b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
                 for f in range(3):
-                    state[p, f] = g_color[f, r, c]
-                    state[p, 3 + f] = g_normal[f, r, c]
-                state[p, S_T] = trans_final[r, c]
-                state[p, S_GOUT] = -g_alpha[r, c] * trans_final[r, c]  # alpha = 1 - T_out
-                state[p, S_GDEPTH] = g_depth[r, c]
-                last_px[p] = last[r, c]
-                n_last = max(n_last, last[r, c])
-        alpha = np.empty(tile * tile, dtype=ft)
-        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
+                    state[b, f * LANES + j] = g_color[f, r, c]
+                    state[b, (3 + f) * LANES + j] = g_normal[f, r, c]
+                state[b, B_T * LANES + j] = trans_final[r, c]
+                state[b, B_GOUT * LANES + j] = -g_alpha[r, c] * trans_final[r, c]  # alpha = 1 - T_out
+                state[b, B_GDEPTH * LANES + j] = g_depth[r, c]
+                last_px[b, j] = last[r, c]
+                rows[r - y0] = max(rows[r - y0], last[r, c])
+        n_last = rows.max()
+        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
+        acc = np.empty(GRAD_SIZE * LANES, dtype=ft)
         start = tile_start[t]
         for k in range(start + n_last, tile_start[t + 1]):
             pair_grads[k, :] = zero  # behind every pixel's last blended Gaussian
         for k in range(start + n_last - 1, start - 1, -1):
-            pos = k - start
             m = tile_ids[k]
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
+            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            position = np.int32(k - start)
             g = geom[m]
-            cx, cy = g[GEOM_CX], g[GEOM_CY]
-            f0, f1, f2 = features[m, 0], features[m, 1], features[m, 2]
-            f3, f4, f5 = features[m, 3], features[m, 4], features[m, 5]
-            b0, b1 = g[GEOM_B], g[GEOM_B + 1]
-            ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
-            # Per-Gaussian sums kept in registers (GRAD_* columns).
-            s_h0 = s_h1 = s_h2 = s_x0 = s_x1 = s_x2 = s_y0 = s_y1 = s_y2 = zero  # surfel h; ewa conic in s_h
-            s_cx = s_cy = s_det = s_depth = s_logo = zero
-            s_f0 = s_f1 = s_f2 = s_f3 = s_f4 = s_f5 = zero
-            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
-            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
-            n = nc * nr if nc > 0 and nr > 0 else 0
-            if n > 0 and _box_alpha(surfel, g, c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
-                base = (r0 - y0) * tile + c0 - x0
-                offset = offsets[nc - 1]
-                row_f, col_f = rows[nc - 1], cols[nc - 1]
-                for j in range(n):
-                    a = alpha[j]
-                    p = base + offset[j]
-                    if a == zero or pos >= last_px[p]:
-                        continue  # below 1/255, or behind this pixel's last blended Gaussian
-                    s = state[p]
-                    inv_one_minus = one / (one - a)
-                    T = s[S_T] * inv_one_minus
-                    s[S_T] = T
-                    w = a * T
-                    d = depth[j]
-                    g_d = s[S_GDEPTH]
-                    u0, u1, u2, u3, u4, u5 = s[0], s[1], s[2], s[3], s[4], s[5]
-                    g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
-                    s_f0 += w * u0
-                    s_f1 += w * u1
-                    s_f2 += w * u2
-                    s_f3 += w * u3
-                    s_f4 += w * u4
-                    s_f5 += w * u5
-                    behind = s[S_BEHIND]
-                    g_a = T * g_w - (behind + s[S_GOUT]) * inv_one_minus
-                    s[S_BEHIND] = behind + w * g_w
-                    g_rho = zero
-                    if a < alpha_max:  # alpha = min(exp(.), 0.99): a clamped pair passes nothing on
-                        g_log_alpha = g_a * a
-                        s_logo += g_log_alpha
-                        g_rho = -half * g_log_alpha
-                    g_dpair = w * g_d
-                    # The pixel's offset from the centre, computed as in `_box_alpha` (every bit equal).
-                    dx = (ft(c0) + col_f[j]) + half - cx
-                    dy = (ft(r0) + row_f[j]) + half - cy
-                    if surfel:
-                        inv = inv_hz[j]
-                        if inv != zero:
-                            # rho = (hx^2 + hy^2) / hz^2, depth = det / hz (1 / hz is inv)
-                            hx = (g[GEOM_A] + dy * g[GEOM_C]) + dx * b0
-                            hy = (g[GEOM_A + 1] + dy * g[GEOM_C + 1]) + dx * b1
-                            sc = two * g_rho * inv * inv
-                            g_hx, g_hy = sc * hx, sc * hy
-                            g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
-                            s_h0 += g_hx
-                            s_h1 += g_hy
-                            s_h2 += g_hz
-                            s_x0 += dx * g_hx
-                            s_x1 += dx * g_hy
-                            s_x2 += dx * g_hz
-                            s_y0 += dy * g_hx
-                            s_y1 += dy * g_hy
-                            s_y2 += dy * g_hz
-                            s_det += g_dpair * inv
-                        else:
-                            # rho = 2 |p - c_lp|^2, depth = centre depth; GRAD_CX, GRAD_CY are dL/dc_lp
-                            sc = two_rho_scale * g_rho
-                            s_cx -= sc * ((ft(c0) + col_f[j]) + half - g[GEOM_LP])
-                            s_cy -= sc * ((ft(r0) + row_f[j]) + half - g[GEOM_LP + 1])
-                            s_depth += g_dpair
-                    else:
-                        s_h0 += g_rho * dx * dx
-                        s_h1 += two * g_rho * dx * dy
-                        s_h2 += g_rho * dy * dy
-                        s_cx -= two * g_rho * (ca * dx + cb * dy)
-                        s_cy -= two * g_rho * (cb * dx + cc * dy)
-                        s_depth += g_dpair
-            row = pair_grads[k]
-            row[GRAD_H] = s_h0
-            row[GRAD_H + 1] = s_h1
-            row[GRAD_H + 2] = s_h2
-            row[GRAD_HX] = s_x0
-            row[GRAD_HX + 1] = s_x1
-            row[GRAD_HX + 2] = s_x2
-            row[GRAD_HY] = s_y0
-            row[GRAD_HY + 1] = s_y1
-            row[GRAD_HY + 2] = s_y2
-            row[GRAD_CX] = s_cx
-            row[GRAD_CY] = s_cy
-            row[GRAD_DET] = s_det
-            row[GRAD_DEPTH] = s_depth
-            row[GRAD_LOGO] = s_logo
-            row[GRAD_FEAT] = s_f0
-            row[GRAD_FEAT + 1] = s_f1
-            row[GRAD_FEAT + 2] = s_f2
-            row[GRAD_FEAT + 3] = s_f3
-            row[GRAD_FEAT + 4] = s_f4
-            row[GRAD_FEAT + 5] = s_f5
+            if (
+                c0 > c1
+                or r0 > r1
+                or not _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work)
+            ):
+                pair_grads[k, :] = zero
+                continue
+            acc[:] = zero
+            f = features[m]
+            _unblend(
+                state,
+                last_px,
+                work,
+                acc,
+                x0,
+                y0,
+                chunks,
+                c0,
+                c1,
+                r0,
+                r1,
+                rows,
+                position,
+                f[0],
+                f[1],
+                f[2],
+                f[3],
+                f[4],
+                f[5],
+            )
+            if surfel:
+                _surfel_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
+            else:
+                _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
+            _sum_lanes(acc, pair_grads[k])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1213,7 +1406,7 @@ def project_backward(
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, height, tile, tiles_x):
     """Number of (pixel, Gaussian) pairs with alpha >= 1/255, ignoring early termination.
 
@@ -1221,22 +1414,29 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     """
     n_tiles = tile_start.shape[0] - 1
     ft = geom.dtype.type
+    zero = ft(0.0)
+    chunks = -(-tile // LANES)
     per_tile = np.zeros(n_tiles, dtype=np.int64)
-    rows, cols, _ = _box_tables(tile, ft)
+    lane = _lane_table(ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        alpha = np.empty(tile * tile, dtype=ft)
-        depth, inv_hz = np.empty(tile * tile, dtype=ft), np.empty(tile * tile, dtype=ft)
+        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
+        rows = np.ones(tile, dtype=np.int64)  # every row
         count = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             m = tile_ids[k]
-            c0, r0 = max(box[m, 0], x0), max(box[m, 2], y0)
-            nc, nr = min(box[m, 1], x1 - 1) - c0 + 1, min(box[m, 3], y1 - 1) - r0 + 1
-            if nc > 0 and nr > 0:
-                n = nc * nr
-                if _box_alpha(surfel, geom[m], c0, r0, n, rows[nc - 1], cols[nc - 1], alpha, depth, inv_hz):
-                    for j in range(n):
-                        count += alpha[j] > ft(0.0)
+            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
+            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            if (
+                c0 <= c1
+                and r0 <= r1
+                and _box_alpha(surfel, geom[m], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work)
+            ):
+                for r in range(r0, r1 + 1):
+                    for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+                        b = (r - y0) * chunks + ch
+                        for j in range(LANES):
+                            count += work[b, W_ALPHA * LANES + j] > zero
         per_tile[t] = count
     return per_tile.sum()
