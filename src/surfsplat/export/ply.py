@@ -118,7 +118,9 @@ def load_ply(path: str | os.PathLike, dtype: torch.dtype = torch.float32) -> Gau
     def col(name: str) -> torch.Tensor:
         return torch.from_numpy(np.asarray(v[name], dtype=np.float64))
 
-    used = [p.name for p in v.properties if p.name in SURFEL_FIELDS or p.name.startswith("f_rest_") or p.name == "scale_2"]
+    used = [
+        p.name for p in v.properties if p.name in SURFEL_FIELDS or p.name.startswith("f_rest_") or p.name == "scale_2"
+    ]
     for name in used:
         bad = np.flatnonzero(~np.isfinite(np.asarray(v[name], dtype=np.float64)))
         if len(bad):
