@@ -47,9 +47,12 @@ def machine() -> dict:
     }
 
 
-def write_results(name: str, document: dict, folder: Path = RESULTS) -> Path:
-    """`folder/name` (.json added when missing) holding `document`, indented; returns its path."""
-    path = folder / (name if name.endswith(".json") else f"{name}.json")
+def write_results(target: str | Path, document: dict) -> Path:
+    """`document` as indented JSON at `target`: a path, or a bare name for `RESULTS/name.json`;
+    returns the path written."""
+    path = Path(target)
+    if isinstance(target, str) and path.parent == Path("."):
+        path = RESULTS / (target if target.endswith(".json") else f"{target}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(document, indent=1) + "\n")
     return path

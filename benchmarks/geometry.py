@@ -18,7 +18,6 @@ load average is recorded with the times (on a shared machine wall time alone say
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -29,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import RESULTS
+from common import RESULTS, write_results
 from surfsplat.data.synthetic import (
     SyntheticDataset,
     SyntheticDatasetConfig,
@@ -79,8 +78,7 @@ def main() -> None:
         "counts": counts,
         "seconds": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(document, indent=1) + "\n")
+    write_results(args.out, document)
     width = max(len(k) for k in rows)
     print(f"{'part'.ljust(width)} | wall s (median) | CPU s (median) | wall s, all repeats")
     print("-" * (width + 70))

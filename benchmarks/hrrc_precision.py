@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 import tempfile
 from pathlib import Path
 
-from common import RESULTS
+from common import RESULTS, write_results
 
 
 def main() -> int:
@@ -67,9 +66,7 @@ def main() -> int:
         "seconds_forward_mean": {p: r.seconds_forward for p, r in results.items()},
         "load_average": os.getloadavg(),
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / "hrrc_precision.json"
-    out.write_text(json.dumps(report, indent=1))
+    out = write_results(RESULTS / "hrrc_precision.json", report)
     print(f"{name}: {args.rooms} rooms, {report['images_per_factor']} target images per scale")
     print(f"{'scale':<6} {'fp32 PSNR':>10} {'bf16 PSNR':>10} {'dPSNR dB':>9} {'fp32 SSIM':>10} {'bf16 SSIM':>10}")
     for s in demo.factors:

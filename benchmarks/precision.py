@@ -16,7 +16,6 @@ benchmarks/results/precision_<device>.json and a table is printed.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -24,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import RESULTS
+from common import RESULTS, write_results
 
 # name -> encoder parts kept in float32 under bf16 autocast (None: no autocast, the float32 model)
 CONFIGS: dict[str, tuple[str, ...] | None] = {
@@ -132,9 +131,7 @@ def main() -> int:
         "torch": torch.__version__,
         "results": rows,
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / f"precision_{device.type}.json"
-    out.write_text(json.dumps(report, indent=1))
+    out = write_results(RESULTS / f"precision_{device.type}.json", report)
     short = {"depths": "depths", "gaussians.means": "means", "gaussians.opacities": "opacities"}
     short["gaussians.harmonics"] = "SH"
     head = f"{'configuration':<28} {'s (median)':>10} {'x fp32':>7} {'CPU s':>7} {'x fp32':>7} "

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from common import RESULTS
+from common import RESULTS, write_results
 
 
 def _scene():
@@ -247,8 +247,7 @@ def main() -> None:
                         flush=True,
                     )
         out = args.out.with_name("render_multiview.json")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows}, indent=2))
+        write_results(out, {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows})
         print(f"wrote {out}")
         return
 

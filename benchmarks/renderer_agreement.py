@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from common import write_results
 from surfsplat import Gaussians
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render
 from surfsplat.render.gsplat_backend import render_gsplat
@@ -242,8 +243,7 @@ def main() -> None:
         report["reference_gradients"][backend] = gradients_against_gsplat_reference(backend)
     for mode in ("surfel", "ewa"):
         report["gsplat_backend_cpu"][mode] = gsplat_backend_on_cpu(mode)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1))
+    write_results(args.out, report)
     table = markdown(report)
     args.out.with_suffix(".md").write_text(table)
     print(table)
