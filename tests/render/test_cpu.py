@@ -276,7 +276,10 @@ def test_float32_kernels_compute_in_float32():
             kernels._unblend,
             [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, *box, np.int32(0), *one)],
         ),
-        (kernels._surfel_grads, [(g, *box, np.int32(0), lane, work, acc)]),
+        (
+            kernels._unblend_surfel,
+            [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, g, *box, np.int32(0), lane, *one)],
+        ),
         (kernels._ewa_grads, [(g, *box, np.int32(0), lane, work, acc)]),
         (kernels._sum_lanes, [(acc, np.zeros(kernels.GRAD_SIZE, f32))]),
     ]

@@ -39,6 +39,7 @@ _NP_DTYPES = {
     torch.float16: np.float16,
     torch.bfloat16: np.float32,
 }
+_DIRECT_GRAD = (torch.float32, torch.float64)  # gradient dtypes the kernels may write directly
 
 
 @dataclass
@@ -95,13 +96,24 @@ def _tensor(a: np.ndarray, dtype: torch.dtype) -> Tensor:
     return out if out.dtype == dtype else out.to(dtype)
 
 
+def _np_read(t: Tensor) -> np.ndarray:
+    """A float32 or float64 tensor as it is (a view), any other float as float64.
+
+    For the inputs that the projection kernels only ever meet with a float64 operand (means and SH
+    coefficients: camera transform, view direction, SH sums): numba promotes a float32 element to
+    float64 there, so reading the float32 array gives the results of a float64 copy bit for bit,
+    without the copy (the SH coefficients are most of the per-Gaussian data).
+    """
+    return _np(t, np.float32 if t.dtype == torch.float32 else np.float64)
+
+
 def _inputs(means, quats, scales, opacities, sh, covariances):
     return (
-        _np64(means),
+        _np_read(means),
         _np64(quats),
         _np64(scales),
         _np64(opacities),
-        _np64(sh),
+        _np_read(sh),
         _np64(covariances) if covariances is not None else np.zeros((0, 3, 3)),
     )
 
@@ -264,7 +276,7 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, g_color, g_alpha, g_depth, g_normal):
         settings: CpuRenderSettings = ctx.settings
         saved = ctx.saved_tensors  # raises if an input was modified in place since the forward
-        x, q, sc, op, shc, cov = ctx.inputs  # the forward's float64 copies (or views of float64 inputs)
+        x, q, sc, op, shc, cov = ctx.inputs  # the forward's inputs as the kernels read them (`_inputs`)
         ft = ctx.trans.dtype.type  # the compositing dtype
         C, H, W = ctx.last.shape
         n = x.shape[0]
@@ -279,7 +291,11 @@ class _Rasterize(torch.autograd.Function):
             )
         ]
         g_means, g_rot, g_scales = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 2))
-        g_opac, g_sh, g_cov = np.zeros(n), np.zeros_like(shc), np.zeros_like(cov)
+        # The SH gradient gets one addition per camera (float64 arithmetic, rounded where stored), so
+        # for one camera it is accumulated straight into the dtype it is returned in: the same bits as
+        # a float64 buffer cast afterwards, without that buffer and cast (most of the per-Gaussian data).
+        sh_dtype = _NP_DTYPES[saved[4].dtype] if C == 1 and saved[4].dtype in _DIRECT_GRAD else np.float64
+        g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
         for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
             pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE), dtype=ft)  # every row gets written

@@ -640,7 +640,7 @@ def _exp_nonpositive(x, ft):
 LANES = 16  # (`_sum_lanes` halves it four times)
 
 # Runs of the per-chunk work rows: alpha, depth and 1 / hz (`_box_alpha`), then the backward's
-# dL/drho, dL/d(pair depth) and contribution mask.
+# dL/drho, dL/d(pair depth) and contribution mask (EWA; `_unblend_surfel` keeps them in registers).
 W_ALPHA, W_DEPTH, W_INV, W_GRHO, W_GDEPTH, W_ON = 0, 1, 2, 3, 4, 5
 WORK_RUNS = 6
 
@@ -870,7 +870,7 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
     are skipped). It recovers T_i = T_{i+1} / (1 - a_i) and carries the sum behind in state
     [chunks, BACKWARD_RUNS * LANES]; the feature and log-opacity sums go to the per-lane runs of
     acc [GRAD_SIZE * LANES], and dL/drho, dL/d(pair depth) and the mask to the work runs W_GRHO,
-    W_GDEPTH, W_ON for the mode's geometry (`_surfel_grads`, `_ewa_grads`).
+    W_GDEPTH, W_ON for the EWA geometry (`_ewa_grads`); surfels use `_unblend_surfel`.
     """
     ft = state.dtype.type
     zero, half, one = ft(0.0), ft(0.5), ft(1.0)
@@ -912,16 +912,20 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _surfel_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc):
-    """Surfel geometry gradients over the chunks of the box from the work runs W_GRHO, W_GDEPTH,
-    W_ON (`_unblend`), added to the per-lane runs of acc.
+def _unblend_surfel(
+    state, last, work, acc, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, f0, f1, f2, f3, f4, f5
+):
+    """`_unblend` for a surfel, with its geometry gradients in the same pass over the chunks of the
+    box: each lane's dL/drho, dL/d(pair depth) and mask go straight into the per-lane runs of acc,
+    not through the work runs (W_GRHO, W_GDEPTH, W_ON are not written).
 
     Ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and depth = det / hz give dL/dh,
     kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and dL/ddet. Filter branch:
     rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth.
     """
-    ft = g.dtype.type
-    zero, half, two = ft(0.0), ft(0.5), ft(2.0)
+    ft = state.dtype.type
+    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
+    alpha_max = ft(ALPHA_MAX)
     two_rho_scale = ft(2.0 * LOWPASS_RHO_SCALE)
     cx, cy = g[GEOM_CX], g[GEOM_CY]
     A0, A1, b0, b1, C0, C1 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_B], g[GEOM_B + 1], g[GEOM_C], g[GEOM_C + 1]
@@ -936,11 +940,34 @@ def _surfel_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work,
             b = (r - y0) * chunks + ch
             fc0 = ft(x0 + ch * LANES)
             for j in range(LANES):
-                on = work[b, W_ON * LANES + j] != zero
-                inv = work[b, W_INV * LANES + j]
-                g_rho = work[b, W_GRHO * LANES + j]
-                g_dpair = work[b, W_GDEPTH * LANES + j]
+                a = work[b, W_ALPHA * LANES + j]
+                on = (a > zero) & (position < last[b, j])
+                T_behind = state[b, B_T * LANES + j]
+                inv_one_minus = one / (one - a)
+                T = T_behind * inv_one_minus
+                w = a * T
                 d = work[b, W_DEPTH * LANES + j]
+                g_d = state[b, B_GDEPTH * LANES + j]
+                u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
+                u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
+                g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+                behind = state[b, B_BEHIND * LANES + j]
+                g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
+                state[b, B_T * LANES + j] = T if on else T_behind
+                state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
+                acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
+                acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
+                acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
+                acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
+                acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
+                acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
+                passes = on & (a < alpha_max)
+                g_log_alpha = g_a * a
+                acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
+                g_rho = -half * g_log_alpha if passes else zero
+                g_dpair = w * g_d if on else zero
+                # Surfel geometry.
+                inv = work[b, W_INV * LANES + j]
                 px = (fc0 + lane[j]) + half
                 dx = px - cx
                 hx = a0 + dx * b0
@@ -1086,6 +1113,32 @@ def composite_backward(
                 continue
             acc[:] = zero
             f = features[m]
+            if surfel:
+                _unblend_surfel(
+                    state,
+                    last_px,
+                    work,
+                    acc,
+                    g,
+                    x0,
+                    y0,
+                    chunks,
+                    c0,
+                    c1,
+                    r0,
+                    r1,
+                    rows,
+                    position,
+                    lane,
+                    f[0],
+                    f[1],
+                    f[2],
+                    f[3],
+                    f[4],
+                    f[5],
+                )
+                _sum_lanes(acc, pair_grads[k])
+                continue
             _unblend(
                 state,
                 last_px,
@@ -1107,10 +1160,7 @@ def composite_backward(
                 f[4],
                 f[5],
             )
-            if surfel:
-                _surfel_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
-            else:
-                _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
+            _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
             _sum_lanes(acc, pair_grads[k])
 
 
