@@ -34,3 +34,9 @@ def quick_train_argv(out: Path, **sets) -> list[str]:
     for key, value in settings.items():
         argv += ["--set", f"{key}={json.dumps(value)}"]
     return argv
+
+
+def validated_quick_config(out: Path, **changes) -> TrainConfig:
+    """The quick config with validation and images at step 2 (x1 and x2)."""
+    validation = {"val_every": 2, "image_every": 2, "val_factors": [1, 2], "data.val_samples": 1}
+    return quick_config(out, {**validation, **changes})

@@ -209,7 +209,7 @@ def test_highres_terms():
 
 # ------------------------------------------------------------------------------------------ training
 # The tiny preset cut to seconds, as test_train_fit runs it (32x32 rooms, one target, two steps).
-from tests.train.test_fit import _quick  # noqa: E402
+from tests.helpers.training import validated_quick_config as _quick  # noqa: E402
 
 
 def test_close_up_terms_join_the_loss_and_validation_reports_closure(tmp_path: Path):

@@ -25,19 +25,13 @@ from surfsplat.train.distributed import DistributedContext
 from surfsplat.train.loop import resolve_precision
 from surfsplat.train.validation import validate
 from surfsplat.utils.checks import SurfSplatInputError
-from tests.helpers.training import quick_config
-
-
-def _quick(out: Path, **changes):
-    """The quick config with validation and images at step 2 (x1 and x2)."""
-    validation = {"val_every": 2, "image_every": 2, "val_factors": [1, 2], "data.val_samples": 1}
-    return quick_config(out, {**validation, **changes})
+from tests.helpers.training import validated_quick_config
 
 
 def test_fit_reports_checkpoints_and_lpips_term(tmp_path: Path, lpips_files) -> None:
     vgg, lin = lpips_files
     lpips_settings = {"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(vgg), "loss.lpips_lin_path": str(lin)}
-    config = _quick(tmp_path / "run", **lpips_settings)
+    config = validated_quick_config(tmp_path / "run", **lpips_settings)
     result = fit(config)
     assert (result.start_step, result.step, [s for s, _ in result.losses]) == (0, 2, [0, 1])
 
@@ -68,14 +62,18 @@ def test_fit_reports_checkpoints_and_lpips_term(tmp_path: Path, lpips_files) -> 
 
 
 def test_missing_lpips_weights_stop_before_anything_is_written(tmp_path: Path) -> None:
-    config = _quick(tmp_path / "run", **{"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(tmp_path / "none.pth")})
+    config = validated_quick_config(
+        tmp_path / "run", **{"loss.lpips_weight": 0.05, "loss.lpips_vgg_path": str(tmp_path / "none.pth")}
+    )
     with pytest.raises(LpipsUnavailable, match="or set lpips_weight to 0"):
         fit(config)
     assert not (tmp_path / "run").exists()
 
 
 def test_geometry_terms_join_the_loss_where_the_data_has_depth(tmp_path: Path) -> None:
-    config = _quick(tmp_path / "run", **{"loss.depth_weight": 0.1, "loss.normal_weight": 0.2, "val_every": 0})
+    config = validated_quick_config(
+        tmp_path / "run", **{"loss.depth_weight": 0.1, "loss.normal_weight": 0.2, "val_every": 0}
+    )
     fit(config)
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     train_rows = [r for r in rows if "loss/total" in r]
@@ -117,14 +115,14 @@ def test_bf16_resume_is_exact(tmp_path: Path) -> None:
         }
 
     settings = {"steps": 4, "checkpoint_every": 2, "val_every": 0, "image_every": 0, "precision": "bf16"}
-    straight = fit(_quick(tmp_path / "straight", **settings))
+    straight = fit(validated_quick_config(tmp_path / "straight", **settings))
     assert straight.precision == "bf16"
     model_dtypes = {t.dtype for t in load_file(str(straight.checkpoint / "model.safetensors")).values()}
     assert model_dtypes == {torch.float32}  # master weights stay float32
     resumed_dir = tmp_path / "resumed" / "checkpoints"
     resumed_dir.mkdir(parents=True)
     shutil.copytree(tmp_path / "straight" / "checkpoints" / "step-00000002", resumed_dir / "step-00000002")
-    resumed = fit(_quick(tmp_path / "resumed", **settings), resume=True)
+    resumed = fit(validated_quick_config(tmp_path / "resumed", **settings), resume=True)
     assert (resumed.start_step, resumed.step, resumed.precision) == (2, 4, "bf16")
     a, b = tensors(straight.checkpoint), tensors(resumed.checkpoint)
     assert a.keys() == b.keys()
@@ -135,7 +133,7 @@ def test_bf16_resume_is_exact(tmp_path: Path) -> None:
 
 def test_resume_needs_a_checkpoint(tmp_path: Path) -> None:
     with pytest.raises(SurfSplatInputError, match="resume: no checkpoint"):
-        fit(_quick(tmp_path / "empty"), resume=True)
+        fit(validated_quick_config(tmp_path / "empty"), resume=True)
 
 
 def test_command_errors_are_one_line(tmp_path: Path) -> None:
