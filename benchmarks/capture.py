@@ -251,20 +251,21 @@ def real_scene(args, model, name: str, folder: Path, images: str, size: tuple[in
 
 
 # ----------------------------------------------------------------------------------------- refinement
-REFINE_GRID = [  # (max steps, views per step, scale, patience): today's default first
-    (100, 16, 1.0, None),
-    (0, 16, 1.0, None),
-    (25, 16, 1.0, None),
-    (50, 16, 1.0, None),
-    (100, 4, 1.0, None),
-    (50, 4, 1.0, None),
-    (100, 16, 0.5, None),
-    (50, 16, 0.5, None),
-    (25, 16, 0.5, None),
-    (50, 4, 0.5, None),
-    (100, 16, 0.5, 10),
-    (100, 4, 0.5, 10),
+REFINE_GRID = [  # RefineConfig fields of each point; the first is the refinement when fast captures were asked for
+    {"steps": 100, "views_per_step": 16, "lr": 0.01},
+    {"steps": 0},
+    {"steps": 50, "views_per_step": 6, "lr": 0.02},
+    {"steps": 25, "views_per_step": 6, "lr": 0.02},
+    {"steps": 25, "views_per_step": 6, "lr": 0.04},
+    {"steps": 20, "views_per_step": 16, "lr": 0.03},
+    {"steps": 15, "views_per_step": 6, "lr": 0.05},
+    {"steps": 50, "views_per_step": 6, "lr": 0.03, "patience": 5},
 ]
+
+
+def _refine_fields(config) -> dict:
+    """The knobs of a refinement point, for its row."""
+    return {k: getattr(config, k) for k in ("steps", "views_per_step", "lr", "scale", "patience")}
 
 
 def views_at(folder: Path, images: str, indices: list[int], shape: tuple[int, int]):
@@ -307,8 +308,8 @@ def refine_curve_rooms(args, model) -> dict:
         every = CameraSet(cams, SIZE, SIZE, [frame_name(i) for i in range(n)], 0.5, 15.0)
         options = surfsplat.CaptureOptions(holdout_every=4, refine=RefineConfig(steps=0))
         fused = surfsplat.reconstruct(list(truth.image), model, cameras=every, capture=options, progress=False)
-        for k, (steps, per_step, scale, patience) in enumerate(REFINE_GRID):
-            config = RefineConfig(steps=steps, views_per_step=per_step, scale=scale, patience=patience)
+        for k, point in enumerate(REFINE_GRID):
+            config = RefineConfig(**point)
             refined, stats = refine_on_views(
                 fused.gaussians,
                 fused.cameras,
@@ -328,13 +329,10 @@ def refine_curve_rooms(args, model) -> dict:
                 }
             )
     rows = []
-    for (steps, per_step, scale, patience), runs in zip(REFINE_GRID, per_config):
+    for point, runs in zip(REFINE_GRID, per_config):
         rows.append(
             {
-                "steps": steps,
-                "views_per_step": per_step,
-                "scale": scale,
-                "patience": patience,
+                **_refine_fields(RefineConfig(**point)),
                 "steps_run": sum(r["steps_run"] for r in runs) / len(runs),
                 "seconds": sum(r["seconds"] for r in runs) / len(runs),
                 "held_out_psnr": sum(r["held_out_psnr"] for r in runs) / len(runs),
@@ -362,8 +360,8 @@ def refine_curve(model, name: str, folder: Path, images: str, context: list[int]
     seconds_unrefined = time.perf_counter() - start
     assert torch.allclose(fused.cameras.K, context_cams.K) and fused.names == [p.name for p in paths]
     rows = []
-    for steps, per_step, scale, patience in REFINE_GRID:
-        config = RefineConfig(steps=steps, views_per_step=per_step, scale=scale, patience=patience)
+    for point in REFINE_GRID:
+        config = RefineConfig(**point)
         refined, stats = refine_on_views(
             fused.gaussians,
             fused.cameras,
@@ -379,10 +377,7 @@ def refine_curve(model, name: str, folder: Path, images: str, context: list[int]
         )
         rows.append(
             {
-                "steps": steps,
-                "views_per_step": per_step,
-                "scale": scale,
-                "patience": patience,
+                **_refine_fields(config),
                 "steps_run": stats["steps"],
                 "seconds": stats["seconds"],
                 "held_out_psnr": float(psnr(out.color.clamp(0, 1), held_images).mean()),
@@ -546,8 +541,16 @@ def main() -> None:
         "--min-motion", type=float, default=None, help="video frame filter's motion threshold (0: every frame)"
     )
     parser.add_argument("--e2e", nargs="+", default=["clip", "photos", "video"], help="end-to-end runs of the e2e part")
+    parser.add_argument(
+        "--refine-points",
+        type=json.loads,
+        default=None,
+        help="refine-rooms / refine: a JSON list of RefineConfig fields instead of REFINE_GRID, e.g. '[{\"steps\": 30}]'",
+    )
     parser.add_argument("--one-video", type=int, default=None, help=argparse.SUPPRESS)  # child process
     args = parser.parse_args()
+    if args.refine_points is not None:
+        REFINE_GRID[:] = args.refine_points
     if args.one_video is not None:
         print(json.dumps(video_cost(args.one_video, args.min_motion)))
         return

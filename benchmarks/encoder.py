@@ -34,6 +34,7 @@ LEVERS = {  # --levers: the standard CPU levers, each alone and together, agains
     "inference_mode": ("inference_mode",),
     "channels_last": ("channels_last",),
     "compile": ("compile",),
+    "library": ("inference_mode", "channels_last"),  # what reconstruct and evaluation do by default
     "all": ("inference_mode", "channels_last", "compile"),
 }
 
@@ -81,16 +82,14 @@ def run_one(
     from surfsplat import Cameras
     from surfsplat.evaluation import peak_memory
     from surfsplat.model import SurfSplat
+    from surfsplat.model.loading import prepare_for_inference
     from surfsplat.utils.precision import autocast
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     model = SurfSplat.from_preset(preset, adapter="official").eval().to(device)
     levers = set(LEVERS[lever])
-    if "channels_last" in levers:
-        model = model.to(memory_format=torch.channels_last)
-    if "compile" in levers:
-        model.encoder = torch.compile(model.encoder)
+    prepare_for_inference(model, channels_last="channels_last" in levers, compile="compile" in levers)
     grad_off = torch.inference_mode if "inference_mode" in levers else torch.no_grad
     images = torch.rand(1, views, 3, size, size, device=device)
     K = torch.tensor([[0.9 * size, 0, size / 2], [0, 0.9 * size, size / 2], [0, 0, 1.0]]).repeat(views, 1, 1)

@@ -19,7 +19,12 @@ the table ends with each configuration's float32 / float64 throughput ratio.
 `--multiview V`: the compiled CPU backend's forward+backward of one call rendering V cameras (a
 fan of views around the target) against V calls of one camera each, in the same process, at each
 resolution and precision: seconds of both and their ratio, and each against V float64 one-camera
-calls (the renderer as it was before float32 compositing).
+calls of today's float64 path. `--baseline REV` also times V one-camera calls of the renderer at
+git revision REV (its `src` exported to a temporary folder, run in a subprocess in the same run, on
+the same surfels and cameras), and gives every row's ratio against it:
+
+    python benchmarks/render.py --multiview 16 --resolutions 128 256 --precisions float32 float64 \
+        --baseline a533a7b       # the renderer when fast captures were asked for
 """
 
 from __future__ import annotations
@@ -205,6 +210,66 @@ def multiview_worker(views: int, res: int, repeats: int, precision: str = "float
     }
 
 
+def baseline_case(views: int, res: int, path: Path) -> None:
+    """The multiview workload's float64 surfels and cameras as plain tensors, for another revision."""
+    scene = _scene()
+    g = scene.gaussians.to(torch.float64)
+    cams = camera_fan(scene.target.to(torch.float64).scaled(res / 256), views)
+    fields = {k: getattr(g, k) for k in ("means", "quats", "scales", "opacities", "sh")}
+    torch.save({**fields, "c2w": cams.c2w, "K": cams.K, "res": res, "views": views}, path)
+
+
+def baseline_worker(path: Path, repeats: int) -> dict:
+    """V one-camera float64 forward+backward calls of whatever `surfsplat` this process imports
+    (only its top-level Gaussians, Cameras and render.render, which every revision has)."""
+    import surfsplat
+    from surfsplat.render import render
+
+    case = torch.load(path)
+    params = {k: case[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")}
+    gaussians = surfsplat.Gaussians(**params)
+    cams = surfsplat.Cameras(case["c2w"], case["K"])
+    res = case["res"]
+
+    def one_by_one() -> None:
+        for c in range(case["views"]):
+            out = render(gaussians, cams[c : c + 1], res, res, backend="cpu")
+            (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+
+    one_by_one()  # warm-up (and the revision's kernels compiled)
+    times = []
+    for _ in range(repeats):
+        for p in params.values():
+            p.grad = None
+        t = time.perf_counter()
+        one_by_one()
+        times.append(time.perf_counter() - t)
+    return {"seconds_separate_calls": statistics.median(times), "source": surfsplat.__file__}
+
+
+def run_baseline(revision: str, views: int, res: int, repeats: int, threads: int, folder: Path) -> dict:
+    """`baseline_worker` on the revision's source tree (exported once into `folder`)."""
+    src = folder / "src"
+    if not src.is_dir():
+        root = Path(__file__).resolve().parents[1]
+        archive = subprocess.run(
+            ["git", "-C", str(root), "archive", "--format=tar", revision, "src"], capture_output=True, check=True
+        )
+        subprocess.run(["tar", "-x", "-C", str(folder)], input=archive.stdout, check=True)
+    case = folder / f"case_{views}_{res}.pt"
+    baseline_case(views, res, case)
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    cmd = [sys.executable, __file__, "--baseline-worker", str(case), "--repeats", str(repeats)]
+    cmd += ["--threads", str(threads)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"baseline {revision}: {proc.stderr.strip().splitlines()[-1]}")
+    row = json.loads(proc.stdout.strip().splitlines()[-1])
+    if not row["source"].startswith(str(src)):
+        raise RuntimeError(f"baseline {revision}: imported {row['source']}, not the exported revision")
+    return {"revision": revision, "views": views, "resolution": res, "precision": "float64", **row}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backends", nargs="+", default=None, help="default: every backend that runs here")
@@ -219,14 +284,35 @@ def main() -> None:
         "--worker", nargs=5, metavar=("BACKEND", "MODE", "RES", "PASSES", "PRECISION"), help=argparse.SUPPRESS
     )
     parser.add_argument("--multiview", type=int, default=None, metavar="V", help="one V-camera call vs V calls")
+    parser.add_argument("--baseline", default=None, metavar="REV", help="--multiview: also V calls of revision REV")
+    parser.add_argument("--baseline-worker", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
 
-    if args.multiview:
+    if args.baseline_worker:
         from surfsplat.train.loop import cpu_threads
 
-        rows = []
+        with cpu_threads(args.threads):
+            print(json.dumps(baseline_worker(args.baseline_worker, args.repeats)))
+        return
+
+    if args.multiview:
+        import tempfile
+
+        from surfsplat.train.loop import cpu_threads
+
+        rows, baselines = [], []
+        folder = Path(tempfile.mkdtemp(prefix="surfsplat_baseline_"))
         with cpu_threads(args.threads):
             for res in args.resolutions:
+                if args.baseline:
+                    baselines.append(
+                        run_baseline(args.baseline, args.multiview, res, args.repeats, args.threads, folder)
+                    )
+                    print(
+                        f"{args.multiview} float64 calls of {args.baseline} at {res}^2: "
+                        f"{baselines[-1]['seconds_separate_calls']:.3f} s",
+                        flush=True,
+                    )
                 # float64 first: its separate calls are the baseline of every precision's row.
                 for precision in sorted(args.precisions, key=lambda p: p != "float64"):
                     rows.append(multiview_worker(args.multiview, res, args.repeats, precision))
@@ -241,13 +327,18 @@ def main() -> None:
                         if baseline is not None
                         else ""
                     )
+                    if args.baseline:
+                        then = baselines[-1]["seconds_separate_calls"]
+                        r["speedup_vs_baseline_separate_calls"] = then / r["seconds_one_call"]
+                        versus += f", x{r['speedup_vs_baseline_separate_calls']:.2f} vs {args.baseline}'s"
                     print(
                         f"{r['views']} views at {res}^2 {precision}: one call {r['seconds_one_call']:.3f} s, "
                         f"{r['views']} calls {r['seconds_separate_calls']:.3f} s, x{r['speedup']:.2f}{versus}",
                         flush=True,
                     )
         out = args.out.with_name("render_multiview.json")
-        write_results(out, {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows})
+        document = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "results": rows, "baseline": baselines}
+        write_results(out, document)
         print(f"wrote {out}")
         return
 

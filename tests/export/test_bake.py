@@ -123,6 +123,33 @@ def test_bake_keeps_positions_and_rotations_and_fits_the_rest(baked_plane):
     assert torch.equal(again.explicit_covariances, once.explicit_covariances) and torch.equal(again.sh, once.sh)
 
 
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_saturated_start_takes_the_weighted_alpha_from_one_backward_per_view(backend):
+    # The start raises each opacity so that the pixels it covers reach the target alpha; the
+    # alpha-weighted and plain blending-weight sums come from the red and green channels of one
+    # backward pass, the same numbers as one backward pass for each (written out here).
+    from surfsplat.export.bake import SH_C0, _saturated_logits
+
+    g, cams = _plane(_texture())
+    thin = thin_gaussians(g.to(torch.float64))
+    config = BakeConfig()
+    logits = _saturated_logits(thin, cams, W, H, config, backend)
+    dc = torch.full_like(thin.sh[:, :1, :1], 0.5 / SH_C0).requires_grad_(True)
+    probe = dataclasses.replace(thin, sh=dc.expand(-1, 3, -1), validate=False)
+    out = render(probe, cams, W, H, mode="ewa", backend=backend, alpha_threshold=None)
+    alpha = out.alpha.detach()
+    (weighted,) = torch.autograd.grad((out.color[:, :1] * alpha).sum(), dc, retain_graph=True)
+    (total,) = torch.autograd.grad(out.color[:, :1].sum(), dc)
+    seen = total[:, 0, 0] > 1e-8
+    assert int(seen.sum()) > H * W // 2
+    pixel_alpha = (weighted[:, 0, 0] / total[:, 0, 0].clamp_min(1e-12)).clamp(1e-3, 1 - 1e-6)
+    power = (math.log(1 - config.target_alpha) / torch.log1p(-pixel_alpha)).clamp_min(1.0)
+    o = thin.opacities.clamp(1e-6, 1 - 1e-6)
+    expected = torch.where(seen, -torch.expm1(power * torch.log1p(-o)), o).clamp(1e-4, config.target_alpha)
+    assert torch.allclose(logits, torch.logit(expected), rtol=1e-12, atol=1e-12)
+    assert float(torch.sigmoid(logits[seen]).mean()) > 2 * float(o[seen].mean())  # faint surfels raised
+
+
 def test_viewer_figures_of_a_uniform_plane_in_closed_form():
     # One colour c everywhere: a standard viewer composites alpha * c on black, our render shows c
     # wherever alpha >= 0.001, so the PSNR over covered pixels is -10 log10(mean (1 - alpha)^2 mean_ch c^2).

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from ..capture.refine import RefineConfig
 from ..utils.checks import SurfSplatInputError
 from .files import Uploads
 
@@ -58,7 +59,7 @@ class RunSettings:
 
     weights: str = DEMO_MODEL  # a registry name (`surfsplat weights list`)
     working_size: int = 256  # long side of the network's input in pixels (`max_working_size`)
-    refine_steps: int = 50  # refinement of a fused scene (several forward passes only)
+    refine_steps: int = RefineConfig.steps  # refinement of a fused scene (several forward passes only)
     device: str = "auto"
     path_frames: int = 48  # frames of the fly-through (the interpolated camera path)
     turntable_frames: int = 48

@@ -45,11 +45,14 @@ logger = logging.getLogger(__name__)
 class RefineConfig:
     """How a fused scene is refined on its context photos (steps 0: not at all)."""
 
-    # Defaults chosen on `benchmarks/capture.py --parts refine-rooms refine`: on the rooms, 50 steps of
-    # 6 views at rate 0.02 take a fifth of the time of 100 steps of 16 views at 0.01 for 0.21 dB less
-    # held-out PSNR (50 steps of 8 views: 0.30 of the time, 0.17 dB less); rendering the fit at half
-    # size lost the refinement's gain altogether at 64 px and about half of it on DTU at 288x400.
-    steps: int = 50  # Adam steps at most
+    # Defaults chosen on `benchmarks/capture.py --parts refine-rooms refine` against the refinement
+    # first shipped (100 steps of 16 views at rate 0.01), in one run: on DTU scan 24 (7 views at
+    # 288x400) 25 steps of 6 views at 0.02 score the same held-out PSNR (-0.01 dB) in 0.16 of the time;
+    # on the 64x64 rooms (18 views) they lose 0.56 dB (50 steps: -0.21 dB in 0.31 of the time), where
+    # the fit keeps gaining up to 100 steps of 16 views. Rendering the fit at half size lost the
+    # refinement's gain altogether at 64 px and about half of it on DTU; a cosine decay of the rate
+    # scored no better than a constant one.
+    steps: int = 25  # Adam steps at most
     lr: float = 0.02  # rate of the SH coefficients and log scales; opacity logits at 4x
     views_per_step: int = 6  # context views rendered in one step (all of them when fewer)
     seed: int = 0  # which views each step renders

@@ -60,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_release_options(parser)
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     add_precision(parser)
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="run the encoder through torch.compile (its compilation takes minutes; pays over many captures)",
+    )
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=list(FORMATS), help="what to write")
     add_export_arguments(parser)
     add_pose_arguments(parser)
@@ -139,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         capture=capture,
         progress=not args.no_progress,
         precision=args.precision,
+        compile=args.compile,
     )
     if scene.video is not None:
         print("\n".join(scene.video.lines()))

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     }
     for v in progress(views, desc=f"render x{args.scale:g}", unit="view", enabled=len(views) >= 2):
         start = time.perf_counter()
-        with torch.no_grad():
+        with torch.inference_mode():
             r = render(gaussians, cameras[v], width, height, mode=mode, alpha_threshold=tau, background=args.background)
         seconds = time.perf_counter() - start
         stem = Path(cams.names[v]).stem

@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     for s in args.scales:
         size = round(args.resolution * s)
         t = time.perf_counter()
-        with torch.no_grad():
+        with torch.inference_mode():
             r = render(
                 scene.gaussians,
                 scene.target.scaled(size / args.resolution),

@@ -240,12 +240,13 @@ def predict_sample(
     cams = sample.context_cameras.to(device=device, dtype=torch.float32)
     _sync(device)
     start = time.perf_counter()
-    with autocast(precision, device) as ran:
+    with torch.inference_mode(), autocast(precision, device) as ran:
         prediction = model(images, cams, sample.near, sample.far)
     _sync(device)
     forward = time.perf_counter() - start
-    gaussians = prediction.gaussians.select(0).to(torch.float32)
-    multipliers = prediction.adapter_output.scales_mul[0].float()
+    # copied out of inference mode: the compaction's refit differentiates them
+    gaussians = prediction.gaussians.select(0).to(torch.float32).clone()
+    multipliers = prediction.adapter_output.scales_mul[0].float().clone()
     rmode = decoder_mode(model.cfg.adapter, mode)
     tau = prediction.alpha_threshold if alpha_threshold == "model" else alpha_threshold
     if compact is not None:
@@ -265,7 +266,7 @@ def predict_sample(
     return ScenePrediction(
         sample,
         gaussians,
-        prediction.depths[0],
+        prediction.depths[0].clone(),
         renders,
         forward,
         seconds,

@@ -367,21 +367,21 @@ def _saturated_logits(
 
     The weights come from one backward pass per view, as compaction's blending weights do: with
     every colour 1 (DC = 0.5 / SH_C0), d(sum_p colour_p * x_p) / d(DC_i) = SH_C0 * sum_p w_ip x_p for
-    any x held fixed; x = A gives the weighted alpha sum, x = 1 the weights' sum."""
+    any x held fixed; x = A gives the weighted alpha sum, x = 1 the weights' sum. The colour channels
+    blend independently, so one backward gives both: the red channel weighted by A, the green by 1."""
     from ..render import render
 
-    dc = torch.full_like(thin.sh[:, :1, :1], 0.5 / SH_C0).requires_grad_(True)
-    probe = replace(thin, sh=dc.expand(-1, 3, -1), validate=False)
+    dc = torch.full_like(thin.sh[:, :, :1], 0.5 / SH_C0).requires_grad_(True)
+    probe = replace(thin, sh=dc, validate=False)
     weighted = torch.zeros(len(thin), dtype=thin.means.dtype, device=thin.means.device)
     total = torch.zeros_like(weighted)
     with torch.enable_grad():
         for c in range(len(cameras)):
             out = render(probe, cameras[c], width, height, mode="ewa", backend=backend, alpha_threshold=None)
             alpha = out.alpha.detach()
-            (grad_a,) = torch.autograd.grad((out.color[:, :1] * alpha).sum(), dc, retain_graph=True)
-            (grad_1,) = torch.autograd.grad(out.color[:, :1].sum(), dc)
-            weighted += grad_a[:, 0, 0] / SH_C0
-            total += grad_1[:, 0, 0] / SH_C0
+            (grad,) = torch.autograd.grad((out.color[:, 0] * alpha[:, 0]).sum() + out.color[:, 1].sum(), dc)
+            weighted += grad[:, 0, 0] / SH_C0
+            total += grad[:, 1, 0] / SH_C0
     seen = total > 1e-8
     pixel_alpha = torch.where(seen, weighted / total.clamp_min(1e-12), torch.zeros_like(total)).clamp(1e-3, 1 - 1e-6)
     power = math.log(1 - config.target_alpha) / torch.log1p(-pixel_alpha)  # m >= 1 where A < target

@@ -202,7 +202,7 @@ class Frames:
     normal: Tensor  # [F, 3, H, W]
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def render_frames(gaussians, cameras, width: int, height: int, options: ExportOptions, what: str) -> Frames:
     """Render cameras one at a time (bounded memory) with a progress bar."""
     from ..render import render

@@ -106,6 +106,10 @@ class Gaussians:
     def detach(self) -> Gaussians:
         return self._map(lambda t: t.detach())
 
+    def clone(self) -> Gaussians:
+        """Copies of every tensor (outside `torch.inference_mode`: tensors autograd may use again)."""
+        return self._map(lambda t: t.clone())
+
     def select(self, index) -> Gaussians:
         """Index the leading batch dims, e.g. `g.select(0)` for the first scene of a batch."""
         return self._map(lambda t: t[index])

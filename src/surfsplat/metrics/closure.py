@@ -183,7 +183,7 @@ def _subsample(values: Tensor, limit: int = 4_000_000) -> Tensor:
     return values if values.numel() <= limit else values[:: values.numel() // limit + 1]
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def closure_metrics(
     gaussians: Gaussians,
     cameras: Cameras,

@@ -157,7 +157,7 @@ class HrrcEvaluator:
         self._sizes: set[tuple[int, int]] = set()
         self._num_images = 0
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def add_scene(self, name: str, target: Tensor, renders: Mapping[int, Tensor]) -> dict[int, dict[str, float | None]]:
         """Score one scene. target: [V, 3, H, W]; renders: {s: [V, 3, s H, s W]} for every factor.
 

@@ -79,3 +79,24 @@ def load_model(spec: ModelSpec, device: torch.device | str = "cpu") -> tuple[Sur
         model = with_adapter(model, dict(spec.adapter_overrides))
         model.pretrained_info = info
     return model.to(device).eval(), spec.label()
+
+
+# ----------------------------------------------------------------------------------------- inference
+def prepare_for_inference(model: SurfSplat, *, channels_last: bool = True, compile: bool = False) -> SurfSplat:
+    """The model in eval mode with the standard CPU levers that pay for inference (in place).
+
+    channels_last: convolution weights in NHWC, the layout oneDNN's CPU convolutions run without
+        reordering (measured in `benchmarks/encoder.py --levers`); the numbers agree with NCHW to
+        float32 rounding.
+    compile: the encoder through `torch.compile` (inductor). Its compilation runs at the first
+        forward (minutes on two cores) and pays only where one process runs many forwards of one
+        size, so it is off unless asked for.
+    Callers run the forward under `torch.inference_mode()`.
+    """
+    model.eval()
+    if channels_last:
+        model.to(memory_format=torch.channels_last)
+    if compile and not getattr(model.encoder, "_surfsplat_compiled", False):
+        model.encoder = torch.compile(model.encoder)
+        model.encoder._surfsplat_compiled = True
+    return model

@@ -112,7 +112,7 @@ class Scene:
         if not isinstance(cams, Cameras):
             raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cams).__name__}")
         w, h = max(1, round(self.width * scale)), max(1, round(self.height * scale))
-        with torch.no_grad():
+        with torch.inference_mode():
             return render(
                 self.gaussians,
                 cams.to(self.gaussians.means).scaled(scale),

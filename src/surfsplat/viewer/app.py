@@ -293,7 +293,7 @@ class SurfelViewer:
         """x1 height: the reconstruction's image height, so x1/x2/x4 mean what they mean in HRRC."""
         return self.scene.height if self.scene is not None and self.scene.height else DEFAULT_RENDER_HEIGHT
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def render_view(self, view: BrowserView, scale: int = 1, output: Output = "image") -> np.ndarray:
         """The exact render of a browser view at `scale` times the x1 size: [H, W, 3] uint8."""
         from ..export.images import colorize_depth, normal_to_rgb, to_uint8

@@ -297,6 +297,9 @@ class _Rasterize(torch.autograd.Function):
         sh_dtype = _NP_DTYPES[saved[4].dtype] if C == 1 and saved[4].dtype in _DIRECT_GRAD else np.float64
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
+        wanted = ctx.needs_input_grad
+        geometry = wanted[0] or wanted[1]  # means or rotations
+        shape = wanted[2] or wanted[5]  # scales or explicit covariances
         for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
             pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE), dtype=ft)  # every row gets written
             with numba.parallel_chunksize(settings.parallel_chunk):
@@ -321,6 +324,8 @@ class _Rasterize(torch.autograd.Function):
                 )
             kernels.project_backward(
                 ctx.surfel,
+                geometry,
+                shape,
                 plan.rank,
                 plan.pair_start,
                 plan.pair_of,
@@ -350,7 +355,8 @@ class _Rasterize(torch.autograd.Function):
                 cov_scratch,
             )
         g_quats = np.empty((n, 4))
-        kernels.quats_backward(q, g_rot, g_quats)
+        if wanted[1]:
+            kernels.quats_backward(q, g_rot, g_quats)
 
         grads = (g_means, g_quats, g_scales, g_opac, g_sh, g_cov)
         return (

@@ -1319,6 +1319,8 @@ def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov):
 @njit(parallel=True, cache=True, error_model="numpy")
 def project_backward(
     surfel,
+    geometry,
+    shape,
     rank,
     pair_start,
     pair_of,
@@ -1359,6 +1361,11 @@ def project_backward(
     g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
+
+    `geometry` False: the means and rotations get no gradient (their buffers may be left as they
+    are: the SH's view direction and the normal feature are not differentiated); `shape` False (with
+    `geometry` False) the scales and covariances get none either, so the projection's chain rule is
+    skipped and only SH and opacities are written. A fit of colours and opacities costs less.
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
@@ -1377,7 +1384,10 @@ def project_backward(
                 gr[j] += row[j]
         R = rotations[i]
         mu = _camera_point(means[i], R_cw, t_cw)
-        if surfel:
+        gm0, gm1, gm2 = 0.0, 0.0, 0.0
+        if not (geometry or shape):
+            pass
+        elif surfel:
             gm0, gm1, gm2 = _surfel_backward(
                 mu,
                 R,
@@ -1417,19 +1427,21 @@ def project_backward(
                         for k in range(3):
                             acc += R[r, j] * g_cov[r, k] * R[k, j]
                     g_scales[i, j] += 2.0 * scales[i, j] * acc
-        # mu = R_cw x + t
-        for r in range(3):
-            g_means[i, r] += R_cw[0, r] * gm0 + R_cw[1, r] * gm1 + R_cw[2, r] * gm2
         g_opacities[i] += gr[GRAD_LOGO] / opacities[i]
-        # Normal feature = flip * R e3.
-        for r in range(3):
-            g_rotations[i, r, 2] += flip[i] * gr[GRAD_FEAT + 3 + r]
+        if geometry:
+            # mu = R_cw x + t
+            for r in range(3):
+                g_means[i, r] += R_cw[0, r] * gm0 + R_cw[1, r] * gm1 + R_cw[2, r] * gm2
+            # Normal feature = flip * R e3.
+            for r in range(3):
+                g_rotations[i, r, 2] += flip[i] * gr[GRAD_FEAT + 3 + r]
         # Colour feature = max(sum_k sh_k Y_k(d) + 0.5, 0), d = normalize(x - camera centre).
         dx, dy, dz, norm = _view_direction(means[i], cam_center)
         Y, GX, GY, GZ = scratch[tid, 0:16], scratch[tid, 16:32], scratch[tid, 32:48], scratch[tid, 48:64]
         _sh_basis(dx, dy, dz, n_bases, Y)
         gd0, gd1, gd2 = 0.0, 0.0, 0.0
-        if n_bases > 1:
+        direction = geometry and n_bases > 1
+        if direction:
             _sh_basis_grad(dx, dy, dz, n_bases, GX, GY, GZ)
         for ch in range(3):
             v = 0.5
@@ -1438,12 +1450,12 @@ def project_backward(
             g_col = gr[GRAD_FEAT + ch] if v >= 0.0 else 0.0
             for k in range(n_bases):
                 g_sh[i, ch, k] += g_col * Y[k]
-            if n_bases > 1:
+            if direction:
                 for k in range(1, n_bases):
                     gd0 += g_col * sh[i, ch, k] * GX[k]
                     gd1 += g_col * sh[i, ch, k] * GY[k]
                     gd2 += g_col * sh[i, ch, k] * GZ[k]
-        if n_bases > 1 and norm > 1e-12:
+        if direction and norm > 1e-12:
             # d = v / |v|: dL/dv = (dL/dd - d (d . dL/dd)) / |v|
             proj = dx * gd0 + dy * gd1 + dz * gd2
             g_means[i, 0] += (gd0 - dx * proj) / norm
