@@ -5,7 +5,7 @@ photos and for a 10-second video, and the page's screenshots for docs/app.md.
 
 The video is made here from the LLFF fern photos of tests/data (each held for 40 frames at 24 fps:
 10 s, six viewpoints, the rest near-duplicates that frame selection drops). The app runs with its
-defaults (working size 256, 50 refinement steps, the full export) unless told otherwise.
+defaults (working size 256, the library's refinement, the full export) unless told otherwise.
 """
 
 from __future__ import annotations

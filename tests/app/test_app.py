@@ -230,7 +230,7 @@ def served(tmp_path_factory):
     config = AppConfig(
         port=_free_port(),
         working_size=64,
-        refine_steps=0,
+        refine_fits=0,
         sessions_dir=str(root),
         max_upload_mb=20,
         export=dict(path_frames=8, turntable_frames=8, mesh_resolution=48, bake_steps=4),

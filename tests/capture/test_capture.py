@@ -255,11 +255,26 @@ def test_the_early_stop_compares_the_last_two_windows(losses, stalled):
         ({"scale": 1.5}, "refine.scale"),
         ({"patience": 0}, "refine.patience"),
         ({"min_improvement": 1.0}, "refine.min_improvement"),
+        ({"fits_per_view": -1.0}, "refine.fits_per_view"),
+        ({"fits_per_view": float("nan")}, "refine.fits_per_view"),
     ],
 )
 def test_refine_config_refuses_bad_values(options, needle):
     with pytest.raises(SurfSplatInputError, match=needle):
         RefineConfig(**options)
+
+
+def test_refinement_steps_follow_the_context_views():
+    # By default each context view is fitted `fits_per_view` times: the 64x64 rooms' 18 views take 50
+    # steps of 8, DTU's 7 views 22 steps of all 7, a clip's 4 views 22 steps; steps given win.
+    config = RefineConfig()
+    assert (config.fits_per_view, config.views_per_step) == (22.0, 8)
+    assert [config.steps_for(v) for v in (2, 4, 7, 8, 9, 18, 100)] == [22, 22, 22, 22, 25, 50, 275]
+    assert RefineConfig(steps=5).steps_for(18) == 5 and RefineConfig(fits_per_view=0).steps_for(18) == 0
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    grey = surfsplat.Gaussians(plane.means, plane.quats, plane.scales, plane.opacities, torch.zeros_like(plane.sh))
+    _, stats = refine_on_views(grey, cameras, photos, SIZE, SIZE, RefineConfig(fits_per_view=3))
+    assert stats["steps"] == stats["max_steps"] == 3  # two views, both rendered every step
 
 
 def test_context_sets_cover_ordered_and_unordered_views():
@@ -431,10 +446,9 @@ def test_two_views_stay_one_pass_of_one_surfel_per_pixel(five_views, tiny_checkp
     assert torch.allclose(again.color, scene.render().color)
 
 
-def test_inference_levers_change_no_surfel_and_leave_tensors_autograd_can_use(five_views, tiny_checkpoint):
-    # The forward passes run under inference_mode with channels-last convolutions; the surfels agree
-    # with a plain no_grad forward of the model as loaded, and come out as ordinary tensors (the
-    # refinement differentiates them).
+def test_inference_mode_changes_no_surfel_and_leaves_tensors_autograd_can_use(five_views, tiny_checkpoint):
+    # The forward passes run under inference_mode; the surfels agree with a plain no_grad forward of
+    # the model as loaded, and come out as ordinary tensors (the refinement differentiates them).
     from surfsplat.model.loading import ModelSpec, load_model
 
     paths, cameras = five_views

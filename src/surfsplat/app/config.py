@@ -20,7 +20,7 @@ class AppConfig:
     keep_minutes: float = 60.0  # a run's folder (uploads and results) is removed this long after it started
     max_queue: int | None = 20  # people waiting at most (None: no limit); more are told to come back
     working_size: int = 256  # the page's default working size (long side in pixels)
-    refine_steps: int = RefineConfig.steps  # the page's default refinement steps (the library's)
+    refine_fits: float = RefineConfig.fits_per_view  # the page's default refinement: fits of each context view
     device: str = "auto"  # torch device of the runs ("auto": CUDA when available)
     sessions_dir: str | None = None  # where session folders go (default: <temp>/surfsplat-app)
     # ExportOptions for the page's outputs (RunSettings fields: path_frames, turntable_frames, mesh_resolution, bake_steps)

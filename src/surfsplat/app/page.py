@@ -44,7 +44,7 @@ def build(config: AppConfig | None = None, **overrides):
     keep = int(config.keep_minutes * 60)
     tracked = gr.Progress()  # gradio finds the bar by this default and hands each call its own
 
-    def run(files, camera_file, weights, working_size, refine_steps, request: gr.Request, progress=tracked):
+    def run(files, camera_file, weights, working_size, refine_fits, request: gr.Request, progress=tracked):
         key = _session_key(request)
         with lock:
             stop = stops.setdefault(key, threading.Event())
@@ -57,7 +57,7 @@ def build(config: AppConfig | None = None, **overrides):
             settings = RunSettings(
                 weights=weights,
                 working_size=int(working_size),
-                refine_steps=int(refine_steps),
+                refine_fits=float(refine_fits),
                 device=config.device,
                 **config.export,
             )
@@ -109,13 +109,13 @@ def build(config: AppConfig | None = None, **overrides):
                     label="Working size (long side, pixels)",
                     elem_id="working-size",
                 )
-                refine_steps = gr.Slider(
+                refine_fits = gr.Slider(
                     0,
-                    200,
-                    value=config.refine_steps,
-                    step=10,
-                    label="Refinement steps (captures of more than one forward pass)",
-                    elem_id="refine-steps",
+                    60,
+                    value=config.refine_fits,
+                    step=1,
+                    label="Refinement: fits of each photo (captures of more than one forward pass; 0: none)",
+                    elem_id="refine-fits",
                 )
                 with gr.Row():
                     start = gr.Button("Start", variant="primary", elem_id="start")
@@ -149,7 +149,7 @@ def build(config: AppConfig | None = None, **overrides):
         weights.change(weights_note, inputs=weights, outputs=about, queue=False)
         started = start.click(
             run,
-            inputs=[photos, cameras, weights, working_size, refine_steps],
+            inputs=[photos, cameras, weights, working_size, refine_fits],
             outputs=[status, view, grid, closure, plot, video, downloads],
             concurrency_limit=1,
             concurrency_id="reconstruct",

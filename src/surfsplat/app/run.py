@@ -59,7 +59,7 @@ class RunSettings:
 
     weights: str = DEMO_MODEL  # a registry name (`surfsplat weights list`)
     working_size: int = 256  # long side of the network's input in pixels (`max_working_size`)
-    refine_steps: int = RefineConfig.steps  # refinement of a fused scene (several forward passes only)
+    refine_fits: float = RefineConfig.fits_per_view  # refinement of a fused scene: fits of each context view (0: none)
     device: str = "auto"
     path_frames: int = 48  # frames of the fly-through (the interpolated camera path)
     turntable_frames: int = 48
@@ -70,8 +70,8 @@ class RunSettings:
     def __post_init__(self) -> None:
         if isinstance(self.working_size, bool) or not 16 <= self.working_size <= 2048:
             raise SurfSplatInputError(f"working size: expected 16 to 2048 pixels, got {self.working_size}")
-        if not 0 <= self.refine_steps <= 10_000:
-            raise SurfSplatInputError(f"refinement steps: expected 0 to 10000, got {self.refine_steps}")
+        if not 0 <= self.refine_fits <= 1_000:
+            raise SurfSplatInputError(f"refinement fits per view: expected 0 to 1000, got {self.refine_fits}")
 
 
 @dataclass
@@ -184,7 +184,7 @@ def run_capture(
     start = time.perf_counter()
     out = Path(out_dir)
     tracker = StageTracker(report, cancelled)
-    capture = CaptureOptions(refine=replace(RefineConfig(), steps=settings.refine_steps))
+    capture = CaptureOptions(refine=replace(RefineConfig(), fits_per_view=settings.refine_fits))
     with listen_progress(tracker):
         tracker.enter("cameras")
         scene = reconstruct(

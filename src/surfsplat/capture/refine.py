@@ -43,26 +43,31 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """How a fused scene is refined on its context photos (steps 0: not at all)."""
+    """How a fused scene is refined on its context photos (no steps: not at all)."""
 
     # Defaults chosen on `benchmarks/capture.py --parts refine-rooms refine` against the refinement
-    # first shipped (100 steps of 16 views at rate 0.01), in one run: on DTU scan 24 (7 views at
-    # 288x400) 25 steps of 6 views at 0.02 score the same held-out PSNR (-0.01 dB) in 0.16 of the time;
-    # on the 64x64 rooms (18 views) they lose 0.56 dB (50 steps: -0.21 dB in 0.31 of the time), where
-    # the fit keeps gaining up to 100 steps of 16 views. Rendering the fit at half size lost the
-    # refinement's gain altogether at 64 px and about half of it on DTU; a cosine decay of the rate
-    # scored no better than a constant one.
-    steps: int = 25  # Adam steps at most
+    # first shipped (100 steps of 16 views at rate 0.01), each in one run. The steps follow the
+    # number of context views, so that each view is fitted about 22 times: on the 64x64 rooms (18
+    # views) 50 steps of 8 views keep the held-out PSNR within 0.17 dB in 0.245 of the time (50 of 6:
+    # -0.21 dB; 25 of 6: -0.56 dB; the fit keeps gaining up to 100 steps of 16); on DTU scan 24
+    # (7 views at 288x400) the same 22 fits per view are 22 steps of all 7 views (25 of 6: -0.01 dB
+    # in 0.16 of the time; 25 of 4 +0.06 dB). Rendering the fit at half size lost the refinement's
+    # gain altogether at 64 px and about half of it on DTU; a cosine decay of the rate scored no
+    # better than a constant one.
+    steps: int | None = None  # Adam steps at most (None: as many as `fits_per_view` asks for)
+    fits_per_view: float = 22.0  # with steps None: steps = ceil(fits x views / views rendered a step)
     lr: float = 0.02  # rate of the SH coefficients and log scales; opacity logits at 4x
-    views_per_step: int = 6  # context views rendered in one step (all of them when fewer)
+    views_per_step: int = 8  # context views rendered in one step (all of them when fewer)
     seed: int = 0  # which views each step renders
     scale: float = 1.0  # the fit's renders at this fraction of the working size (photos area-averaged)
     patience: int | None = None  # steps per window of the early stop (None: every step runs)
     min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
 
     def __post_init__(self) -> None:
-        if self.steps < 0:
+        if self.steps is not None and self.steps < 0:
             raise SurfSplatInputError(f"refine.steps (--refine-steps): expected >= 0, got {self.steps}")
+        if not (math.isfinite(self.fits_per_view) and self.fits_per_view >= 0):
+            raise SurfSplatInputError(f"refine.fits_per_view: expected >= 0, got {self.fits_per_view}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise SurfSplatInputError(f"refine.lr: expected a positive rate, got {self.lr}")
         if self.views_per_step < 1:
@@ -73,6 +78,12 @@ class RefineConfig:
             raise SurfSplatInputError(f"refine.patience: expected at least 1 step or None, got {self.patience}")
         if not (math.isfinite(self.min_improvement) and 0 <= self.min_improvement < 1):
             raise SurfSplatInputError(f"refine.min_improvement: expected a share in [0, 1), got {self.min_improvement}")
+
+    def steps_for(self, views: int) -> int:
+        """The Adam steps for `views` context views: `steps`, or enough for `fits_per_view` fits of each."""
+        if self.steps is not None:
+            return self.steps
+        return math.ceil(self.fits_per_view * views / max(1, min(self.views_per_step, views)) - 1e-9)
 
 
 def refine_on_views(
@@ -128,9 +139,10 @@ def refine_on_views(
             total = sum(float((draw(g, cameras[c], width, height) - images[c]).square().sum()) for c in chunks)
         return total / images.numel()
 
-    figures = {"max_steps": config.steps, "scale": config.scale, "width": fit_w, "height": fit_h}
+    total = config.steps_for(v)
+    figures = {"max_steps": total, "scale": config.scale, "width": fit_w, "height": fit_h}
     before = mse(g0)
-    if config.steps == 0:
+    if total == 0:
         seconds = time.perf_counter() - start
         return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
     sh = g0.sh.clone().requires_grad_(True)
@@ -147,8 +159,8 @@ def refine_on_views(
 
     generator = torch.Generator().manual_seed(config.seed)
     losses: list[float] = []
-    with progress_bar(total=config.steps, desc="refine", unit="step", enabled=progress) as bar:
-        for _ in range(config.steps):
+    with progress_bar(total=total, desc="refine", unit="step", enabled=progress) as bar:
+        for _ in range(total):
             which = torch.randperm(v, generator=generator)[: config.views_per_step].sort().values
             loss = (draw(current(), fit_cameras[which], fit_w, fit_h) - fit_images[which]).square().mean()
             optimizer.zero_grad(set_to_none=True)

@@ -90,10 +90,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--refine-steps",
         type=int,
-        default=refine.steps,
+        default=None,
         metavar="N",
-        help="steps fitting a fused scene's colours, opacities and sizes to its context views "
-        f"(0: none; default {refine.steps}, {refine.views_per_step} views each)",
+        help="steps fitting a fused scene's colours, opacities and sizes to its context views, "
+        f"{refine.views_per_step} views each (0: none; default: each view fitted {refine.fits_per_view:g} times)",
     )
     group.add_argument(
         "--refine-scale",

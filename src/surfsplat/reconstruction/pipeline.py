@@ -219,7 +219,7 @@ def reconstruct(
     gaussians = single if fusion is None else fusion.gaussians()
     scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
-    if fusion is not None and capture.refine.steps > 0:
+    if fusion is not None and capture.refine.steps_for(len(context)) > 0:
         tick = time.perf_counter()
         images_c, _ = network_views(context)
         gaussians, refine_stats = refine_on_views(
