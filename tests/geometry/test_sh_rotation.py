@@ -138,6 +138,22 @@ def test_gradcheck_wrt_coefficients_and_rotation() -> None:
     assert torch.autograd.gradcheck(fn, (sh, rotvec))
 
 
+def test_operators_cached_under_inference_mode_still_serve_autograd() -> None:
+    # The forward passes run under inference_mode; the first SH rotation of a process may happen
+    # there (the release adapter), and its cached fit operators must not become inference tensors.
+    from surfsplat.geometry import sh_rotation
+
+    sh_rotation._fit_operators.cache_clear()
+    R = torch.linalg.qr(torch.randn(4, 3, 3, dtype=torch.float64))[0]
+    R = R * torch.linalg.det(R)[:, None, None]  # proper rotations
+    with torch.inference_mode():
+        rotate_sh(torch.randn(4, 3, 9, dtype=torch.float64), R[:, None])
+    sh = torch.randn(4, 3, 9, dtype=torch.float64, requires_grad=True)
+    R.requires_grad_(True)
+    rotate_sh(sh, R[:, None]).square().sum().backward()
+    assert sh.grad is not None and R.grad is not None and bool(torch.isfinite(R.grad).all())
+
+
 # ------------------------------------------------------------------ the release's e3nn convention
 @pytest.mark.parametrize("l", [1, 2, 3])
 def test_e3nn_convention_matches_e3nn_wigner_d(l: int) -> None:

@@ -15,14 +15,17 @@ logarithms; a surfel's zero thickness stays), with Adam, the opacity logits at 4
 the compaction's refit (`compaction.refit`). Positions and orientations stay the network's, so the
 surface is the one predicted. Loss: the mean squared colour error of the renders (forced alpha
 blending, as the reconstruction renders) against the photos. A step renders at most
-`views_per_step` context views, drawn by a seeded generator without replacement, so the cost per
-step is bounded for hundreds of views and the result is the same on every run.
+`views_per_step` context views, drawn by a seeded generator without replacement, so the result is
+the same on every run.
 
-What it costs: the fit renders at `scale` of the working size (the photos area-averaged to it), a
+What it costs: by default the steps follow the context views, so that each view is fitted
+`fits_per_view` times (a capture of V views renders about 22 V views in all; `steps` sets them
+instead). The fit renders at `scale` of the working size (the photos area-averaged to it), a
 quarter of the pixels at 0.5, and stops early once the loss of a window of `patience` steps has
 fallen by less than `min_improvement` of the previous window's (off by default). The defaults were
-chosen on the held-out PSNR against time curve of `benchmarks/capture.py --parts refine-rooms refine`. The colour error before
-and after is measured on every view at the full working size; a fit that raised it is not kept.
+chosen on the held-out PSNR against time curve of `benchmarks/capture.py --parts refine-rooms
+refine`. The colour error before and after is measured on every view at the full working size; a
+fit that raised it is not kept.
 """
 
 from __future__ import annotations
@@ -50,10 +53,10 @@ class RefineConfig:
     # number of context views, so that each view is fitted about 22 times: on the 64x64 rooms (18
     # views) 50 steps of 8 views keep the held-out PSNR within 0.17 dB in 0.245 of the time (50 of 6:
     # -0.21 dB; 25 of 6: -0.56 dB; the fit keeps gaining up to 100 steps of 16); on DTU scan 24
-    # (7 views at 288x400) the same 22 fits per view are 22 steps of all 7 views (25 of 6: -0.01 dB
-    # in 0.16 of the time; 25 of 4 +0.06 dB). Rendering the fit at half size lost the refinement's
-    # gain altogether at 64 px and about half of it on DTU; a cosine decay of the rate scored no
-    # better than a constant one.
+    # (7 views at 288x400) the same 22 fits per view are 22 steps of all 7 views: -0.08 dB in 0.19 of
+    # the time (25 of 6: -0.01 dB in 0.22; 25 of 4: +0.06 dB). Rendering the fit at half size lost
+    # the refinement's gain altogether at 64 px and about half of it on DTU; a cosine decay of the
+    # rate scored no better than a constant one.
     steps: int | None = None  # Adam steps at most (None: as many as `fits_per_view` asks for)
     fits_per_view: float = 22.0  # with steps None: steps = ceil(fits x views / views rendered a step)
     lr: float = 0.02  # rate of the SH coefficients and log scales; opacity logits at 4x

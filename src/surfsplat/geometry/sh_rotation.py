@@ -47,11 +47,13 @@ _NUM_SAMPLES = 32
 
 
 @functools.cache
+@torch.inference_mode(False)
 def _fit_operators(degree: int) -> tuple[Tensor, Tensor]:
     """Sample directions [S, 3] and, per degree l <= `degree`, pinv(Y_l(samples)) stacked block-wise.
 
     Returns (samples [S, 3], pinv [K, S]) in float64 on the CPU, K = (degree + 1)^2, where rows
-    l^2 .. (l+1)^2 of `pinv` hold the pseudo-inverse of degree l's basis matrix.
+    l^2 .. (l+1)^2 of `pinv` hold the pseudo-inverse of degree l's basis matrix. Made outside
+    inference mode whatever the first caller runs under: the cache serves autograd later.
     """
     i = torch.arange(_NUM_SAMPLES, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * i / _NUM_SAMPLES
