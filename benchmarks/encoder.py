@@ -34,7 +34,7 @@ LEVERS = {  # --levers: the standard CPU levers, each alone and together, agains
     "inference_mode": ("inference_mode",),
     "channels_last": ("channels_last",),
     "compile": ("compile",),
-    "library": ("inference_mode", "channels_last"),  # what reconstruct and evaluation do by default
+    "inference_mode+channels_last": ("inference_mode", "channels_last"),
     "all": ("inference_mode", "channels_last", "compile"),
 }
 

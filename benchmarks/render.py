@@ -165,6 +165,25 @@ def camera_fan(cameras, views: int):
     return Cameras(c2w, cameras.K[:1].repeat(views, 1, 1))
 
 
+def _render_and_backward(render, gaussians, cams, res: int) -> None:
+    """Forward+backward of a sum of colour, depth and normal (the multiview workload's loss)."""
+    out = render(gaussians, cams, res, res, backend="cpu")
+    (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+
+
+def _median_seconds(fn, params: dict, repeats: int) -> float:
+    """Median wall seconds of `fn` over `repeats` calls after one warm-up, gradients cleared before each."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        for p in params.values():
+            p.grad = None
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
 def multiview_worker(views: int, res: int, repeats: int, precision: str = "float64") -> dict:
     """One V-camera forward+backward call against V one-camera calls (compiled CPU backend)."""
     from surfsplat import Gaussians
@@ -179,25 +198,16 @@ def multiview_worker(views: int, res: int, repeats: int, precision: str = "float
     gaussians = Gaussians(**params)
 
     def together() -> None:
-        out = render(gaussians, cams, res, res, backend="cpu")
-        (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+        _render_and_backward(render, gaussians, cams, res)
 
     def one_by_one() -> None:
         for c in range(views):
-            out = render(gaussians, cams[c : c + 1], res, res, backend="cpu")
-            (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+            _render_and_backward(render, gaussians, cams[c : c + 1], res)
 
-    timings = {}
-    for name, fn in (("one_call", together), ("separate_calls", one_by_one)):
-        fn()  # warm-up
-        times = []
-        for _ in range(repeats):
-            for p in params.values():
-                p.grad = None
-            t = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t)
-        timings[name] = statistics.median(times)
+    timings = {
+        name: _median_seconds(fn, params, repeats)
+        for name, fn in (("one_call", together), ("separate_calls", one_by_one))
+    }
     return {
         "views": views,
         "resolution": res,
@@ -233,18 +243,10 @@ def baseline_worker(path: Path, repeats: int) -> dict:
 
     def one_by_one() -> None:
         for c in range(case["views"]):
-            out = render(gaussians, cams[c : c + 1], res, res, backend="cpu")
-            (out.color.sum() + out.depth.sum() + out.normal.sum()).backward()
+            _render_and_backward(render, gaussians, cams[c : c + 1], res)
 
-    one_by_one()  # warm-up (and the revision's kernels compiled)
-    times = []
-    for _ in range(repeats):
-        for p in params.values():
-            p.grad = None
-        t = time.perf_counter()
-        one_by_one()
-        times.append(time.perf_counter() - t)
-    return {"seconds_separate_calls": statistics.median(times), "source": surfsplat.__file__}
+    # the warm-up call also compiles the revision's kernels
+    return {"seconds_separate_calls": _median_seconds(one_by_one, params, repeats), "source": surfsplat.__file__}
 
 
 def run_baseline(revision: str, views: int, res: int, repeats: int, threads: int, folder: Path) -> dict:
