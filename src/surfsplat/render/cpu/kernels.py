@@ -859,6 +859,42 @@ def composite_forward(
                 out_last[r, c] = last[b, j]
 
 
+@njit(cache=True, inline="always", boundscheck=False, error_model="numpy")
+def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5):
+    """The compositing's chain rule at lane j of chunk b (`_unblend`'s per-pixel step, which
+    `_unblend_surfel` shares): updates the transmittance and the sum behind in state, adds the
+    feature and log-opacity sums to acc, and returns (on, passes, w, depth, dL/d(depth feature),
+    dL/d(log alpha)) for the geometry gradients."""
+    ft = state.dtype.type
+    zero, one = ft(0.0), ft(1.0)
+    a = work[b, W_ALPHA * LANES + j]
+    on = (a > zero) & (position < last[b, j])
+    T_behind = state[b, B_T * LANES + j]
+    inv_one_minus = one / (one - a)
+    T = T_behind * inv_one_minus
+    w = a * T
+    d = work[b, W_DEPTH * LANES + j]
+    g_d = state[b, B_GDEPTH * LANES + j]
+    u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
+    u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
+    g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+    behind = state[b, B_BEHIND * LANES + j]
+    g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
+    state[b, B_T * LANES + j] = T if on else T_behind
+    state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
+    acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
+    acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
+    acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
+    acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
+    acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
+    acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
+    # alpha = min(exp(.), 0.99): a clamped pair passes nothing on to rho or the opacity.
+    passes = on & (a < ft(ALPHA_MAX))
+    g_log_alpha = g_a * a
+    acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
+    return on, passes, w, d, g_d, g_log_alpha
+
+
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
     """The compositing's chain rule for one Gaussian over the chunks of its box, back to front.
@@ -874,38 +910,15 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
     """
     ft = state.dtype.type
     zero, half, one = ft(0.0), ft(0.5), ft(1.0)
-    alpha_max = ft(ALPHA_MAX)
     for r in range(r0, r1 + 1):
         if rows[r - y0] <= position:
             continue
         for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
             b = (r - y0) * chunks + ch
             for j in range(LANES):
-                a = work[b, W_ALPHA * LANES + j]
-                on = (a > zero) & (position < last[b, j])
-                T_behind = state[b, B_T * LANES + j]
-                inv_one_minus = one / (one - a)
-                T = T_behind * inv_one_minus
-                w = a * T
-                d = work[b, W_DEPTH * LANES + j]
-                g_d = state[b, B_GDEPTH * LANES + j]
-                u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
-                u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
-                g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
-                behind = state[b, B_BEHIND * LANES + j]
-                g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
-                state[b, B_T * LANES + j] = T if on else T_behind
-                state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
-                acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
-                acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
-                acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
-                acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
-                acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
-                acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
-                # alpha = min(exp(.), 0.99): a clamped pair passes nothing on to rho or the opacity.
-                passes = on & (a < alpha_max)
-                g_log_alpha = g_a * a
-                acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
+                on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
+                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
+                )
                 work[b, W_GRHO * LANES + j] = -half * g_log_alpha if passes else zero
                 work[b, W_GDEPTH * LANES + j] = w * g_d if on else zero
                 work[b, W_ON * LANES + j] = one if on else zero
@@ -924,8 +937,7 @@ def _unblend_surfel(
     rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth.
     """
     ft = state.dtype.type
-    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
-    alpha_max = ft(ALPHA_MAX)
+    zero, half, two = ft(0.0), ft(0.5), ft(2.0)
     two_rho_scale = ft(2.0 * LOWPASS_RHO_SCALE)
     cx, cy = g[GEOM_CX], g[GEOM_CY]
     A0, A1, b0, b1, C0, C1 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_B], g[GEOM_B + 1], g[GEOM_C], g[GEOM_C + 1]
@@ -940,30 +952,9 @@ def _unblend_surfel(
             b = (r - y0) * chunks + ch
             fc0 = ft(x0 + ch * LANES)
             for j in range(LANES):
-                a = work[b, W_ALPHA * LANES + j]
-                on = (a > zero) & (position < last[b, j])
-                T_behind = state[b, B_T * LANES + j]
-                inv_one_minus = one / (one - a)
-                T = T_behind * inv_one_minus
-                w = a * T
-                d = work[b, W_DEPTH * LANES + j]
-                g_d = state[b, B_GDEPTH * LANES + j]
-                u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
-                u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
-                g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
-                behind = state[b, B_BEHIND * LANES + j]
-                g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
-                state[b, B_T * LANES + j] = T if on else T_behind
-                state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
-                acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
-                acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
-                acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
-                acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
-                acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
-                acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
-                passes = on & (a < alpha_max)
-                g_log_alpha = g_a * a
-                acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
+                on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
+                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
+                )
                 g_rho = -half * g_log_alpha if passes else zero
                 g_dpair = w * g_d if on else zero
                 # Surfel geometry.
