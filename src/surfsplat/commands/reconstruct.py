@@ -180,8 +180,9 @@ def run(args: argparse.Namespace) -> int:
         f"under half their pixel footprint, median opacity {c['opacity_quantiles']['p50']:.2f}"
         + ("" if c["closed"] else f": not closed ({'; '.join(c['problems'])})")
     )
-    stages = {k: v for k, v in summary["seconds"].items() if k != "total" and v >= 0.05}
-    print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+    from ..reconstruction.report import seconds_line
+
+    print("seconds: " + seconds_line(summary["seconds"]))
     print(f"wrote {args.out}/:")
     print_written(written)
     return 0

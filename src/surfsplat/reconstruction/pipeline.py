@@ -181,7 +181,11 @@ def reconstruct(
     from ..utils.log import progress as progress_bar
 
     fusion = SurfelFusion(capture.fusion, mode=mode) if len(passes) > 1 else None
-    seconds["forward"], seconds["fusion"], seconds["compact"] = 0.0, 0.0, 0.0
+    seconds["forward"] = 0.0  # the stages that run: fusion and compaction only where asked for
+    if fusion is not None:
+        seconds["fusion"] = 0.0
+    if compact is not None:
+        seconds["compact"] = 0.0
     compact_stats: dict[str, int] = {}
     single, alpha_threshold, ctx_K, multipliers = None, None, [None] * len(context), None
     for members in progress_bar(passes, desc="forward passes", unit="pass", enabled=progress and len(passes) > 1):

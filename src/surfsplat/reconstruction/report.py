@@ -16,6 +16,11 @@ from ..data.cameras import CameraSet
 THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
 
 
+def seconds_line(seconds: dict[str, float]) -> str:
+    """Every timed stage but the total, in the order it ran; none is hidden for being short."""
+    return ", ".join(f"{k} {v:.2f}" for k, v in seconds.items() if k != "total")
+
+
 def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:
     """Write capture.json, capture/ (cameras from above, held-out renders) and capture.html."""
     from ..export.figures import write_text
@@ -42,7 +47,7 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
         )
     if scene.refine_stats:
         lines.append(refine_summary(scene.refine_stats))
-    lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in scene.seconds.items()))
+    lines.append("seconds: " + seconds_line(scene.seconds))
     if scene.video is not None:
         lines.extend(scene.video.lines())
     report.preformatted("\n".join(lines))
