@@ -349,6 +349,31 @@ def test_reconstruct_a_video_with_known_cameras(room_video, tiny_checkpoint, tmp
     assert "near-duplicate of frame_000000" in written["capture report"].read_text()
 
 
+def test_a_short_clip_of_seven_views_registers_all_seven(data_dir, tiny_checkpoint, tmp_path):
+    """The frames chosen from a short video are matched pair by pair: sequential pairs (1, 2, 4
+    ahead) registered 4 of these 7 DTU views, every pair all 7."""
+    import imageio_ffmpeg
+
+    from surfsplat.data.images import list_images
+
+    photos = [list_images(data_dir / "dtu_scan24" / "images_4")[i] for i in range(14, 27, 2)]
+    frames = [np.ascontiguousarray(iio.imread(p)[..., :3]) for p in photos]
+    height, width = frames[0].shape[:2]
+    path = tmp_path / "clip.mp4"
+    writer = imageio_ffmpeg.write_frames(str(path), (width, height), fps=10, codec="libx264", quality=8)
+    writer.send(None)
+    for frame in frames:
+        for _ in range(4):  # each view held for 4 frames, as a phone held still
+            writer.send(frame)
+    writer.close()
+    no_refinement = surfsplat.CaptureOptions(refine=RefineConfig(steps=0))
+    scene = surfsplat.reconstruct(path, tiny_checkpoint, size=(32, 32), capture=no_refinement, progress=False)
+    assert scene.names == [frame_name(4 * k) for k in range(7)]
+    scene.save(tmp_path / "out", formats=("ply",))
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert len(poses["pairs"]) == 21 and poses["unregistered"] == [], poses["notes"]
+
+
 # ----------------------------------------------------------------------------------------- API == CLI
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):

@@ -10,7 +10,7 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    keypoints are then mapped back to the original pixels, so everything after sees the real images.
 2. SIFT extraction, matching and geometric verification (E/F/H with RANSAC) into a temporary
    COLMAP database. Pairs: all of them (exhaustive) for small sets, each image with its next
-   `sequential_overlap` images in input order (sequential) for ordered frames and large sets.
+   `sequential_overlap` images in input order (sequential) for sets over `exhaustive_max_images`.
    By default (`quadratic_overlap`, COLMAP's default too) those are the images 1, 2, 4, 8, ...
    ahead instead of the next ones: on a slow video the next ten frames barely move (300 frames of
    a 2 m walk: 21 registered, 25 points), and the wider baselines let the mapper start and

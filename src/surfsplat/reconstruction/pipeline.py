@@ -8,8 +8,8 @@ Steps:
 1. inputs and options are checked (`_check_options`, `read_capture`); a video becomes its chosen
    frames (`surfsplat.capture.select_video_frames`).
 2. cameras: given (a camera file, a scene folder, a CameraSet or Cameras), or estimated from the
-   views (`surfsplat.poses.estimate_cameras`; sequential matching for video frames and for sets
-   over 30 photos, exhaustive below).
+   views (`surfsplat.poses.estimate_cameras`; every pair of up to 30 views is matched, photos or a
+   video's chosen frames, and each view with the views 1, 2, 4, ... ahead above that).
 3. the network: every `holdout_every`-th view is kept out (to look at the scene from there); the
    others are split into context sets (`surfsplat.capture.context_sets`), one forward pass each,
    with the photos read and resized for that pass only.
@@ -119,8 +119,9 @@ def reconstruct(
     if given is None:
         from ..poses import PoseConfig, estimate_cameras
 
-        matching = "sequential" if views.ordered and capture.matching == "auto" else capture.matching
-        config = PoseConfig(focal=focal, max_size=max_size, near=near, far=far, matching=matching)
+        # "auto" matches every pair up to 30 views, a video's chosen frames too: on a 3-second clip of 7
+        # DTU views the sequential pairs (1, 2, 4 ahead) registered 4 frames and every pair all 7
+        config = PoseConfig(focal=focal, max_size=max_size, near=near, far=far, matching=capture.matching)
         photos = views.pose_inputs()
         pose_cameras, poses = estimate_cameras(photos, config=config, names=views.names)
         views = views.subset([views.names.index(n) for n in pose_cameras.names])
