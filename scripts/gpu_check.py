@@ -16,7 +16,9 @@ Steps, each recorded in the JSON (with its seconds, or why it was skipped):
 3. encoder: the PRESET forward at 2 x SIZE x SIZE in fp32 and under bf16 autocast: median time,
    time ratio, peak memory, and the relative L2 difference of the bf16 depths to the fp32 ones.
 4. training: STEPS bf16 autocast steps of PRESET (batch 1, 2 context + 4 target views, SIZE^2
-   procedural rooms, MSE loss): median step time, peak memory, losses (all finite).
+   procedural rooms, MSE loss): median step time, peak memory, losses, gradient norms and how far
+   the weights moved; the step fails if an update was skipped (a NaN/inf gradient, named) or the
+   weights did not change.
 
 `ran_on_gpu` in the JSON says whether DEVICE was a CUDA device.
 """
@@ -223,7 +225,8 @@ def training_steps(preset: str, size: int, steps: int, device: torch.device) -> 
     batches = [to_train_batch(default_collate([dataset[i]]), [i]).to(device) for i in range(2)]
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    times, losses = [], []
+    before = [p.detach().clone() for p in model.parameters()]
+    times, losses, grad_norms, skipped = [], [], [], []
     for step in range(steps):
         sync(device)
         start = time.perf_counter()
@@ -239,7 +242,19 @@ def training_steps(preset: str, size: int, steps: int, device: torch.device) -> 
         )
         losses.append(float(out.loss.detach()))  # waits for the device
         times.append(time.perf_counter() - start)
+        grad_norms.append(float(out.grad_norm))
+        if out.nonfinite is not None:  # the update was not applied
+            skipped.append({"step": step, "reason": out.nonfinite})
+    moved = sum(float((p.detach() - b).norm() ** 2) for p, b in zip(model.parameters(), before)) ** 0.5
+    size_of = sum(float(b.norm() ** 2) for b in before) ** 0.5
     peak, kind = peak_bytes(device)
+    # A training step that skips its update (a NaN/inf gradient) or leaves the weights where they were
+    # repeats its losses exactly; the check fails then, naming what was not finite.
+    problems = [f"step {s['step']}: update skipped ({s['reason']})" for s in skipped]
+    if moved == 0.0:
+        problems.append(f"the weights did not change over {steps} steps")
+    if not all(math.isfinite(x) for x in losses):
+        problems.append("a loss is not finite")
     timed = times[1:] or times  # the first step includes kernel selection and allocator warm-up
     return {
         "preset": preset,
@@ -250,6 +265,10 @@ def training_steps(preset: str, size: int, steps: int, device: torch.device) -> 
         "step_median_s": statistics.median(timed),
         "losses": losses,
         "losses_finite": all(math.isfinite(x) for x in losses),
+        "grad_norms": grad_norms,
+        "skipped_updates": skipped,
+        "weights_moved_rel": moved / max(size_of, 1e-30),
+        "problems": problems,
         "master_weights_dtype": str({p.dtype for p in model.parameters()}),
         "peak_mb": peak / 2**20,
         "peak_kind": kind,
@@ -261,7 +280,7 @@ def run_step(report: dict, name: str, fn, *args) -> None:
     start = time.perf_counter()
     try:
         result = fn(*args)
-        report["steps"][name] = {"status": "ok", **result}
+        report["steps"][name] = {"status": "failed" if result.get("problems") else "ok", **result}
     except Exception as err:  # recorded in the JSON: this script reports, it does not stop at the first failure
         report["steps"][name] = {"status": "failed", "error": repr(err), "traceback": traceback.format_exc()}
     report["steps"][name]["seconds_total"] = time.perf_counter() - start

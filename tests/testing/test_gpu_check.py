@@ -1,6 +1,7 @@
 """scripts/gpu_check.py runs its every step on CPU (`--device cpu`), so the script a GPU machine runs
 is the tested one: the torch renderer agrees with the compiled one (forward and gradients, x1/x2/x4),
-bf16 encoder timings and depths are reported, and bf16 training steps give finite losses."""
+bf16 encoder timings and depths are reported, and bf16 training steps give finite losses and move
+the weights (a step that skips its update fails the check)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,4 +44,31 @@ def test_gpu_check_runs_every_step_on_cpu(tmp_path: Path) -> None:
     assert 0 < encoder["bf16_depth_rel_l2"] < 2e-2
     train = steps["training_bf16"]
     assert train["status"] == "ok" and train["losses_finite"] and len(train["losses"]) == 2
+    assert train["skipped_updates"] == [] and train["problems"] == [] and train["weights_moved_rel"] > 0
     assert train["master_weights_dtype"] == "{torch.float32}"
+
+
+def test_training_check_fails_when_the_updates_do_not_move_the_weights(monkeypatch) -> None:
+    """Losses that repeat exactly over alternating batches mean no update was applied: named, not ok."""
+    import surfsplat.train.loop as loop
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        import gpu_check
+    finally:
+        sys.path.remove(str(REPO / "scripts"))
+    step = loop.training_step
+
+    def frozen(model, *args, **kwargs):  # the optimizer is handed a rate of zero
+        optimizer = args[3]
+        for group in optimizer.param_groups:
+            group["lr"] = 0.0
+        return step(model, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "training_step", frozen)
+    result = gpu_check.training_steps("tiny", 32, 2, torch.device("cpu"))
+    assert result["weights_moved_rel"] == 0.0
+    assert result["problems"] == ["the weights did not change over 2 steps"]
+    report = {"steps": {}}
+    gpu_check.run_step(report, "training_bf16", lambda: result)
+    assert report["steps"]["training_bf16"]["status"] == "failed"
