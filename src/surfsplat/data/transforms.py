@@ -21,7 +21,7 @@ from torch import Tensor
 from ..utils.checks import SurfSplatInputError, check_tensor
 
 ResizeMethod = Literal["lanczos", "bicubic", "bilinear", "area"]
-_FLIP_X = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+_FLIP_X = (-1.0, 1.0, 1.0, 1.0)  # mirror of the world x axis: diag(_FLIP_X) (numbers, not a module-level tensor)
 
 
 def _check_size(name: str, size: tuple[int, int]) -> tuple[int, int]:
@@ -116,7 +116,7 @@ def horizontal_flip(
     image coordinate u then appears at W - u, so cx' = W - cx and the skew changes sign.
     """
     W = images.shape[-1]
-    flip = _FLIP_X.to(c2w)
+    flip = torch.tensor(_FLIP_X, dtype=c2w.dtype, device=c2w.device).diag()
     K = K.clone()
     K[..., 0, 2] = W - K[..., 0, 2]
     K[..., 0, 1] = -K[..., 0, 1]

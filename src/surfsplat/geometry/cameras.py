@@ -16,11 +16,16 @@ from torch import Tensor
 from ..utils.checks import SurfSplatInputError, check_tensor
 
 # OpenGL / Blender camera axes (x right, y up, z backward) <-> OpenCV (x right, y down, z forward).
-_FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+# Constants as numbers, made tensors where used: a module-level tensor made while the module is first
+# imported under torch.inference_mode() would be an inference tensor, which autograd refuses to save.
+_FLIP_YZ = (1.0, -1.0, -1.0, 1.0)  # OpenGL <-> OpenCV camera axes: diag(_FLIP_YZ)
 # LLFF stores camera-to-world columns as (down, right, back); OpenCV columns are (right, down, forward).
-_LLFF_TO_OPENCV = torch.tensor(
-    [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64
-)  # c2w_cv[:, :3] = c2w_llff[:, :3] @ _LLFF_TO_OPENCV
+_LLFF_TO_OPENCV = ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, -1.0))  # c2w_cv[:, :3] = c2w_llff[:, :3] @ it
+
+
+def _constant(values, like: Tensor) -> Tensor:
+    """A constant of nested numbers as a tensor of `like`'s dtype and device."""
+    return torch.tensor(values, dtype=like.dtype, device=like.device)
 
 
 @dataclass
@@ -101,12 +106,12 @@ class Cameras:
     @staticmethod
     def from_opengl(c2w_opengl: Tensor, K: Tensor) -> Cameras:
         """From OpenGL/Blender camera-to-world matrices (x right, y up, z backward)."""
-        flip = _FLIP_YZ.to(c2w_opengl)
+        flip = _constant(_FLIP_YZ, c2w_opengl).diag()
         return Cameras(c2w_opengl @ flip, K)
 
     def to_opengl(self) -> Tensor:
         """[C, 4, 4] camera-to-world with OpenGL/Blender axes."""
-        return self.c2w @ _FLIP_YZ.to(self.c2w)
+        return self.c2w @ _constant(_FLIP_YZ, self.c2w).diag()
 
     @staticmethod
     def from_llff(poses: Tensor, downscale: float = 1.0) -> Cameras:
@@ -115,7 +120,7 @@ class Cameras:
         check_tensor("poses", poses, ("N", 3, 5))
         n = poses.shape[0]
         c2w = torch.zeros(n, 4, 4, dtype=poses.dtype, device=poses.device)
-        c2w[:, :3, :3] = poses[:, :, :3] @ _LLFF_TO_OPENCV.to(poses)
+        c2w[:, :3, :3] = poses[:, :, :3] @ _constant(_LLFF_TO_OPENCV, poses)
         c2w[:, :3, 3] = poses[:, :, 3]
         c2w[:, 3, 3] = 1
         h, w, f = (poses[:, i, 4] / downscale for i in range(3))
@@ -130,7 +135,7 @@ class Cameras:
     def to_llff(self, width: int, height: int, downscale: float = 1.0) -> Tensor:
         """[C, 3, 5] LLFF poses (inverse of `from_llff`; needs fx == fy and a centred principal point)."""
         out = torch.zeros(len(self), 3, 5, dtype=self.c2w.dtype, device=self.c2w.device)
-        out[:, :, :3] = self.c2w[:, :3, :3] @ _LLFF_TO_OPENCV.to(self.c2w).T
+        out[:, :, :3] = self.c2w[:, :3, :3] @ _constant(_LLFF_TO_OPENCV, self.c2w).T
         out[:, :, 3] = self.c2w[:, :3, 3]
         out[:, 0, 4] = height * downscale
         out[:, 1, 4] = width * downscale

@@ -39,7 +39,7 @@ SHConvention = Literal["3dgs", "e3nn"]
 
 # e3nn's real spherical harmonics use y as the polar axis: the 3DGS basis at direction d equals
 # (a constant times) e3nn's basis at P d with P d = (-d_y, d_z, -d_x). P is a proper rotation.
-_E3NN_FROM_3DGS = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
+_E3NN_FROM_3DGS = ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0), (-1.0, 0.0, 0.0))  # numbers, not a module-level tensor
 
 # Sample directions for the least-squares fit; 32 points of a Fibonacci spiral make every degree
 # up to 3 (7 basis functions) well conditioned.
@@ -80,7 +80,7 @@ def sh_rotation_matrix(rotations: Tensor, degree: int, convention: SHConvention 
     samples, pinv = (t.to(rotations.device) for t in _fit_operators(degree))
     R = rotations.to(torch.float64)
     if convention == "e3nn":
-        P = _E3NN_FROM_3DGS.to(R.device)
+        P = torch.tensor(_E3NN_FROM_3DGS, dtype=R.dtype, device=R.device)
         R = P.T @ R @ P
     # Y(R p_s) for every sample: rows are R p_s = p_s R^T.  [..., S, K]
     rotated = sh_basis(samples @ R.transpose(-1, -2), degree)
