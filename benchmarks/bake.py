@@ -50,7 +50,9 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="folder with llff_fern and dtu_scan24")
     parser.add_argument("--capture-checkpoint", nargs="+", default=[], metavar="NAME=CKPT")
     parser.add_argument("--real-size", nargs=2, type=int, default=(192, 256), metavar=("H", "W"))
-    parser.add_argument("--steps", type=int, default=BakeConfig().steps, help="Adam steps of the bake")
+    parser.add_argument(
+        "--steps", type=int, default=None, help="Adam steps of the bake (default: BakeConfig.steps_for the views)"
+    )
     parser.add_argument("--scenes", nargs="+", default=sorted(REAL), choices=sorted(REAL))
     parser.add_argument("--out", type=Path, default=RESULTS / "bake.json")
     parser.add_argument(

@@ -116,7 +116,7 @@ def test_bake_keeps_positions_and_rotations_and_fits_the_rest(baked_plane):
     evals = torch.linalg.eigvalsh(baked.explicit_covariances)
     assert bool((evals[:, 0].sqrt() < 0.5 * evals[:, 1].sqrt()).all())
     assert report.best_step > 0 and report.fit_views == 1  # the context camera (BakeConfig: no extra views)
-    assert len(report.losses) == report.steps
+    assert len(report.losses) == report.steps == BakeConfig().steps_for(1) == 20  # one view: the fewest steps
     # Deterministic: the same bake twice is the same, bit for bit.
     again, _ = bake_for_viewers(g, _camera(), H, W, dataclasses.replace(BakeConfig(), steps=5), backend="cpu")
     once, _ = bake_for_viewers(g, _camera(), H, W, dataclasses.replace(BakeConfig(), steps=5), backend="cpu")
@@ -226,9 +226,24 @@ def test_export_command_bakes_unless_raw_is_asked(tmp_path, capsys):
     assert record["after"]["context x1"]["alpha"] >= 0.99 > 0.75 > record["before"]["context x1"]["alpha"]
 
 
+def test_bake_steps_follow_the_fitted_views():
+    """Six fits of each view, at least 20 steps; `steps` given wins."""
+    config = BakeConfig()
+    assert [config.steps_for(v) for v in (1, 2, 3, 4, 7, 18)] == [20, 20, 20, 24, 42, 108]
+    assert dataclasses.replace(config, steps=5).steps_for(7) == 5
+    assert dataclasses.replace(config, steps=0).steps_for(7) == 0
+    assert dataclasses.replace(config, fits_per_view=2.5, min_steps=0).steps_for(3) == 8
+    g, cams = _plane(_texture())
+    three = Cameras(cams.c2w.expand(3, 4, 4), cams.K.expand(3, 3, 3))
+    fast = dataclasses.replace(config, fits_per_view=2.0, min_steps=1, report_factors=(1,))
+    _, report = bake_for_viewers(g, three, H, W, fast, backend="cpu")
+    assert report.fit_views == 3 and report.steps == len(report.losses) == 6
+
+
 def test_bake_errors():
     g, cams = _plane(_texture())
-    for bad in ({"steps": -1}, {"factors": (0,)}, {"target_alpha": 1.0}, {"thickness": 0.0}, {"jitter": -0.1}):
+    bad_configs = ({"steps": -1}, {"factors": (0,)}, {"target_alpha": 1.0}, {"thickness": 0.0}, {"jitter": -0.1})
+    for bad in (*bad_configs, {"fits_per_view": 0.0}, {"min_steps": -1}):
         with pytest.raises(SurfSplatInputError, match="bake"):
             BakeConfig(**bad)
     with pytest.raises(SurfSplatInputError, match="height and width"):

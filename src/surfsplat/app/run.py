@@ -64,7 +64,7 @@ class RunSettings:
     path_frames: int = 48  # frames of the fly-through (the interpolated camera path)
     turntable_frames: int = 48
     mesh_resolution: int = 128  # TSDF voxels along the longest side
-    bake_steps: int = 20  # fitting steps of the 3DGS PLY (surfsplat.export.bake)
+    bake_steps: int | None = None  # fitting steps of the 3DGS PLY (None: BakeConfig.steps_for the views)
     zoom: int = 4  # the grid's second row renders at this factor
 
     def __post_init__(self) -> None:

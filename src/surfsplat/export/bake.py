@@ -46,11 +46,16 @@ COVERED_ALPHA = 0.05  # pixels our render covers: the fit and its figures look o
 class BakeConfig:
     """How `bake_for_viewers` fits; every field has the default the export uses."""
 
-    # Defaults chosen on the cost curve of `benchmarks/bake.py --grid` (two DTU photos at 288x400):
-    # 20 steps on the context views at x1 keep standard alpha >= 0.95 and >= 30 dB against our
-    # render from the context views at x1 and x2 for about a sixth of the cost of 60 steps on six
-    # views at x1 and x2 (which raise the held-out views' alpha from 0.93 to 0.96).
-    steps: int = 20  # Adam steps, one view each (0: only the saturated initialisation)
+    # Defaults chosen on cost curves of `benchmarks/bake.py --grid` (two DTU photos at 288x400): 20
+    # steps on the context views at x1 keep standard alpha >= 0.95 and >= 30 dB against our render
+    # from the context views at x1 and x2 for about a sixth of the cost of 60 steps on six views at
+    # x1 and x2 (which raise the held-out views' alpha from 0.93 to 0.96). A capture of more views
+    # needs more: on a clip of 7 DTU views (487,431 fused surfels) 20 steps reached 29.2 / 28.0 dB at
+    # x1 / x2, 28 steps 31.4 / 29.1, 35 steps 33.2 / 29.9 and 40 steps 33.8 / 30.1, so the steps
+    # follow the views: 6 fits of each, at least 20 steps.
+    steps: int | None = None  # Adam steps, one view each (None: `steps_for`; 0: only the saturated initialisation)
+    fits_per_view: float = 6.0  # with steps None: steps = max(min_steps, ceil(fits_per_view x fitted views))
+    min_steps: int = 20  # with steps None: the fewest steps
     lr: float = 0.03  # Adam rate of SH and log-scales; opacity logits take 4x (0.01 scored 1-2 dB lower)
     factors: tuple[int, ...] = (1,)  # resolutions (times the context views') the fit compares at
     report_factors: tuple[int, ...] = (1, 2)  # resolutions the report's figures come from
@@ -65,8 +70,12 @@ class BakeConfig:
     seed: int = 0  # of the jitter (the bake is deterministic)
 
     def __post_init__(self) -> None:
-        if self.steps < 0 or not self.lr > 0:
+        if (self.steps is not None and self.steps < 0) or not self.lr > 0:
             raise SurfSplatInputError(f"bake: steps >= 0 and lr > 0 expected, got {self.steps}, {self.lr}")
+        if not self.fits_per_view > 0 or self.min_steps < 0:
+            raise SurfSplatInputError(
+                f"bake: fits_per_view > 0 and min_steps >= 0 expected, got {self.fits_per_view}, {self.min_steps}"
+            )
         for name in ("factors", "report_factors"):
             factors = getattr(self, name)
             if not factors or not all(int(f) == f >= 1 for f in factors):
@@ -80,6 +89,13 @@ class BakeConfig:
                 "bake: 0 < target_alpha < 1, thickness > 0 and alpha_weight >= 0 expected, got "
                 f"{self.target_alpha}, {self.thickness}, {self.alpha_weight}"
             )
+
+    def steps_for(self, views: int) -> int:
+        """Adam steps of a fit over `views` cameras: `steps` when given, else `fits_per_view` of each
+        view and at least `min_steps`."""
+        if self.steps is not None:
+            return self.steps
+        return max(self.min_steps, math.ceil(self.fits_per_view * views))
 
 
 @dataclass(frozen=True)
@@ -306,16 +322,17 @@ def bake_for_viewers(
     # iterate ending the cycle of lowest mean loss is scored on every camera against the
     # initialisation, and the lower of the two is returned.
     order = torch.randperm(len(probes), generator=torch.Generator().manual_seed(config.seed)).tolist()
+    steps = config.steps_for(len(probes))
     initial = current().detach()
     best, best_cycle, best_step, losses, cycle = initial, math.inf, 0, [], []
-    for step in progress(range(config.steps), desc="bake for 3DGS viewers", unit="step", enabled=show_progress):
+    for step in progress(range(steps), desc="bake for 3DGS viewers", unit="step", enabled=show_progress):
         loss = loss_of(current(), order[step % len(order)])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         losses.append(float(loss.detach()))
         cycle.append(losses[-1])
-        if len(cycle) == len(order) or step == config.steps - 1:
+        if len(cycle) == len(order) or step == steps - 1:
             mean = sum(cycle) / len(cycle)
             if mean < best_cycle:
                 best_cycle, best_step, best = mean, step + 1, current().detach()
@@ -327,7 +344,7 @@ def bake_for_viewers(
     report = BakeReport(
         before=before,
         after=after,
-        steps=config.steps,
+        steps=steps,
         best_step=best_step,
         fit_views=len(probes),
         seconds=time.perf_counter() - start,
