@@ -1161,8 +1161,8 @@ def composite_backward(
 
 
 @njit(cache=True, error_model="numpy")
-def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, g_rot, g_scale):
-    """Chain rule of the surfel projection: adds dL/d(R e1, R e2) and dL/ds, returns dL/dmu.
+def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, rotation, g_rot, g_scale):
+    """Chain rule of the surfel projection: adds dL/ds and (`rotation` True) dL/d(R e1, R e2), returns dL/dmu.
 
     gr is the survivor's gradient row from the compositing (GRAD_* columns); (cx, cy) the
     projected centre the cross product was expanded around, (lx, ly) the low-pass centre.
@@ -1228,8 +1228,9 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, 
         cam1 = R_cw[1, 0] * R[0, col] + R_cw[1, 1] * R[1, col] + R_cw[1, 2] * R[2, col]
         cam2 = R_cw[2, 0] * R[0, col] + R_cw[2, 1] * R[1, col] + R_cw[2, 2] * R[2, col]
         g_scale[col] += cam0 * gc0 + cam1 * gc1 + cam2 * gc2
-        for row in range(3):
-            g_rot[row, col] += s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
+        if rotation:
+            for row in range(3):
+                g_rot[row, col] += s * (R_cw[0, row] * gc0 + R_cw[1, row] * gc1 + R_cw[2, row] * gc2)
     return gm02, gm12, gm22 + g_mu_z
 
 
@@ -1353,8 +1354,9 @@ def project_backward(
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
 
-    `geometry` False: the means and rotations get no gradient (their buffers may be left as they
-    are: the SH's view direction and the normal feature are not differentiated); `shape` False (with
+    `geometry` False: the means and rotations get no gradient (their buffers are left untouched, so
+    freshly allocated zero pages are never faulted in; the SH's view direction and the normal
+    feature are not differentiated); `shape` False (with
     `geometry` False) the scales and covariances get none either, so the projection's chain rule is
     skipped and only SH and opacities are written. A fit of colours and opacities costs less.
     """
@@ -1392,6 +1394,7 @@ def project_backward(
                 geom[m, GEOM_LP],
                 geom[m, GEOM_LP + 1],
                 lowpass_sigma,
+                geometry,
                 g_rotations[i],
                 g_scales[i],
             )
@@ -1406,12 +1409,13 @@ def project_backward(
                 # Sigma = R D R^T, D = diag(s0^2, s1^2, thin^2): dL/dR = (G + G^T) R D,
                 # dL/ds_j = 2 s_j (R^T G R)_jj.
                 var = (scales[i, 0] * scales[i, 0], scales[i, 1] * scales[i, 1], THIN_SCALE * THIN_SCALE)
-                for r in range(3):
-                    for j in range(3):
-                        acc = 0.0
-                        for k in range(3):
-                            acc += (g_cov[r, k] + g_cov[k, r]) * R[k, j]
-                        g_rotations[i, r, j] += acc * var[j]
+                if geometry:
+                    for r in range(3):
+                        for j in range(3):
+                            acc = 0.0
+                            for k in range(3):
+                                acc += (g_cov[r, k] + g_cov[k, r]) * R[k, j]
+                            g_rotations[i, r, j] += acc * var[j]
                 for j in range(2):
                     acc = 0.0
                     for r in range(3):
