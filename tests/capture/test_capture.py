@@ -430,7 +430,7 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
     # every stage that ran, however short (a fast machine runs this forward in under 0.05 s), and no other
     line = next(x for x in printed.splitlines() if x.startswith("seconds: "))
     assert re.fullmatch(r"seconds: forward [\d.]+, fusion [\d.]+, refine [\d.]+, save: .*bake [\d.]+.*", line), line
-    assert "compact" not in line and "poses" not in line, line
+    assert "compact" not in line and "poses" not in line and "path" not in line, line  # no video, no mesh
     scene = surfsplat.reconstruct(
         paths,
         tiny_checkpoint,

@@ -116,7 +116,7 @@ def export_reconstruction(
         written["surfels (2DGS PLY)"] = save_ply(gaussians, out / "surfels.ply")
         lap("ply")
         written.update(write_viewer_ply(gaussians, cameras, width, height, out, options))
-        lap("bake")
+        lap("bake" if options.bake is not None else "3dgs ply")
     written["cameras"] = save_cameras(out / "cameras.json", cameras, width, height, names, near, far)
 
     s = options.scale
@@ -140,8 +140,10 @@ def export_reconstruction(
     lap("renders")
     need_path = "video" in options.formats or "mesh" in options.formats
     path_cams = interpolate_cameras(cameras, options.path_frames) if need_path and len(cameras) >= 2 else None
-    path = draw(path_cams, "camera path") if path_cams is not None else None
-    lap("path")
+    path = None
+    if path_cams is not None:
+        path = draw(path_cams, "camera path")
+        lap("path")
     if "video" in options.formats:
         if path is not None:
             for f in range(len(path_cams)):
