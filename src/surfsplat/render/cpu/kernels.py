@@ -1354,9 +1354,8 @@ def project_backward(
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space.
 
-    `geometry` False: the means and rotations get no gradient (their buffers are left untouched, so
-    freshly allocated zero pages are never faulted in; the SH's view direction and the normal
-    feature are not differentiated); `shape` False (with
+    `geometry` False: the means and rotations get no gradient (their buffers are neither read nor
+    written; the SH's view direction and the normal feature are not differentiated); `shape` False (with
     `geometry` False) the scales and covariances get none either, so the projection's chain rule is
     skipped and only SH and opacities are written. A fit of colours and opacities costs less.
     """
