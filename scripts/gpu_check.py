@@ -253,7 +253,8 @@ def training_steps(preset: str, size: int, steps: int, device: torch.device) -> 
     problems = [f"step {s['step']}: update skipped ({s['reason']})" for s in skipped]
     if moved == 0.0:
         problems.append(f"the weights did not change over {steps} steps")
-    if not all(math.isfinite(x) for x in losses):
+    finite = all(math.isfinite(x) for x in losses)
+    if not finite:
         problems.append("a loss is not finite")
     timed = times[1:] or times  # the first step includes kernel selection and allocator warm-up
     return {
@@ -264,7 +265,7 @@ def training_steps(preset: str, size: int, steps: int, device: torch.device) -> 
         "step_seconds": times,
         "step_median_s": statistics.median(timed),
         "losses": losses,
-        "losses_finite": all(math.isfinite(x) for x in losses),
+        "losses_finite": finite,
         "grad_norms": grad_norms,
         "skipped_updates": skipped,
         "weights_moved_rel": moved / max(size_of, 1e-30),

@@ -116,7 +116,7 @@ def horizontal_flip(
     image coordinate u then appears at W - u, so cx' = W - cx and the skew changes sign.
     """
     W = images.shape[-1]
-    flip = torch.tensor(_FLIP_X, dtype=c2w.dtype, device=c2w.device).diag()
+    flip = c2w.new_tensor(_FLIP_X).diag()
     K = K.clone()
     K[..., 0, 2] = W - K[..., 0, 2]
     K[..., 0, 1] = -K[..., 0, 1]

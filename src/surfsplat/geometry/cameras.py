@@ -23,11 +23,6 @@ _FLIP_YZ = (1.0, -1.0, -1.0, 1.0)  # OpenGL <-> OpenCV camera axes: diag(_FLIP_Y
 _LLFF_TO_OPENCV = ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, -1.0))  # c2w_cv[:, :3] = c2w_llff[:, :3] @ it
 
 
-def _constant(values, like: Tensor) -> Tensor:
-    """A constant of nested numbers as a tensor of `like`'s dtype and device."""
-    return torch.tensor(values, dtype=like.dtype, device=like.device)
-
-
 @dataclass
 class Cameras:
     """A batch of C pinhole cameras.
@@ -106,12 +101,12 @@ class Cameras:
     @staticmethod
     def from_opengl(c2w_opengl: Tensor, K: Tensor) -> Cameras:
         """From OpenGL/Blender camera-to-world matrices (x right, y up, z backward)."""
-        flip = _constant(_FLIP_YZ, c2w_opengl).diag()
+        flip = c2w_opengl.new_tensor(_FLIP_YZ).diag()
         return Cameras(c2w_opengl @ flip, K)
 
     def to_opengl(self) -> Tensor:
         """[C, 4, 4] camera-to-world with OpenGL/Blender axes."""
-        return self.c2w @ _constant(_FLIP_YZ, self.c2w).diag()
+        return self.c2w @ self.c2w.new_tensor(_FLIP_YZ).diag()
 
     @staticmethod
     def from_llff(poses: Tensor, downscale: float = 1.0) -> Cameras:
@@ -120,7 +115,7 @@ class Cameras:
         check_tensor("poses", poses, ("N", 3, 5))
         n = poses.shape[0]
         c2w = torch.zeros(n, 4, 4, dtype=poses.dtype, device=poses.device)
-        c2w[:, :3, :3] = poses[:, :, :3] @ _constant(_LLFF_TO_OPENCV, poses)
+        c2w[:, :3, :3] = poses[:, :, :3] @ poses.new_tensor(_LLFF_TO_OPENCV)
         c2w[:, :3, 3] = poses[:, :, 3]
         c2w[:, 3, 3] = 1
         h, w, f = (poses[:, i, 4] / downscale for i in range(3))
@@ -135,7 +130,7 @@ class Cameras:
     def to_llff(self, width: int, height: int, downscale: float = 1.0) -> Tensor:
         """[C, 3, 5] LLFF poses (inverse of `from_llff`; needs fx == fy and a centred principal point)."""
         out = torch.zeros(len(self), 3, 5, dtype=self.c2w.dtype, device=self.c2w.device)
-        out[:, :, :3] = self.c2w[:, :3, :3] @ _constant(_LLFF_TO_OPENCV, self.c2w).T
+        out[:, :, :3] = self.c2w[:, :3, :3] @ self.c2w.new_tensor(_LLFF_TO_OPENCV).T
         out[:, :, 3] = self.c2w[:, :3, 3]
         out[:, 0, 4] = height * downscale
         out[:, 1, 4] = width * downscale

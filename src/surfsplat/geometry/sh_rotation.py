@@ -80,7 +80,7 @@ def sh_rotation_matrix(rotations: Tensor, degree: int, convention: SHConvention 
     samples, pinv = (t.to(rotations.device) for t in _fit_operators(degree))
     R = rotations.to(torch.float64)
     if convention == "e3nn":
-        P = torch.tensor(_E3NN_FROM_3DGS, dtype=R.dtype, device=R.device)
+        P = R.new_tensor(_E3NN_FROM_3DGS)
         R = P.T @ R @ P
     # Y(R p_s) for every sample: rows are R p_s = p_s R^T.  [..., S, K]
     rotated = sh_basis(samples @ R.transpose(-1, -2), degree)
