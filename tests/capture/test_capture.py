@@ -352,20 +352,12 @@ def test_reconstruct_a_video_with_known_cameras(room_video, tiny_checkpoint, tmp
 def test_a_short_clip_of_seven_views_registers_all_seven(data_dir, tiny_checkpoint, tmp_path):
     """The frames chosen from a short video are matched pair by pair: sequential pairs (1, 2, 4
     ahead) registered 4 of these 7 DTU views, every pair all 7."""
-    import imageio_ffmpeg
-
-    from surfsplat.data.images import list_images
+    from surfsplat.data.images import list_images, read_image
 
     photos = [list_images(data_dir / "dtu_scan24" / "images_4")[i] for i in range(14, 27, 2)]
-    frames = [np.ascontiguousarray(iio.imread(p)[..., :3]) for p in photos]
-    height, width = frames[0].shape[:2]
-    path = tmp_path / "clip.mp4"
-    writer = imageio_ffmpeg.write_frames(str(path), (width, height), fps=10, codec="libx264", quality=8)
-    writer.send(None)
-    for frame in frames:
-        for _ in range(4):  # each view held for 4 frames, as a phone held still
-            writer.send(frame)
-    writer.close()
+    # each view held for 4 frames at 10 fps, as a phone held still
+    frames = torch.stack([read_image(p)[0] for p in photos]).repeat_interleave(4, dim=0)
+    path = write_video(tmp_path / "clip.mp4", frames, fps=10, quality=8)
     no_refinement = surfsplat.CaptureOptions(refine=RefineConfig(steps=0))
     scene = surfsplat.reconstruct(path, tiny_checkpoint, size=(32, 32), capture=no_refinement, progress=False)
     assert scene.names == [frame_name(4 * k) for k in range(7)]
