@@ -13,7 +13,7 @@ surfels agree with all of them at once.
 What is fitted: the SH coefficients, the opacities (as logits) and the two tangent scales (as
 logarithms; a surfel's zero thickness stays), with Adam, the opacity logits at 4x the rate, as in
 the compaction's refit (`compaction.refit`). Positions and orientations stay the network's, so the
-surface is the one predicted. Loss: the mean squared colour error of the renders (forced alpha
+surface is the one predicted (`optimize.py` frees them too, in the same loop: `fit.fit_on_views`). Loss: the mean squared colour error of the renders (forced alpha
 blending, as the reconstruction renders) against the photos. A step renders at most
 `views_per_step` context views, drawn by a seeded generator without replacement, so the result is
 the same on every run.
@@ -30,18 +30,17 @@ fit that raised it is not kept.
 
 from __future__ import annotations
 
-import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
+from .fit import FitPlan, _stalled, fit_on_views
 
-logger = logging.getLogger(__name__)
+__all__ = ["RefineConfig", "_stalled", "refine_on_views", "refine_summary"]
 
 
 @dataclass(frozen=True)
@@ -88,6 +87,22 @@ class RefineConfig:
             return self.steps
         return math.ceil(self.fits_per_view * views / max(1, min(self.views_per_step, views)) - 1e-9)
 
+    def plan(self, views: int) -> FitPlan:
+        """The shared loop's plan: SH, tangent log scales and opacity logits (at 4x the rate) free,
+        the mean squared colour error."""
+        rates = {"sh_dc": self.lr, "sh_rest": self.lr, "log_scales": self.lr, "logits": 4 * self.lr}
+        return FitPlan(
+            name="refine",
+            steps=self.steps_for(views),
+            rates=rates,
+            views_per_step=self.views_per_step,
+            seed=self.seed,
+            scale=self.scale,
+            loss="mse",
+            patience=self.patience,
+            min_improvement=self.min_improvement,
+        )
+
 
 def refine_on_views(
     gaussians: Gaussians,  # [N] unbatched
@@ -106,100 +121,20 @@ def refine_on_views(
     the mean squared colour error over every view before and after it, whether it was kept (a fit
     that raised the error is not used), the steps run, the render size and the seconds
     ({"steps", "max_steps", "mse_before", "mse_after", "kept", "scale", "width", "height", "seconds"}).
-    `progress`: a progress bar over the steps."""
-    import time
-
-    import torch.nn.functional as F
-
-    from ..render import render
-    from ..utils.log import progress as progress_bar
-
-    start = time.perf_counter()
-
+    `progress`: a progress bar over the steps. The loop is `fit_on_views`, the optimization's."""
     config = config or RefineConfig()
-    v = len(cameras)
-    if images.shape != (v, 3, height, width):
-        raise SurfSplatInputError(f"refine: images expected [{v}, 3, {height}, {width}], got {tuple(images.shape)}")
-    g0 = gaussians.detach()
-    if g0.explicit_covariances is not None:
-        raise SurfSplatInputError(
-            "refine: surfels with explicit covariances (the release adapter) have no scales to fit"
-        )
-    images = images.to(g0.means.device, g0.means.dtype)
-    cameras = cameras.to(device=g0.means.device, dtype=g0.means.dtype)
-
-    fit_w, fit_h = max(1, round(width * config.scale)), max(1, round(height * config.scale))
-    resize = torch.tensor([fit_w / width, fit_h / height, 1.0], dtype=cameras.K.dtype, device=cameras.K.device)
-    fit_cameras = Cameras(cameras.c2w, cameras.K * resize[:, None], validate=False)
-    fit_images = images if config.scale == 1 else F.interpolate(images, size=(fit_h, fit_w), mode="area")
-
-    def draw(g: Gaussians, cams: Cameras, w: int, h: int) -> Tensor:
-        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold).color
-
-    def mse(g: Gaussians) -> float:
-        with torch.no_grad():
-            chunks = torch.arange(v).split(config.views_per_step)
-            total = sum(float((draw(g, cameras[c], width, height) - images[c]).square().sum()) for c in chunks)
-        return total / images.numel()
-
-    total = config.steps_for(v)
-    figures = {"max_steps": total, "scale": config.scale, "width": fit_w, "height": fit_h}
-    before = mse(g0)
-    if total == 0:
-        seconds = time.perf_counter() - start
-        return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
-    sh = g0.sh.clone().requires_grad_(True)
-    logits = torch.logit(g0.opacities.clamp(1e-4, 1 - 1e-4)).requires_grad_(True)
-    log_scales = g0.scales[:, :2].log().requires_grad_(True)
-    thickness = g0.scales[:, 2:]
-    optimizer = torch.optim.Adam(
-        [{"params": [sh, log_scales], "lr": config.lr}, {"params": [logits], "lr": 4 * config.lr}]
+    return fit_on_views(
+        gaussians,
+        cameras,
+        images,
+        width,
+        height,
+        config.plan(len(cameras)),
+        mode=mode,
+        alpha_threshold=alpha_threshold,
+        backend=backend,
+        progress=progress,
     )
-
-    def current() -> Gaussians:
-        scales = torch.cat((log_scales.exp(), thickness), dim=-1)
-        return replace(g0, sh=sh, opacities=torch.sigmoid(logits), scales=scales, validate=False)
-
-    generator = torch.Generator().manual_seed(config.seed)
-    losses: list[float] = []
-    with progress_bar(total=total, desc="refine", unit="step", enabled=progress) as bar:
-        for _ in range(total):
-            which = torch.randperm(v, generator=generator)[: config.views_per_step].sort().values
-            loss = (draw(current(), fit_cameras[which], fit_w, fit_h) - fit_images[which]).square().mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            losses.append(float(loss.detach()))
-            bar.update(1)
-            if _stalled(losses, config.patience, config.min_improvement):
-                break
-    with torch.no_grad():
-        fitted = current()
-        fitted = replace(
-            fitted, sh=fitted.sh.detach(), opacities=fitted.opacities.detach(), scales=fitted.scales.detach()
-        )
-    after = mse(fitted)
-    stats = {"steps": len(losses), "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
-    stats["seconds"] = time.perf_counter() - start
-    if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
-        logger.warning(
-            "refine: the fit raised the context views' colour error (%.3g -> %.3g); the fused surfels are kept "
-            "as predicted (lower CaptureOptions.refine.lr)",
-            before,
-            after,
-        )
-        return g0, stats
-    return fitted, stats
-
-
-def _stalled(losses: list[float], patience: int | None, min_improvement: float) -> bool:
-    """Whether the last window of `patience` steps lowered the mean loss by less than
-    `min_improvement` of the window before it (windows end at the current step)."""
-    if patience is None or len(losses) < 2 * patience or len(losses) % patience:
-        return False
-    last = sum(losses[-patience:]) / patience
-    previous = sum(losses[-2 * patience : -patience]) / patience
-    return last > previous * (1 - min_improvement)
 
 
 def refine_summary(stats: dict[str, float]) -> str:
