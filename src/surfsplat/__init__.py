@@ -1,5 +1,6 @@
 """SurfSplat: feed-forward 2D Gaussian surfel reconstruction from posed images."""
 
+from .capture.optimize import OptimizeConfig
 from .compaction import compact
 from .geometry.cameras import Cameras
 from .geometry.gaussians import Gaussians
@@ -7,4 +8,4 @@ from .reconstruction import CaptureOptions, Scene, reconstruct
 
 __version__ = "0.1.0"
 
-__all__ = ["Cameras", "CaptureOptions", "Gaussians", "Scene", "compact", "reconstruct", "__version__"]
+__all__ = ["Cameras", "CaptureOptions", "Gaussians", "OptimizeConfig", "Scene", "compact", "reconstruct", "__version__"]

@@ -4,11 +4,13 @@
     passes = context_sets(cameras.centers, views_per_pass=2, ordered=True)
     fusion = SurfelFusion(FusionConfig()); fusion.add(gaussians, pass_cameras, h, w)
     fused, stats = refine_on_views(fusion.gaussians(), context_cameras, context_images, w, h)
+    fitted, stats = optimize_on_views(fused, context_cameras, context_images, w, h, OptimizeConfig(steps=300))
 
 `surfsplat.reconstruct` puts these together.
 """
 
 from .fusion import FusionConfig, SurfelFusion
+from .optimize import OptimizeConfig, optimize_on_views, optimize_summary
 from .refine import RefineConfig, refine_on_views, refine_summary
 from .video import FrameConfig, FrameRecord, VideoFrames, choose_frames, frame_name, is_video_file, select_video_frames
 from .views import context_sets, nearest_neighbour_order
@@ -17,6 +19,7 @@ __all__ = [
     "FrameConfig",
     "FrameRecord",
     "FusionConfig",
+    "OptimizeConfig",
     "RefineConfig",
     "SurfelFusion",
     "VideoFrames",
@@ -25,6 +28,8 @@ __all__ = [
     "frame_name",
     "is_video_file",
     "nearest_neighbour_order",
+    "optimize_on_views",
+    "optimize_summary",
     "refine_on_views",
     "refine_summary",
     "select_video_frames",

@@ -5,11 +5,22 @@
     scene.render(scale=2)
     scene.save("out/")
 
-`surfsplat reconstruct` is this call and `Scene.save`.
+`surfsplat reconstruct` is this call and `Scene.save`; `surfsplat optimize` is `optimize_saved`.
 """
 
 from .inputs import CaptureInput, read_capture
+from .optimize import load_reconstruction, optimize_saved, optimize_scene
 from .pipeline import CaptureOptions, reconstruct
 from .scene import HeldOut, Scene
 
-__all__ = ["CaptureInput", "CaptureOptions", "HeldOut", "Scene", "read_capture", "reconstruct"]
+__all__ = [
+    "CaptureInput",
+    "CaptureOptions",
+    "HeldOut",
+    "Scene",
+    "load_reconstruction",
+    "optimize_saved",
+    "optimize_scene",
+    "read_capture",
+    "reconstruct",
+]

@@ -16,6 +16,9 @@ Steps:
 4. fusion: one pass is the scene as the model made it (one surfel per pixel); several are fused
    into one scene as they stream by (`surfsplat.capture.SurfelFusion`), optionally each compacted
    first (`compact`), so memory holds the fused surfels and one pass.
+5. the fused scene fitted to the context photos: the refinement (colours, opacities, sizes), or
+   with `CaptureOptions.optimize` every surfel attribute (`optimize_scene`); held-out views are
+   never fitted, and are scored before and after.
 """
 
 from __future__ import annotations
@@ -30,7 +33,15 @@ from typing import Literal
 
 import torch
 
-from ..capture import FrameConfig, FusionConfig, RefineConfig, SurfelFusion, context_sets, refine_on_views
+from ..capture import (
+    FrameConfig,
+    FusionConfig,
+    OptimizeConfig,
+    RefineConfig,
+    SurfelFusion,
+    context_sets,
+    refine_on_views,
+)
 from ..geometry.cameras import Cameras
 from ..utils.checks import SurfSplatInputError
 from .inputs import CaptureInput, ImageSource, read_capture
@@ -50,6 +61,8 @@ class CaptureOptions:
     fusion: FusionConfig = field(default_factory=FusionConfig)  # duplicate removal between views and passes
     # the fused scene's colours, opacities and sizes fitted to the context views (passes > 1 only)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    # every surfel attribute fitted to the context views (any number of passes); it replaces the refinement
+    optimize: OptimizeConfig = field(default_factory=OptimizeConfig)
 
 
 def reconstruct(
@@ -224,7 +237,8 @@ def reconstruct(
     gaussians = single if fusion is None else fusion.gaussians()
     scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
-    if fusion is not None and capture.refine.steps_for(len(context)) > 0:
+    # the optimization frees what the refinement fits and more: where it runs, the refinement does not
+    if fusion is not None and capture.refine.steps_for(len(context)) > 0 and capture.optimize.steps == 0:
         tick = time.perf_counter()
         images_c, _ = network_views(context)
         gaussians, refine_stats = refine_on_views(
@@ -276,8 +290,12 @@ def reconstruct(
         scale_multipliers=multipliers,
         multiplier_range=model.cfg.adapter.scale_multiplier_range if multipliers is not None else None,
     )
-    if holdout is not None:
-        _score_holdout(scene)
+    if capture.optimize.steps > 0:  # scores the held-out views before and after it
+        from .optimize import optimize_scene
+
+        optimize_scene(scene, network_views(context)[0], capture.optimize, progress=progress)
+    elif holdout is not None:
+        scene.score_holdout()
     seconds["total"] = time.perf_counter() - start
     return scene
 
@@ -390,13 +408,3 @@ def _compact(gaussians, cams, shape, level, mode, alpha_threshold, totals):
     centre = cells[:, 3] // 2  # a merged block stands at its middle pixel
     pixels = torch.stack((cells[:, 0], cells[:, 1] + centre, cells[:, 2] + centre), -1)
     return result.gaussians, pixels
-
-
-def _score_holdout(scene: Scene) -> None:
-    from ..metrics import psnr
-
-    h = scene.holdout
-    out = scene.render(h.cameras)
-    color = out.color.clamp(0, 1)
-    h.psnr = [float(psnr(color[i : i + 1], h.images[i : i + 1])) for i in range(len(h.names))]
-    h.coverage = [float((out.alpha[i] >= 0.5).float().mean()) for i in range(len(h.names))]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..capture import refine_summary
+from ..capture import optimize_summary, refine_summary
 from ..data.cameras import CameraSet
 
 THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
@@ -19,6 +19,16 @@ THUMBNAIL_WIDTH = 240  # pixels of the pictures in the report
 def seconds_line(seconds: dict[str, float]) -> str:
     """Every timed stage but the total, in the order it ran; none is hidden for being short."""
     return ", ".join(f"{k} {v:.2f}" for k, v in seconds.items() if k != "total")
+
+
+def held_out_line(scores: dict, views: int, lpips_note: str | None) -> str:
+    """The held-out views' mean figures in one sentence (LPIPS only where it was computed)."""
+    lpips = f", LPIPS {scores['mean_lpips']:.3f}" if scores.get("mean_lpips") is not None else ""
+    line = (
+        f"Mean over {views} held-out views: PSNR {scores['mean_psnr']:.2f} dB, SSIM {scores['mean_ssim']:.3f}{lpips}, "
+        f"coverage (alpha >= 0.5) {scores['mean_coverage']:.3f}."
+    )
+    return line + (f" {lpips_note}." if lpips_note else "")
 
 
 def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:
@@ -47,6 +57,8 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
         )
     if scene.refine_stats:
         lines.append(refine_summary(scene.refine_stats))
+    if scene.optimize_stats:
+        lines.append(optimize_summary(scene.optimize_stats))
     lines.append("seconds: " + seconds_line(scene.seconds))
     if scene.video is not None:
         lines.extend(scene.video.lines())
@@ -66,17 +78,19 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
         figures = []
         for i, name in enumerate(h.names):
             photo = write_png(out / "capture" / f"{name}_photo.png", h.images[i])
-            render = write_png(out / "capture" / f"{name}_render.png", out_h.color[i].clamp(0, 1))
             figures.append((str(photo.relative_to(out)), f"{name}: photo"))
+            if h.before_renders is not None:
+                early = write_png(out / "capture" / f"{name}_render_before.png", h.before_renders[i])
+                caption = f"{name}: before the optimization, {h.before['psnr'][i]:.2f} dB"
+                figures.append((str(early.relative_to(out)), caption))
+            render = write_png(out / "capture" / f"{name}_render.png", out_h.color[i].clamp(0, 1))
             figures.append(
                 (str(render.relative_to(out)), f"{name}: render, {h.psnr[i]:.2f} dB, coverage {h.coverage[i]:.2f}")
             )
         report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
-        summary = h.to_dict()
-        report.paragraph(
-            f"Mean over {len(h.names)} held-out views: PSNR {summary['mean_psnr']:.2f} dB, "
-            f"coverage (alpha >= 0.5) {summary['mean_coverage']:.3f}."
-        )
+        report.paragraph(held_out_line(h.scores(), len(h.names), h.lpips_note))
+        if h.before is not None:
+            report.paragraph("Before the per-scene optimization: " + held_out_line(h.before, len(h.names), None))
         written["held-out renders"] = out / "capture"
     if scene.video is not None:
         rows = [

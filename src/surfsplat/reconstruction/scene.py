@@ -30,15 +30,66 @@ class HeldOut:
     images: Tensor  # [H, 3, height, width] the photos at the network's size
     psnr: list[float] = field(default_factory=list)  # per view, of the scene's render (forced alpha blending)
     coverage: list[float] = field(default_factory=list)  # share of pixels with alpha >= 0.5
+    ssim: list[float] = field(default_factory=list)  # per view, scikit-image's published call
+    lpips: list[float] | None = None  # per view, LPIPS-VGG (None: its weights are unavailable, see lpips_note)
+    lpips_note: str | None = None  # "LPIPS unavailable: <reason>" when it could not be computed
+    before: dict | None = None  # the figures above before the per-scene optimization (None: not optimized)
+    before_renders: Tensor | None = None  # [H, 3, height, width] the renders before the optimization
+
+    def scores(self) -> dict:
+        """Per-view and mean PSNR, SSIM, LPIPS and coverage."""
+
+        def mean(values: list[float] | None) -> float | None:
+            return sum(values) / len(values) if values else None
+
+        return {
+            "psnr": self.psnr,
+            "ssim": self.ssim,
+            "lpips": self.lpips,
+            "coverage": self.coverage,
+            "mean_psnr": mean(self.psnr),
+            "mean_ssim": mean(self.ssim),
+            "mean_lpips": mean(self.lpips),
+            "mean_coverage": mean(self.coverage),
+        }
 
     def to_dict(self) -> dict:
-        return {
-            "names": self.names,
-            "psnr": self.psnr,
-            "coverage": self.coverage,
-            "mean_psnr": sum(self.psnr) / len(self.psnr) if self.psnr else None,
-            "mean_coverage": sum(self.coverage) / len(self.coverage) if self.coverage else None,
-        }
+        out = {"names": self.names, **self.scores()}
+        if self.lpips_note is not None:
+            out["lpips_note"] = self.lpips_note
+        if self.before is not None:
+            out["before_optimization"] = self.before
+        return out
+
+    def score(self, out) -> None:
+        """Fill the figures from the scene's RenderOutput at these cameras."""
+        from ..metrics import psnr, ssim
+
+        color = out.color.clamp(0, 1)
+        truth = self.images.to(color)
+        self.psnr = [float(psnr(color[i : i + 1], truth[i : i + 1])) for i in range(len(self.names))]
+        self.coverage = [float((out.alpha[i] >= 0.5).float().mean()) for i in range(len(self.names))]
+        self.ssim = [float(ssim(color[i : i + 1].double(), truth[i : i + 1].double())) for i in range(len(self.names))]
+        model = _lpips(color.device)
+        if isinstance(model, str):
+            self.lpips, self.lpips_note = None, model
+        else:
+            with torch.no_grad():
+                self.lpips = [float(model(color[i : i + 1], truth[i : i + 1])) for i in range(len(self.names))]
+
+
+def _lpips(device: torch.device):
+    """LPIPS-VGG on `device`, or "LPIPS unavailable: <reason>"; loaded once per device."""
+    from ..metrics.lpips import LpipsUnavailable, try_load_lpips
+
+    key = str(device)
+    if key not in _LPIPS:
+        found = try_load_lpips(device=device)
+        _LPIPS[key] = str(found) if isinstance(found, LpipsUnavailable) else found
+    return _LPIPS[key]
+
+
+_LPIPS: dict = {}  # device -> the loaded LPIPS model or why it is unavailable
 
 
 # Written beside the export's files; reconstruction.json last, so it marks a finished run.
@@ -70,6 +121,7 @@ class Scene:
         default_factory=dict
     )  # passes, predicted, duplicates, replaced (empty: one pass)
     refine_stats: dict[str, float] = field(default_factory=dict)  # steps, mse_before/after, kept (empty: none)
+    optimize_stats: dict[str, float] = field(default_factory=dict)  # the per-scene optimization's (empty: none)
     poses: object | None = None  # PoseSummary when the cameras were estimated
     pose_cameras: object | None = None  # their CameraSet (K in pixels of the photos)
     photos: list = field(default_factory=list)  # every photo given to pose estimation (path or uint8 array)
@@ -139,8 +191,16 @@ class Scene:
             "cameras": self.cameras_source,
             "precision": self.precision,
         }
+        if self.optimize_stats:
+            out["optimize"] = self.optimize_stats
         if self.is_capture:
             out["capture"] = self.capture_summary()
+        return out
+
+    def score_holdout(self):
+        """Score the held-out views (PSNR, SSIM, LPIPS where available, coverage); their RenderOutput."""
+        out = self.render(self.holdout.cameras)
+        self.holdout.score(out)
         return out
 
     @property
@@ -154,6 +214,7 @@ class Scene:
             "passes": self.passes,
             "fusion": self.fusion_stats,
             "refine": self.refine_stats,
+            "optimize": self.optimize_stats,
             "compaction": self.compact_stats,
             "seconds": self.seconds,
             "held_out": self.holdout.to_dict() if self.holdout is not None else None,
