@@ -38,6 +38,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "surfsplat.commands.reconstruct",
         "posed images -> surfels (PLY), renders, depth/normal maps, videos, mesh",
     ),
+    "optimize": (
+        "surfsplat.commands.optimize",
+        "optimize every surfel of a saved reconstruction on its context photos (per-scene fit)",
+    ),
     "poses": ("surfsplat.commands.poses", "camera file (poses, focal, near/far) estimated from photos alone"),
     "eval": (
         "surfsplat.commands.eval",

@@ -44,7 +44,9 @@ def build(config: AppConfig | None = None, **overrides):
     keep = int(config.keep_minutes * 60)
     tracked = gr.Progress()  # gradio finds the bar by this default and hands each call its own
 
-    def run(files, camera_file, weights, working_size, refine_fits, request: gr.Request, progress=tracked):
+    def run(
+        files, camera_file, weights, working_size, refine_fits, optimize_steps, request: gr.Request, progress=tracked
+    ):
         key = _session_key(request)
         with lock:
             stop = stops.setdefault(key, threading.Event())
@@ -58,6 +60,7 @@ def build(config: AppConfig | None = None, **overrides):
                 weights=weights,
                 working_size=int(working_size),
                 refine_fits=float(refine_fits),
+                optimize_steps=int(optimize_steps),
                 device=config.device,
                 **config.export,
             )
@@ -117,6 +120,14 @@ def build(config: AppConfig | None = None, **overrides):
                     label="Refinement: fits of each photo (captures of more than one forward pass; 0: none)",
                     elem_id="refine-fits",
                 )
+                optimize_steps = gr.Slider(
+                    0,
+                    1000,
+                    value=config.optimize_steps,
+                    step=10,
+                    label="Per-scene optimization: steps moving every surfel (0: none; replaces the refinement)",
+                    elem_id="optimize-steps",
+                )
                 with gr.Row():
                     start = gr.Button("Start", variant="primary", elem_id="start")
                     stop = gr.Button("Stop", variant="stop", elem_id="stop")
@@ -149,7 +160,7 @@ def build(config: AppConfig | None = None, **overrides):
         weights.change(weights_note, inputs=weights, outputs=about, queue=False)
         started = start.click(
             run,
-            inputs=[photos, cameras, weights, working_size, refine_fits],
+            inputs=[photos, cameras, weights, working_size, refine_fits, optimize_steps],
             outputs=[status, view, grid, closure, plot, video, downloads],
             concurrency_limit=1,
             concurrency_id="reconstruct",

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from ..capture.optimize import OptimizeConfig
 from ..capture.refine import RefineConfig
 from ..utils.checks import SurfSplatInputError
 from .files import Uploads
@@ -39,6 +40,7 @@ STAGES: tuple[tuple[str, str | None, float], ...] = (
     ("cameras", None, 0.10),
     ("network passes and fusion", "forward passes", 0.25),
     ("refinement", "refine", 0.40),
+    ("per-scene optimization", "optimize", 0.44),
     ("closure figures", None, 0.48),
     ("export: baking the 3DGS PLY", "bake for 3DGS viewers", 0.68),
     ("export: renders", "render context views", 0.72),
@@ -60,6 +62,7 @@ class RunSettings:
     weights: str = DEMO_MODEL  # a registry name (`surfsplat weights list`)
     working_size: int = 256  # long side of the network's input in pixels (`max_working_size`)
     refine_fits: float = RefineConfig.fits_per_view  # refinement of a fused scene: fits of each context view (0: none)
+    optimize_steps: int = OptimizeConfig.steps  # per-scene optimization of every surfel (0: none)
     device: str = "auto"
     path_frames: int = 48  # frames of the fly-through (the interpolated camera path)
     turntable_frames: int = 48
@@ -72,6 +75,8 @@ class RunSettings:
             raise SurfSplatInputError(f"working size: expected 16 to 2048 pixels, got {self.working_size}")
         if not 0 <= self.refine_fits <= 1_000:
             raise SurfSplatInputError(f"refinement fits per view: expected 0 to 1000, got {self.refine_fits}")
+        if isinstance(self.optimize_steps, bool) or not 0 <= self.optimize_steps <= 10_000:
+            raise SurfSplatInputError(f"optimization steps: expected 0 to 10000, got {self.optimize_steps}")
 
 
 @dataclass
@@ -184,7 +189,10 @@ def run_capture(
     start = time.perf_counter()
     out = Path(out_dir)
     tracker = StageTracker(report, cancelled)
-    capture = CaptureOptions(refine=replace(RefineConfig(), fits_per_view=settings.refine_fits))
+    capture = CaptureOptions(
+        refine=replace(RefineConfig(), fits_per_view=settings.refine_fits),
+        optimize=replace(OptimizeConfig(), steps=settings.optimize_steps),
+    )
     with listen_progress(tracker):
         tracker.enter("cameras")
         scene = reconstruct(

@@ -37,9 +37,10 @@ from .poses import add_pose_arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--checkpoint",
-        required=True,
+        default="tiny-synthetic",
         help="a weights name (`surfsplat weights list`, e.g. re10k-256x256-small), hf://owner/repo/file, "
-        "our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth",
+        "our checkpoint (run folder, checkpoint folder or model.safetensors) or a release .ckpt/.pth "
+        "(default: the shipped tiny-synthetic, as surfsplat.reconstruct)",
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", nargs="+", type=Path, help="two or more context images, or one folder of images")
@@ -102,10 +103,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help=f"the refinement renders at this fraction of the working size (default {refine.scale:g})",
     )
+    add_optimize_arguments(group)
+
+
+def add_optimize_arguments(group) -> None:
+    """--optimize-steps and --optimize-scale: the per-scene optimization (reconstruct and optimize)."""
+    from ..capture import OptimizeConfig
+
+    optimize = OptimizeConfig()
+    group.add_argument(
+        "--optimize-steps",
+        type=int,
+        default=optimize.steps,
+        metavar="N",
+        help="steps optimizing every surfel (positions, rotations, sizes, opacities, colours) on the context "
+        f"views, {optimize.views_per_step} views each; replaces the refinement (default {optimize.steps}: none)",
+    )
+    group.add_argument(
+        "--optimize-scale",
+        type=float,
+        default=optimize.scale,
+        metavar="S",
+        help=f"the optimization renders at this fraction of the working size (default {optimize.scale:g})",
+    )
+
+
+def optimize_from_args(args: argparse.Namespace):
+    """The OptimizeConfig of --optimize-steps / --optimize-scale."""
+    from ..capture import OptimizeConfig
+
+    return dataclasses.replace(OptimizeConfig(), steps=args.optimize_steps, scale=args.optimize_scale)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..capture import FrameConfig, RefineConfig, refine_summary
+    from ..capture import FrameConfig, RefineConfig, optimize_summary, refine_summary
     from ..reconstruction import CaptureOptions, reconstruct
     from ..reconstruction.scene import SUMMARY_FILES
 
@@ -126,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
         holdout_every=args.holdout_every,
         frames=FrameConfig(max_size=min(args.max_size, 960), min_motion=args.min_motion, max_frames=args.max_frames),
         refine=dataclasses.replace(RefineConfig(), steps=args.refine_steps, scale=args.refine_scale),
+        optimize=optimize_from_args(args),
     )
     scene = reconstruct(
         images,
@@ -165,11 +197,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if scene.refine_stats:
         print(refine_summary(scene.refine_stats))
+    if scene.optimize_stats:
+        print(optimize_summary(scene.optimize_stats))
     if scene.holdout is not None:
-        h = scene.holdout.to_dict()
-        print(
-            f"held out {len(scene.holdout.names)} views: PSNR {h['mean_psnr']:.2f} dB, coverage {h['mean_coverage']:.3f}"
-        )
+        print_held_out(scene.holdout)
     options = options_from_args(args, tuple(args.formats), scene.mode)
     options = dataclasses.replace(options, alpha_threshold=scene.alpha_threshold)
     written = scene.save(args.out, options=options)
@@ -186,3 +217,18 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}/:")
     print_written(written)
     return 0
+
+
+def print_held_out(holdout) -> None:
+    """The held-out views' figures, before the optimization too where it ran."""
+    h = holdout.to_dict()
+    lpips = f", LPIPS {h['mean_lpips']:.3f}" if h["mean_lpips"] is not None else ""
+    line = (
+        f"held out {len(holdout.names)} views: PSNR {h['mean_psnr']:.2f} dB, SSIM {h['mean_ssim']:.3f}{lpips}, "
+        f"coverage {h['mean_coverage']:.3f}"
+    )
+    if holdout.before is not None:
+        line += f" (before the optimization: PSNR {holdout.before['mean_psnr']:.2f} dB, SSIM {holdout.before['mean_ssim']:.3f})"
+    print(line)
+    if holdout.lpips_note:
+        print(holdout.lpips_note)

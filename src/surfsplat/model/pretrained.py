@@ -300,7 +300,7 @@ def check_resolution(model: SurfSplat, height: int, width: int) -> str | None:
         f"{info.name} was trained at {info.resolution[0]}x{info.resolution[1]} (HxW) and now runs at "
         f"{height}x{width}; quality may differ from the published numbers"
     )
-    logger.warning("warning: %s", message)
+    logger.warning(message)  # the log's formatter adds the one "warning: " prefix
     return message
 
 
