@@ -31,8 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--raw-3dgs", action="store_true", help="write surfels_3dgs.ply as the surfels are, without baking it"
     )
     parser.add_argument("--no-progress", action="store_true")
-    add_optimize_arguments(parser)
-    parser.set_defaults(optimize_steps=SAVED_STEPS)
+    add_optimize_arguments(parser, steps=SAVED_STEPS)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -106,18 +106,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_optimize_arguments(group)
 
 
-def add_optimize_arguments(group) -> None:
-    """--optimize-steps and --optimize-scale: the per-scene optimization (reconstruct and optimize)."""
+def add_optimize_arguments(group, steps: int | None = None) -> None:
+    """--optimize-steps and --optimize-scale: the per-scene optimization (reconstruct, and optimize
+    with its own default `steps`)."""
     from ..capture import OptimizeConfig
 
     optimize = OptimizeConfig()
+    steps = optimize.steps if steps is None else steps
     group.add_argument(
         "--optimize-steps",
         type=int,
-        default=optimize.steps,
+        default=steps,
         metavar="N",
         help="steps optimizing every surfel (positions, rotations, sizes, opacities, colours) on the context "
-        f"views, {optimize.views_per_step} views each; replaces the refinement (default {optimize.steps}: none)",
+        f"views, {optimize.views_per_step} views each; replaces the refinement (default {steps}"
+        + (": none)" if steps == 0 else ")"),
     )
     group.add_argument(
         "--optimize-scale",
