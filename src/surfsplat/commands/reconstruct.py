@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"fused {f['passes']} passes of {len(scene.names)} views: {f['predicted']:,} surfels predicted, "
             f"{f['duplicates']:,} duplicates removed, {f.get('replaced', 0):,} replaced by closer views, "
-            f"{len(scene.gaussians):,} kept"
+            f"{int(scene.optimize_stats.get('surfels_before', len(scene.gaussians))):,} kept"
         )
     if scene.refine_stats:
         print(refine_summary(scene.refine_stats))
