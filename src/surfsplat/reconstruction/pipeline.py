@@ -243,9 +243,6 @@ def reconstruct(
             capture.refine,
             mode=mode,
             alpha_threshold=alpha_threshold,
-            # on CUDA the fit through gsplat's kernels raised the colour error where the torch
-            # renderer's lowered it (docs/benchmarks.md, "On a GPU"), so it fits with the torch one
-            backend="torch" if device.type == "cuda" else "auto",
             progress=progress,
         )
         seconds["refine"] = time.perf_counter() - tick
