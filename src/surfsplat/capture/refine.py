@@ -138,9 +138,10 @@ def refine_on_views(
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
-            chunks = torch.arange(v).split(config.views_per_step)
-            total = sum(float((draw(g, cameras[c], width, height) - images[c]).square().sum()) for c in chunks)
-        return total / images.numel()
+            chunks = torch.arange(v, device=images.device).split(config.views_per_step)
+            sums = torch.stack([(draw(g, cameras[c], width, height) - images[c]).square().sum() for c in chunks])
+        # read once; the chunks' float32 sums are added in Python's double precision, as they always were
+        return sum(sums.tolist()) / images.numel()
 
     total = config.steps_for(v)
     figures = {"max_steps": total, "scale": config.scale, "width": fit_w, "height": fit_h}
@@ -160,26 +161,37 @@ def refine_on_views(
         scales = torch.cat((log_scales.exp(), thickness), dim=-1)
         return replace(g0, sh=sh, opacities=torch.sigmoid(logits), scales=scales, validate=False)
 
+    # Every step's views drawn up front on the host's generator (the same draws on every device)
+    # and moved to the device once: [steps, views rendered a step].
     generator = torch.Generator().manual_seed(config.seed)
+    draws = [torch.randperm(v, generator=generator)[: config.views_per_step].sort().values for _ in range(total)]
+    draws = torch.stack(draws).to(images.device)
+    # Each step's loss stays on the device until a window of the early stop ends (never without
+    # one): reading it every step would make the host wait for the device every step.
     losses: list[float] = []
+    pending: list[Tensor] = []
     with progress_bar(total=total, desc="refine", unit="step", enabled=progress) as bar:
-        for _ in range(total):
-            which = torch.randperm(v, generator=generator)[: config.views_per_step].sort().values
+        for step in range(total):
+            which = draws[step]
             loss = (draw(current(), fit_cameras[which], fit_w, fit_h) - fit_images[which]).square().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            losses.append(float(loss.detach()))
+            pending.append(loss.detach())
             bar.update(1)
-            if _stalled(losses, config.patience, config.min_improvement):
-                break
+            if config.patience is not None and (step + 1) % config.patience == 0:
+                losses += torch.stack(pending).tolist()
+                pending = []
+                if _stalled(losses, config.patience, config.min_improvement):
+                    break
+    steps = len(losses) + len(pending)
     with torch.no_grad():
         fitted = current()
         fitted = replace(
             fitted, sh=fitted.sh.detach(), opacities=fitted.opacities.detach(), scales=fitted.scales.detach()
         )
     after = mse(fitted)
-    stats = {"steps": len(losses), "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
+    stats = {"steps": steps, "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
     stats["seconds"] = time.perf_counter() - start
     if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
         logger.warning(
