@@ -498,6 +498,7 @@ def run_cli(arguments: list[str], out: Path) -> dict:
     document = json.loads(summary.read_text())
     record["stages"] = document.get("seconds", {})
     record["surfels"] = document.get("surfels")
+    record["refine"] = document.get("capture", {}).get("refine")  # the fit's colour error before and after
     record["outputs"] = sorted(p.name for p in out.iterdir())
     return record
 

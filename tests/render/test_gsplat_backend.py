@@ -125,3 +125,169 @@ def test_gsplat_backend_renders_a_surfel_crossing_the_camera_plane(cpu_gsplat):
     reference = render(g, cams, 32, 32, backend="torch", alpha_threshold=None).alpha
     assert float(reference.sum()) > 250
     assert (alpha - reference).abs().max() < 1e-5
+
+
+# ------------------------------------------------------------------ NaN from uninitialised padding
+@pytest.fixture
+def uninitialised_is_nan():
+    """Uninitialised memory (`torch.empty`) filled with NaN, as PyTorch's deterministic mode does: a
+    CUDA caching allocator hands back whatever a freed block held, NaN and inf bit patterns included."""
+    was = torch.are_deterministic_algorithms_enabled()
+    fill = torch.utils.deterministic.fill_uninitialized_memory
+    torch.use_deterministic_algorithms(True)
+    torch.utils.deterministic.fill_uninitialized_memory = True
+    yield
+    torch.use_deterministic_algorithms(was)
+    torch.utils.deterministic.fill_uninitialized_memory = fill
+
+
+def test_gsplat_pads_2dgs_channels_with_uninitialised_memory(cpu_gsplat, uninitialised_is_nan):
+    """The quirk behind training that turned non-finite at its first step on a GPU (gsplat 1.5.3):
+    `rasterize_to_pixels_2dgs` pads a channel count its kernels are not compiled for (here 7, the
+    layout this backend used) with `torch.empty`; the backward multiplies the padding by its zero
+    gradient, and 0 x NaN poisons every geometry gradient while the forward stays finite."""
+    from gsplat.cuda import _wrapper
+
+    from surfsplat.render.gsplat_backend import tile_boxes
+    from surfsplat.render.torch_backend import _pixel_box, surfel_footprint, surfel_transforms
+
+    g, cams = scene(300, 2, torch.float32, 1)
+    W, H = 32, 32
+    cams = with_intrinsics(cams, W, H)
+    leaves = _leaves(g)
+    gs = Gaussians(**leaves)
+    T, mu = surfel_transforms(gs.means, gs.rotations, gs.scales, cams.w2c, cams.K, torch.float32)  # [1, N, ...]
+    _, lowpass, bounds = surfel_footprint(T, mu[..., 2], gs.opacities, 3.0)
+    middle, radii = tile_boxes(_pixel_box(*(b.detach() for b in bounds), W, H))
+    _, isect_ids, flatten_ids = _wrapper.isect_tiles(middle, radii, mu[..., 2].detach(), 16, 2, 2)
+    offsets = _wrapper.isect_offset_encode(isect_ids, 1, 2, 2)
+    colors = torch.cat((gs.sh[None, :, :, 0] + 0.5, mu, mu[..., 2:]), -1)  # 7 channels: padded to 8
+    out = _wrapper.rasterize_to_pixels_2dgs(
+        lowpass,
+        T,
+        colors,
+        gs.opacities[None],
+        torch.zeros_like(mu),
+        torch.zeros_like(lowpass),
+        W,
+        H,
+        16,
+        offsets,
+        flatten_ids,
+    )
+    assert bool(out[0].isfinite().all()) and float(out[1].max()) > 0.9
+    out[0].sum().backward()
+    assert bool(leaves["sh"].grad.isfinite().all())  # colours: their own gradient is clean
+    for name in ("means", "quats", "scales", "opacities"):  # through alpha: 0 x NaN
+        assert not bool(leaves[name].grad.isfinite().all()), name
+
+
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+def test_gsplat_backend_gradients_are_finite_when_uninitialised_memory_is_nan(cpu_gsplat, uninitialised_is_nan, mode):
+    """The backend hands gsplat only channel counts its kernels are compiled for, so no padding, and
+    no uninitialised value, ever reaches a gradient (the test above shows what one would do)."""
+    g, cams = scene(400, 5, torch.float32, 2)
+    W, H = 48, 40
+    cams = with_intrinsics(cams, W, H)
+    leaves = _leaves(g)
+    maps = render_gsplat(Gaussians(**leaves), cams, W, H, mode)
+    assert float(maps[1].max()) > 0.9
+    loss = sum((m * torch.linspace(0, 1, m.numel()).reshape(m.shape)).sum() for m in maps)
+    loss.backward()
+    for name, leaf in leaves.items():
+        assert bool(leaf.grad.isfinite().all()), name
+        assert float(leaf.grad.abs().max()) > 0, name
+
+
+# ------------------------------------------------------------------ every camera in one call
+def test_gsplat_backend_renders_every_camera_in_one_batched_call(cpu_gsplat, monkeypatch):
+    from gsplat.cuda import _wrapper
+
+    calls = {"isect_tiles": 0, "rasterize_to_pixels_2dgs": 0, "rasterize_to_pixels": 0}
+    for name in calls:
+        original = getattr(_wrapper, name)
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(_wrapper, name, counted)
+    g, cams = scene(300, 7, torch.float32, 1)
+    W, H = 40, 32
+    cams = with_intrinsics(cams, W, H)
+    shift = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, -0.08, 0.05]])
+    c2w = cams.c2w.repeat(3, 1, 1)
+    c2w[:, :3, 3] += shift
+    K = cams.K.repeat(3, 1, 1)
+    K[:, :2, :2] *= torch.tensor([1.0, 1.1, 0.9])[:, None, None]  # three focal lengths
+    cams = Cameras(c2w, K)
+    for mode, kernel in (("surfel", "rasterize_to_pixels_2dgs"), ("ewa", "rasterize_to_pixels")):
+        before = dict(calls)
+        together = render_gsplat(g, cams, W, H, mode)
+        assert calls["isect_tiles"] - before["isect_tiles"] == 1
+        assert calls[kernel] - before[kernel] == 1
+        apart = [render_gsplat(g, cams[c : c + 1], W, H, mode) for c in range(3)]
+        for i in range(4):
+            assert (together[i] - torch.cat([a[i] for a in apart])).abs().max() < 1e-6
+
+
+# ------------------------------------------------------------------ no host synchronisation
+class _DeviceKernels:
+    """gsplat's entry points as differentiable functions of all their inputs that never read a device
+    value on the host, so any synchronisation recorded is the backend's own (gsplat's `isect_tiles`
+    reads its intersection count once, as inside gsplat's own `rasterization_2dgs`)."""
+
+    @staticmethod
+    def isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height):
+        n = 64  # a fixed intersection count: gsplat reads the true one on the host
+        device = means2d.device
+        zeros = torch.zeros(n, dtype=torch.int64, device=device)
+        return radii[..., 0], zeros, zeros.to(torch.int32)
+
+    @staticmethod
+    def isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
+        return torch.zeros(n_images, tile_height, tile_width, dtype=torch.int32, device=isect_ids.device)
+
+    @staticmethod
+    def _maps(geometry, colors, opacities, width, height):
+        per_camera = (opacities[..., None] * colors).sum(-2) + geometry[:, None]  # [C, channels]
+        alpha = torch.sigmoid(opacities.sum(-1) + geometry)[:, None, None, None]
+        c = colors.shape[0]
+        return per_camera[:, None, None].expand(c, height, width, -1), alpha.expand(c, height, width, 1)
+
+    @classmethod
+    def rasterize_to_pixels_2dgs(cls, means2d, transforms, colors, opacities, normals, densify, W, H, *_):
+        geometry = means2d.sum((-1, -2)) + transforms.sum((-1, -2, -3)) + densify.sum((-1, -2))
+        maps, alpha = cls._maps(geometry, colors, opacities, W, H)
+        normal = normals.sum(-2)[:, None, None].expand(-1, H, W, -1)
+        return maps, alpha, normal, alpha, alpha
+
+    @classmethod
+    def rasterize_to_pixels(cls, means2d, conics, colors, opacities, W, H, *_):
+        return cls._maps(means2d.sum((-1, -2)) + conics.sum((-1, -2)), colors, opacities, W, H)
+
+
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+def test_render_through_the_gsplat_backend_has_no_host_synchronisation(monkeypatch, mode):
+    """`render(..., backend="gsplat")`, forward and backward, on the stand-in device (which records every
+    op that would make a CUDA host wait): no scalar read, no data-dependent size, no upload."""
+    import surfsplat.render as render_module
+    from surfsplat.render import gsplat_backend
+    from surfsplat.testing.standin_device import StandinDevice, standin
+
+    monkeypatch.setattr(render_module, "gsplat_available", lambda device: True)
+    monkeypatch.setattr(gsplat_backend, "_kernels", lambda: _DeviceKernels)
+    g, cams = scene(300, 8, torch.float32, 2)
+    cams = with_intrinsics(cams, 40, 32)
+    cams = Cameras(cams.c2w.repeat(3, 1, 1), cams.K.repeat(3, 1, 1))
+    with StandinDevice() as dev:
+        leaves = {k: standin(v, requires_grad=True) for k, v in _leaves(g).items()}
+        gaussians, on_device = Gaussians(**leaves), cams.to(dev.device)  # inputs checked, cameras uploaded
+        inputs = len(dev.syncs)
+        out = render(gaussians, on_device, 40, 32, mode=mode, backend="gsplat", alpha_threshold=0.1)
+        loss = out.color.sum() + out.alpha.sum() + out.depth.sum() + out.normal.sum()
+        loss.backward()
+        grads = [leaf.grad for leaf in leaves.values()]
+        assert all(grad is not None and grad.device == dev.device for grad in grads)
+        assert inputs > 0  # the recorder works: the input checks read values on the host
+        assert [s.where for s in dev.syncs[inputs:]] == []

@@ -72,3 +72,31 @@ def test_training_check_fails_when_the_updates_do_not_move_the_weights(monkeypat
     report = {"steps": {}}
     gpu_check.run_step(report, "training_bf16", lambda: result)
     assert report["steps"]["training_bf16"]["status"] == "failed"
+
+
+@pytest.mark.slow
+def test_gpu_benchmark_runs_its_parts_on_cpu(tmp_path: Path) -> None:
+    """benchmarks/gpu.py, the GPU benchmark, is the tested script: at tiny sizes on a CPU its training
+    part trains finite steps (torch backend; gsplat needs CUDA), its render part times our backends
+    (gsplat's own rasterizer needs CUDA: no ratio recorded), and its throughput part steps the model."""
+    out = tmp_path / "gpu.json"
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "gpu.py"), "--device", "cpu", "--quick"]
+        + ["--parts", "train", "render", "throughput", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=1200,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    report = json.loads(out.read_text())
+    assert report["device"] == "cpu" and set(report["parts"]) == {"train", "render", "throughput"}
+    train = report["parts"]["train"]["torch"]
+    assert train["steps"] == 3 and train["all_finite"] and train["nonfinite_steps"] == []
+    assert "gsplat" not in report["parts"]["train"]  # the gsplat run needs CUDA
+    (row,) = (v for k, v in report["parts"]["render"].items() if k != "seconds_total")
+    assert row["surfels"] == 2 * 32 * 32 and row["torch"]["median_s"] > 0 and "ratio_ours_gsplat" not in row
+    step = report["parts"]["throughput"]["batch_1"]
+    assert step["samples_per_s"] > 0 and step["skipped_updates"] == 0 and step["precision"] == "fp32"
+    assert "render" in proc.stdout and "throughput tiny batch_1" in proc.stdout

@@ -115,9 +115,10 @@ def fit_on_views(
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
-            chunks = torch.arange(v).split(plan.views_per_step)
-            total = sum(float((draw(g, cameras[c], width, height).color - images[c]).square().sum()) for c in chunks)
-        return total / images.numel()
+            chunks = torch.arange(v, device=images.device).split(plan.views_per_step)
+            sums = torch.stack([(draw(g, cameras[c], width, height).color - images[c]).square().sum() for c in chunks])
+        # read once; the chunks' float32 sums are added in Python's double precision, as they always were
+        return sum(sums.tolist()) / images.numel()
 
     total = plan.steps
     figures = {"max_steps": total, "scale": plan.scale, "width": fit_w, "height": fit_h}
@@ -128,13 +129,20 @@ def fit_on_views(
 
     free = _Free(g0, plan)
     optimizer = torch.optim.Adam(free.groups())
+    # Every step's views drawn up front on the host's generator (the same draws on every device)
+    # and moved to the device once: [steps, views rendered a step].
     generator = torch.Generator().manual_seed(plan.seed)
+    draws = [torch.randperm(v, generator=generator)[: plan.views_per_step].sort().values for _ in range(total)]
+    draws = torch.stack(draws).to(images.device)
     normal_start = math.ceil(plan.normal_from * total) if plan.normal_weight > 0 else None
+    # Each step's loss stays on the device until a window of the early stop ends (never without
+    # one): reading it every step would make the host wait for the device every step.
     losses: list[float] = []
+    pending: list[Tensor] = []
     with progress_bar(total=total, desc=plan.name, unit="step", enabled=progress) as bar:
         for step in range(total):
             free.schedule(optimizer, step)
-            which = torch.randperm(v, generator=generator)[: plan.views_per_step].sort().values
+            which = draws[step]
             out = draw(free.current(step), fit_cameras[which], fit_w, fit_h)
             loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
             if normal_start is not None and step >= normal_start:
@@ -144,16 +152,20 @@ def fit_on_views(
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            losses.append(float(loss.detach()))
+            pending.append(loss.detach())
             bar.update(1)
             if plan.prune_every and (step + 1) % plan.prune_every == 0 and step + 1 < total:
                 free.prune(optimizer, plan.prune_opacity)
-            if _stalled(losses, plan.patience, plan.min_improvement):
-                break
+            if plan.patience is not None and (step + 1) % plan.patience == 0:
+                losses += torch.stack(pending).tolist()
+                pending = []
+                if _stalled(losses, plan.patience, plan.min_improvement):
+                    break
+    steps = len(losses) + len(pending)
     with torch.no_grad():
-        fitted = free.current(len(losses) - 1).detach()
+        fitted = free.current(steps - 1).detach()
     after = mse(fitted)
-    stats = {"steps": len(losses), "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
+    stats = {"steps": steps, "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
     stats["seconds"] = time.perf_counter() - start
     if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
         logger.warning(
@@ -275,7 +287,8 @@ def depth_normal_error(
             torch.ones(h, w, dtype=depth.dtype, device=depth.device),
         )
     )
-    rays = torch.einsum("vij,jhw->vihw", torch.linalg.inv(cameras.K.to(depth)), pixels)  # camera frame, z = 1
+    # inv_ex: no error flag read on the host (a GPU would wait for it every step)
+    rays = torch.einsum("vij,jhw->vihw", torch.linalg.inv_ex(cameras.K.to(depth)).inverse, pixels)  # z = 1
     c2w = cameras.c2w.to(depth)
     points = torch.einsum("vij,vjhw->vihw", c2w[:, :3, :3], rays * depth) + c2w[:, :3, 3, None, None]
     right = points[..., 1:-1, 2:] - points[..., 1:-1, :-2]

@@ -126,7 +126,7 @@ class SurfelFusion:
                     f"fusion: expected one surfel per pixel of {v} views of {width}x{height} "
                     f"({v * height * width:,}), got {len(gaussians):,}; pass their pixels"
                 )
-            pixels = pixel_grid(v, height, width)
+            pixels = pixel_grid(v, height, width, gaussians.means.device)
         elif pixels.shape != (len(gaussians), 3):
             raise SurfSplatInputError(f"fusion: pixels expected [{len(gaussians)}, 3], got {tuple(pixels.shape)}")
         g = gaussians.detach()
@@ -138,7 +138,8 @@ class SurfelFusion:
             if len(idx) == 0:
                 continue
             part = g.subset(idx)
-            footprint = pixel_footprints(part, cameras[view], width, height, torch.zeros(len(part), dtype=torch.long))
+            on_view = torch.zeros(len(part), dtype=torch.long, device=g.means.device)
+            footprint = pixel_footprints(part, cameras[view], width, height, on_view)
             if self._parts and self.config.replace_ratio is not None:
                 self._replace(part, footprint, pixels[idx, 1:], cameras[view], height, width)
             if self._parts:

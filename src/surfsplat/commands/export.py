@@ -18,7 +18,7 @@ from ..compaction import DEFAULT_LEVEL, LEVELS
 from ..export.bake import BakeConfig
 from ..export.flow import FORMATS, ExportOptions, export_reconstruction, output_names
 from ..utils.checks import SurfSplatInputError, check_output_dir
-from .options import add_cameras
+from .options import add_cameras, add_device
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: beside the PLY)")
     parser.add_argument("--formats", nargs="+", choices=FORMATS, default=["ply", "video", "mesh"], help="what to write")
+    add_device(parser, "the compaction, bake, renders and mesh")
     add_export_arguments(parser)
 
 
@@ -102,6 +103,7 @@ def options_from_args(args: argparse.Namespace, formats: tuple[str, ...], mode: 
 def run(args: argparse.Namespace) -> int:
     from ..data.cameras import load_cameras
     from ..export.ply import load_ply
+    from ..reconstruction.pipeline import resolve_device
 
     if not args.ply.is_file():
         raise FileNotFoundError(f"{args.ply}: no such PLY file")
@@ -111,14 +113,16 @@ def run(args: argparse.Namespace) -> int:
     writes = [name for name in output_names(args.formats) if name != "cameras.json"]
     option = "--out" if args.out is not None else "--out (default: the PLY's folder)"
     check_output_dir(out, option, inputs=[args.ply, args.cameras], writes=writes)
+    device = resolve_device(args.device)
     cams = load_cameras(args.cameras)
-    gaussians = load_ply(args.ply)
+    cameras = cams.cameras.to(device, torch.float32)
+    gaussians = load_ply(args.ply).to(device)  # read on the host, then every step runs on the device
     mode = "ewa" if gaussians.explicit_covariances is not None else "surfel"
     options = options_from_args(args, tuple(args.formats), mode)
-    gaussians = compact_from_args(args, gaussians, cams.cameras.to(torch.float32), cams.height, cams.width, options)
+    gaussians = compact_from_args(args, gaussians, cameras, cams.height, cams.width, options)
     written = export_reconstruction(
         gaussians,
-        cams.cameras.to(torch.float32),
+        cameras,
         cams.width,
         cams.height,
         out,

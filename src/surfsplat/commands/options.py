@@ -32,6 +32,16 @@ def add_release_options(group: Group, files: str = "a release .ckpt/.pth") -> No
     )
 
 
+def add_device(group: Group, what: str = "every stage") -> None:
+    """--device: where the work runs (auto: CUDA when available); only file I/O goes to the host."""
+    group.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help=f"device of {what} (auto: CUDA when available); files are read and written on the host",
+    )
+
+
 def add_precision(group: Group) -> None:
     group.add_argument(
         "--precision",

@@ -30,7 +30,7 @@ from pathlib import Path
 from ..export.flow import FORMATS, output_names
 from ..utils.checks import check_output_dir
 from .export import add_export_arguments, options_from_args, print_written
-from .options import add_cameras, add_depth_range, add_precision, add_release_options, add_size
+from .options import add_cameras, add_depth_range, add_device, add_precision, add_release_options, add_size
 from .poses import add_pose_arguments
 
 
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "farthest scene depth (default: from the cameras, else 100)",
     )
     add_release_options(parser)
-    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    add_device(parser, "the network and every stage after it (fusion, refinement, bake, renders, mesh)")
     add_precision(parser)
     parser.add_argument(
         "--compile",

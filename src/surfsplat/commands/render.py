@@ -20,7 +20,7 @@ import torch
 
 from ..utils.checks import SurfSplatInputError, check_output_dir
 from ..utils.log import progress
-from .options import add_cameras
+from .options import add_cameras, add_device
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.001,
         help="forced alpha blending tau (paper Sec. 3.4); a negative value turns it off",
     )
+    add_device(parser, "the renders")
     parser.add_argument("--background", nargs=3, type=float, default=[0.0, 0.0, 0.0], metavar=("R", "G", "B"))
     parser.add_argument("--images-folder", default=None, help="image folder of a scene folder given as --cameras")
 
@@ -53,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from ..data.cameras import load_cameras
     from ..export.images import colorize_depth, normal_to_rgb, write_png
     from ..export.ply import load_ply
+    from ..reconstruction.pipeline import resolve_device
     from ..render import render
 
     if not args.ply.is_file():
@@ -61,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         raise SurfSplatInputError(f"--scale: expected a positive factor, got {args.scale}")
     if any(not 0 <= c <= 1 for c in args.background):
         raise SurfSplatInputError(f"--background: expected colours in [0, 1], got {args.background}")
+    device = resolve_device(args.device)
     cams = load_cameras(args.cameras, images=args.images_folder)
     views = args.views if args.views is not None else list(range(len(cams.cameras)))
     bad = [v for v in views if not 0 <= v < len(cams.cameras)]
@@ -69,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
     stems = [Path(cams.names[v]).stem for v in views]
     writes = [f"{s}_{kind}.png" for s in stems for kind in ("color", "depth", "normal")] + ["render.json"]
     check_output_dir(args.out, "--out", inputs=[args.ply, args.cameras], writes=writes)
-    gaussians = load_ply(args.ply)
+    gaussians = load_ply(args.ply).to(device)
     mode = args.mode or ("ewa" if gaussians.explicit_covariances is not None else "surfel")
     tau = None if args.alpha_threshold < 0 else args.alpha_threshold
     width, height = round(cams.width * args.scale), round(cams.height * args.scale)
     if width < 1 or height < 1:
         raise SurfSplatInputError(f"--scale: {args.scale} gives an empty {width}x{height} image")
-    cameras = cams.cameras.to(torch.float32).scaled(args.scale)
+    cameras = cams.cameras.to(device, torch.float32).scaled(args.scale)
     report = {
         "ply": str(args.ply),
         "surfels": len(gaussians),

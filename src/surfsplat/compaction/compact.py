@@ -164,7 +164,7 @@ def _validate(
                 f"compact: expected one surfel per pixel of each context view, {views} x {height} x {width} = "
                 f"{views * height * width}, got {len(g)} (pass cells= for an already compacted reconstruction)"
             )
-        return pixel_cells(views, height, width).to(g.means.device)
+        return pixel_cells(views, height, width, g.means.device)
     if cells.shape != (len(g), 4) or cells.dtype != torch.long:
         raise SurfSplatInputError(
             f"compact: cells expected int64 [{len(g)}, 4], got {cells.dtype} {tuple(cells.shape)}"

@@ -201,9 +201,12 @@ def fit_cameras(cameras: Cameras, config: BakeConfig, depth: float) -> Cameras:
         gen = torch.Generator().manual_seed(config.seed)
         n = len(cameras) * config.jittered_views
         base = cameras.c2w.repeat(config.jittered_views, 1, 1)
-        axis_angle = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1) * config.jitter
+        # drawn on the host's generator (the same draws on every device), sent to the cameras' device once
+        draws = [torch.rand(n, 3, generator=gen, dtype=torch.float64) for _ in range(2)]
+        draws = torch.stack(draws).to(base.device)
+        axis_angle = (draws[0] * 2 - 1) * config.jitter
         turn = torch.linalg.matrix_exp(skew(axis_angle)).to(base)
-        move = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1).to(base) * config.jitter * depth
+        move = (draws[1] * 2 - 1).to(base) * config.jitter * depth
         jittered = base.clone()
         jittered[:, :3, :3] = base[:, :3, :3] @ turn
         jittered[:, :3, 3] = base[:, :3, 3] + move
@@ -253,7 +256,8 @@ def bake_for_viewers(
     # it looks at the context views alone, and the report's figures at those factors.
     ours = {f: ours_of(cameras.scaled(float(f)), width * f, height * f) for f in sorted({1, *config.factors})}
     n = len(cameras)
-    picked = torch.linspace(0, n - 1, min(n, config.report_views)).round().long().unique()
+    # which views: a few integers, chosen on the host and sent once
+    picked = torch.linspace(0, n - 1, min(n, config.report_views)).round().long().unique().to(cameras.device)
     contexts = {}
     for f in config.report_factors:
         cams = cameras[picked].scaled(float(f))
@@ -314,7 +318,8 @@ def bake_for_viewers(
 
     def full_loss(viewer: Gaussians) -> float:
         with torch.no_grad():
-            return sum(float(loss_of(viewer, v)) for v in range(len(probes)))
+            per_view = torch.stack([loss_of(viewer, v) for v in range(len(probes))])
+        return sum(per_view.tolist())  # read once, added on the host as one float per view
 
     # One probe camera per step, in a seeded order that visits every camera once per cycle (as 3DGS
     # trains: a step costs one view, not all). Adam keeps a step size near its rate however small
@@ -324,19 +329,22 @@ def bake_for_viewers(
     order = torch.randperm(len(probes), generator=torch.Generator().manual_seed(config.seed)).tolist()
     steps = config.steps_for(len(probes))
     initial = current().detach()
-    best, best_cycle, best_step, losses, cycle = initial, math.inf, 0, [], []
+    # A step's loss stays on the device until its cycle ends, when the cycle's losses are read at
+    # once: reading each step's would make the host wait for the device every step.
+    best, best_cycle, best_step, losses, pending = initial, math.inf, 0, [], []
     for step in progress(range(steps), desc="bake for 3DGS viewers", unit="step", enabled=show_progress):
         loss = loss_of(current(), order[step % len(order)])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        losses.append(float(loss.detach()))
-        cycle.append(losses[-1])
-        if len(cycle) == len(order) or step == steps - 1:
+        pending.append(loss.detach())
+        if len(pending) == len(order) or step == steps - 1:
+            cycle = torch.stack(pending).tolist()
+            losses += cycle
+            pending = []
             mean = sum(cycle) / len(cycle)
             if mean < best_cycle:
                 best_cycle, best_step, best = mean, step + 1, current().detach()
-            cycle = []
     if best_step > 0 and full_loss(best) >= full_loss(initial):
         best, best_step = initial, 0
     best = replace(best, validate=False)

@@ -206,7 +206,8 @@ class Frames:
 
 @torch.inference_mode()
 def render_frames(gaussians, cameras, width: int, height: int, options: ExportOptions, what: str) -> Frames:
-    """Render cameras one at a time (bounded memory) with a progress bar."""
+    """Render cameras one at a time (bounded memory) with a progress bar; the frames stay on the
+    Gaussians' device (the mesh fuses them there; PNG and MP4 writing takes them to the host)."""
     from ..render import render
 
     outs = []
@@ -219,7 +220,7 @@ def render_frames(gaussians, cameras, width: int, height: int, options: ExportOp
     ):
         r = render(gaussians, cameras[i], width, height, mode=options.mode, alpha_threshold=options.alpha_threshold)
         outs.append(r)
-    return Frames(*(torch.cat([getattr(r, k) for r in outs]).cpu() for k in ("color", "alpha", "depth", "normal")))
+    return Frames(*(torch.cat([getattr(r, k) for r in outs]) for k in ("color", "alpha", "depth", "normal")))
 
 
 def _cat_cameras(a, b):

@@ -36,7 +36,7 @@ def colorize_depth(
     else:
         t = torch.zeros_like(d)
     # A short piecewise-linear ramp: dark blue -> teal -> green -> yellow.
-    stops = torch.tensor([[0.15, 0.10, 0.45], [0.10, 0.45, 0.60], [0.35, 0.75, 0.35], [0.98, 0.90, 0.15]])
+    stops = d.new_tensor([[0.15, 0.10, 0.45], [0.10, 0.45, 0.60], [0.35, 0.75, 0.35], [0.98, 0.90, 0.15]])
     x = t * (len(stops) - 1)
     i = x.floor().long().clamp(max=len(stops) - 2)
     f = (x - i)[..., None]
@@ -49,7 +49,7 @@ def colorize_error(error: Tensor, valid: Tensor | None = None, vmax: float = 1.0
     """Error [1, H, W] >= 0 -> [3, H, W]: black at 0, through red and orange to yellow at vmax and
     above; pixels outside `valid` ([1, H, W] bool) are dark grey, so "no data" never reads as "no error"."""
     e = (error.detach().float()[0] / vmax).clamp(0, 1)
-    stops = torch.tensor([[0.0, 0.0, 0.0], [0.75, 0.05, 0.05], [1.0, 0.55, 0.0], [1.0, 0.95, 0.3]])
+    stops = e.new_tensor([[0.0, 0.0, 0.0], [0.75, 0.05, 0.05], [1.0, 0.55, 0.0], [1.0, 0.95, 0.3]])
     x = e * (len(stops) - 1)
     i = x.floor().long().clamp(max=len(stops) - 2)
     f = (x - i)[..., None]

@@ -11,6 +11,10 @@ j + 0.5), sdf = d - z. Views where x lies more than the truncation behind the su
 say nothing about x (it is occluded); the others add min(1, sdf / trunc) with weight 1 to a running
 mean. Only faces on grid edges whose two ends were observed are kept, so the unobserved space
 behind surfaces does not close the mesh with a false wall.
+
+Device: the fusion runs where the depth maps are (a GPU's renders are fused on the GPU, each view
+one pass over the voxels without a host wait); marching cubes is scikit-image's, so the volume goes
+to the host for it, and the mesh comes back to the volume's device.
 """
 
 from __future__ import annotations
@@ -67,8 +71,12 @@ def fusion_bounds(
     points = backproject(depths, cameras, valid)
     if points.shape[0] == 0:
         raise SurfSplatInputError("depths: no valid depth sample to fuse")
-    q = torch.tensor([quantile, 1 - quantile], dtype=torch.float64)
-    sample = points[torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(0))[:1_000_000]]
+    q = torch.tensor([quantile, 1 - quantile], dtype=torch.float64, device=points.device)
+    sample = points
+    if len(points) > 1_000_000:  # torch.quantile's limit; below it the order would not change a quantile
+        # drawn on the host's generator (the same sample on every device), the indices sent once
+        pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))[:1_000_000]
+        sample = points[pick.to(points.device)]
     lo, hi = torch.quantile(sample, q, dim=0)
     pad = (hi - lo).clamp_min(1e-6) * margin
     return lo - pad, hi + pad
@@ -77,14 +85,13 @@ def fusion_bounds(
 def backproject(depths: Tensor, cameras: Cameras, valid: Tensor) -> Tensor:
     """World points [P, 3] (float64) of the valid pixels of depths [V, 1, H, W]."""
     v, _, h, w = depths.shape
-    K_inv = torch.linalg.inv(cameras.K.to(torch.float64))
-    jj, ii = torch.meshgrid(
-        torch.arange(w, dtype=torch.float64) + 0.5, torch.arange(h, dtype=torch.float64) + 0.5, indexing="xy"
-    )
+    K_inv = torch.linalg.inv(cameras.K.to(depths.device, torch.float64))
+    f64 = {"dtype": torch.float64, "device": depths.device}
+    jj, ii = torch.meshgrid(torch.arange(w, **f64) + 0.5, torch.arange(h, **f64) + 0.5, indexing="xy")
     pix = torch.stack([jj, ii, torch.ones_like(jj)], -1)  # [H, W, 3]
     rays = torch.einsum("vij,hwj->vhwi", K_inv, pix)  # camera z = 1
     cam = rays * depths.to(torch.float64)[:, 0, :, :, None]
-    c2w = cameras.c2w.to(torch.float64)
+    c2w = cameras.c2w.to(depths.device, torch.float64)
     world = torch.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], cam) + c2w[:, None, None, :3, 3]
     return world[valid[:, 0]]
 
@@ -118,7 +125,9 @@ def tsdf_fusion(
     lo, hi = (
         bounds if bounds is not None else fusion_bounds(depths, cameras, valid, config.bounds_quantile, config.margin)
     )
-    lo, hi = lo.to(torch.float64), hi.to(torch.float64)
+    device = depths.device
+    f64 = {"dtype": torch.float64, "device": device}
+    lo, hi = lo.to(**f64), hi.to(**f64)
     if bool((hi <= lo).any()):
         raise SurfSplatInputError(f"bounds: expected low < high on every axis, got {lo.tolist()} and {hi.tolist()}")
     voxel = float((hi - lo).max()) / config.resolution
@@ -127,15 +136,19 @@ def tsdf_fusion(
         raise SurfSplatInputError(f"config.resolution: a {dims} grid exceeds max_voxels = {config.max_voxels}")
     trunc = config.truncation_voxels * voxel
 
-    axes = [lo[a] + (torch.arange(dims[a], dtype=torch.float64) + 0.5) * voxel for a in range(3)]
+    axes = [lo[a] + (torch.arange(dims[a], **f64) + 0.5) * voxel for a in range(3)]
     centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [X*Y*Z, 3]
     n = centres.shape[0]
-    tsdf_sum = torch.zeros(n, dtype=torch.float64)
-    weight = torch.zeros(n, dtype=torch.float64)
-    color_sum = torch.zeros(n, 3, dtype=torch.float64)
-    w2c = cameras.w2c.to(torch.float64)
-    K = cameras.K.to(torch.float64)
+    tsdf_sum = torch.zeros(n, **f64)
+    weight = torch.zeros(n, **f64)
+    color_sum = torch.zeros(n, 3, **f64)
+    w2c = cameras.w2c.to(**f64)
+    K = cameras.K.to(**f64)
     depth64 = depths.to(torch.float64)
+    colors64 = colors.to(torch.float64) if colors is not None else None
+    # Every voxel is visited in every view and the ones a view says nothing about add zero, rather
+    # than gathering those it observes (nonzero, masks): sizes known ahead keep a device from
+    # reporting each view's count to the host, and x + 0 leaves every sum as it was.
     for i in range(v):
         cam = centres @ w2c[i, :3, :3].T + w2c[i, :3, 3]
         z = cam[:, 2]
@@ -146,17 +159,15 @@ def tsdf_fusion(
         col = torch.floor(u).long()  # pixel j covers [j, j + 1): its centre is j + 0.5
         row = torch.floor(vv).long()
         inside = in_front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        idx = torch.nonzero(inside).squeeze(1)
-        r, c = row[idx], col[idx]
-        ok = valid[i, 0, r, c]
-        idx, r, c = idx[ok], r[ok], c[ok]
-        sdf = depth64[i, 0, r, c] - z[idx]
-        seen = sdf >= -trunc  # farther behind the surface than the band: occluded, no information
-        idx, r, c, sdf = idx[seen], r[seen], c[seen], sdf[seen]
-        tsdf_sum.index_add_(0, idx, (sdf / trunc).clamp(max=1.0))
-        weight.index_add_(0, idx, torch.ones_like(sdf))
-        if colors is not None:
-            color_sum.index_add_(0, idx, colors[i, :, r, c].T.to(torch.float64))
+        r, c = row.clamp(0, h - 1), col.clamp(0, w - 1)  # outside voxels read some pixel, then count zero
+        sdf = depth64[i, 0, r, c] - z
+        # observed where the pixel is trusted and the voxel is not farther behind the surface than
+        # the band (occluded: no information)
+        seen = inside & valid[i, 0, r, c] & (sdf >= -trunc)
+        tsdf_sum += torch.where(seen, (sdf / trunc).clamp(max=1.0), 0.0)
+        weight += seen.to(torch.float64)
+        if colors64 is not None:
+            color_sum += torch.where(seen[:, None], colors64[i, :, r, c].T, 0.0)
     observed = weight > 0
     tsdf = torch.where(observed, tsdf_sum / weight.clamp_min(1), torch.ones_like(tsdf_sum))
     color = color_sum / weight.clamp_min(1)[:, None]
@@ -173,8 +184,10 @@ def extract_mesh(volume: TsdfVolume, min_weight: float = 1.0) -> Mesh:
     """The zero level set of the TSDF as a triangle mesh (marching cubes), coloured per vertex."""
     from skimage.measure import marching_cubes
 
-    tsdf = volume.tsdf.numpy()
-    observed = volume.weight.numpy() >= min_weight
+    device = volume.tsdf.device
+    # marching cubes runs on the host: the volume goes there once
+    tsdf = volume.tsdf.cpu().numpy()
+    observed = volume.weight.cpu().numpy() >= min_weight
     if not observed.any() or tsdf[observed].min() > 0 or tsdf[observed].max() < 0:
         raise SurfSplatInputError("volume: no observed zero crossing (nothing to mesh; check depths and bounds)")
     # TSDF values grow outwards (free space +1); scikit-image's "descent" then winds faces
@@ -195,18 +208,18 @@ def extract_mesh(volume: TsdfVolume, min_weight: float = 1.0) -> Mesh:
     remap[used] = np.arange(used.size)
     verts, normals, faces = verts[used], normals[used], remap[faces]
     # Grid indices are voxel centres: index 0 sits half a voxel inside the corner.
-    vertices = torch.from_numpy(volume.origin.numpy() + (verts.astype(np.float64) + 0.5) * volume.voxel_size)
+    vertices = torch.from_numpy(volume.origin.cpu().numpy() + (verts.astype(np.float64) + 0.5) * volume.voxel_size)
     normals_t = torch.from_numpy(np.ascontiguousarray(normals)).to(torch.float64)
     normals_t = normals_t / normals_t.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     idx = torch.from_numpy(np.round(verts).astype(np.int64))
     for a in range(3):
         idx[:, a] = idx[:, a].clamp(0, volume.tsdf.shape[a] - 1)
-    colors = volume.color[idx[:, 0], idx[:, 1], idx[:, 2]].clamp(0, 1)
+    colors = volume.color.cpu()[idx[:, 0], idx[:, 1], idx[:, 2]].clamp(0, 1)
     return Mesh(
-        vertices=vertices.float(),
-        faces=torch.from_numpy(np.ascontiguousarray(faces).astype(np.int64)),
-        normals=normals_t.float(),
-        colors=colors,
+        vertices=vertices.float().to(device),
+        faces=torch.from_numpy(np.ascontiguousarray(faces).astype(np.int64)).to(device),
+        normals=normals_t.float().to(device),
+        colors=colors.to(device),
     )
 
 

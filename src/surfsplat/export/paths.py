@@ -53,16 +53,17 @@ def interpolate_cameras(cameras: Cameras, num_frames: int) -> Cameras:
         raise SurfSplatInputError(f"cameras: expected at least 2 cameras to interpolate between, got {n}")
     c2w = cameras.c2w.to(torch.float64)
     K = cameras.K.to(torch.float64)
+    f64 = {"dtype": torch.float64, "device": c2w.device}  # the path is made where the cameras are
     quats = matrix_to_quat(c2w[:, :3, :3])
     centres = c2w[:, :3, 3]
     lengths = (centres[1:] - centres[:-1]).norm(dim=-1)
     if float(lengths.sum()) <= 1e-12:
-        lengths = torch.ones(n - 1, dtype=torch.float64)
-    knots = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumsum(lengths, 0) / lengths.sum()])
-    s = torch.linspace(0, 1, num_frames, dtype=torch.float64)
+        lengths = torch.ones(n - 1, **f64)
+    knots = torch.cat([torch.zeros(1, **f64), torch.cumsum(lengths, 0) / lengths.sum()])
+    s = torch.linspace(0, 1, num_frames, **f64)
     segment = torch.searchsorted(knots[1:-1], s, right=True)  # which pair of views each frame falls between
-    out_c2w = torch.eye(4, dtype=torch.float64).repeat(num_frames, 1, 1)
-    out_K = torch.empty(num_frames, 3, 3, dtype=torch.float64)
+    out_c2w = torch.eye(4, **f64).repeat(num_frames, 1, 1)
+    out_K = torch.empty(num_frames, 3, 3, **f64)
     for k in range(n - 1):
         sel = segment == k
         if not bool(sel.any()):
@@ -81,7 +82,7 @@ def mean_camera(cameras: Cameras) -> tuple[Tensor, Tensor]:
     quats = matrix_to_quat(c2w[:, :3, :3])
     signs = torch.where((quats @ quats[0]) < 0, -1.0, 1.0).to(quats)  # one hemisphere before averaging
     q = (quats * signs[:, None]).mean(0)
-    out = torch.eye(4, dtype=torch.float64)
+    out = torch.eye(4, dtype=torch.float64, device=c2w.device)
     out[:3, :3] = quat_to_matrix(q)
     out[:3, 3] = c2w[:, :3, 3].mean(0)
     return out, cameras.K.to(torch.float64).mean(0)
@@ -91,7 +92,7 @@ def axis_angle_matrix(axis: Tensor, angle: float) -> Tensor:
     """Rotation [3, 3] by `angle` radians about the unit `axis` [3] (Rodrigues' formula)."""
     a = axis / axis.norm()
     A = skew(a)
-    return torch.eye(3, dtype=a.dtype) + math.sin(angle) * A + (1 - math.cos(angle)) * (A @ A)
+    return torch.eye(3, dtype=a.dtype, device=a.device) + math.sin(angle) * A + (1 - math.cos(angle)) * (A @ A)
 
 
 def turntable(
@@ -114,7 +115,7 @@ def turntable(
     c2w, K = mean_camera(cameras)
     p = focus.to(torch.float64)
     up = -c2w[:3, 1]  # OpenCV y points down in the image
-    out_c2w = torch.eye(4, dtype=torch.float64).repeat(num_frames, 1, 1)
+    out_c2w = torch.eye(4, dtype=torch.float64, device=c2w.device).repeat(num_frames, 1, 1)
     for f in range(num_frames):
         angle = math.radians(degrees / 2) * math.sin(2 * math.pi * loops * f / num_frames)
         R = axis_angle_matrix(up, angle)

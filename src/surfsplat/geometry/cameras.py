@@ -79,7 +79,9 @@ class Cameras:
         """The same cameras for images s times wider and taller: K' = diag(s, s, 1) K."""
         if not s > 0:
             raise SurfSplatInputError(f"scale: expected a positive factor, got {s}")
-        S = torch.tensor([s, s, 1.0], dtype=self.K.dtype, device=self.K.device)
+        # diag(s, s, 1) filled where K is: built from a Python list it would be a copy to the device
+        S = torch.full((3,), s, dtype=self.K.dtype, device=self.K.device)
+        S[2] = 1.0
         return Cameras(self.c2w, self.K * S[:, None], validate=False)
 
     # ------------------------------------------------------------------ converters

@@ -20,21 +20,28 @@ from .cameras import Cameras
 from .gaussians import Gaussians
 
 
-def pixel_grid(views: int, height: int, width: int) -> Tensor:
-    """[V*H*W, 3] int64 (view, row, column) of every pixel, in that order."""
-    v, r, c = torch.meshgrid(torch.arange(views), torch.arange(height), torch.arange(width), indexing="ij")
+def pixel_grid(views: int, height: int, width: int, device: torch.device | str | None = None) -> Tensor:
+    """[V*H*W, 3] int64 (view, row, column) of every pixel, in that order, on `device` (default: the CPU)."""
+    v, r, c = torch.meshgrid(
+        torch.arange(views, device=device),
+        torch.arange(height, device=device),
+        torch.arange(width, device=device),
+        indexing="ij",
+    )
     return torch.stack((v.flatten(), r.flatten(), c.flatten()), dim=-1)
 
 
-def pixel_cells(views: int, height: int, width: int) -> Tensor:
+def pixel_cells(views: int, height: int, width: int, device: torch.device | str | None = None) -> Tensor:
     """[V*H*W, 4] the cells of a model's output: (view, row, column, size 1), in (view, row, column) order."""
-    grid = pixel_grid(views, height, width)
+    grid = pixel_grid(views, height, width, device)
     return torch.cat((grid, torch.ones_like(grid[:, :1])), dim=-1)
 
 
-def views_of_pixels(views: int, height: int, width: int) -> Tensor:
+def views_of_pixels(views: int, height: int, width: int, device: torch.device | str | None = None) -> Tensor:
     """[V*H*W] the view each surfel of a model output came from ((view, row, column) order)."""
-    return torch.arange(views).repeat_interleave(height * width)
+    # output_size given: the length is known, so a device need not report it to the host
+    n = height * width
+    return torch.arange(views, device=device).repeat_interleave(n, output_size=views * n)
 
 
 def focal_lengths(K: Tensor) -> Tensor:

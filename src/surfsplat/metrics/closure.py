@@ -111,9 +111,14 @@ class ClosureMetrics:
 
 class ClosureAccumulator:
     """Adds up closure figures over scenes: alpha figures are pixel-weighted means, surfel shares are
-    over every surfel added, quantiles over every opacity added."""
+    over every surfel added, quantiles over every opacity added.
 
-    def __init__(self) -> None:
+    device: where the per-surfel values are kept and the figures computed. The host (default) for
+    many scenes, whose surfels need not all fit on an accelerator beside the next scene; one
+    scene's own device for `closure_metrics`, which then reads only the figures back."""
+
+    def __init__(self, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
         self._alpha: dict[int, list[float]] = {}  # factor -> [sum alpha, pixels, count >= 0.5, count >= 0.9]
         self._ratios: list[Tensor] = []
         self._undersized: list[Tensor] = []
@@ -126,10 +131,13 @@ class ClosureAccumulator:
         for s, a in alphas.items():
             a = a.detach().float()
             row = self._alpha.setdefault(int(s), [0.0, 0.0] + [0.0] * len(COVERAGE_LEVELS))
-            row[0] += float(a.sum())
+            # the sum and the counts read at once (float64 holds the float32 sum and the counts exactly)
+            sums = [a.sum(), *((a >= level).sum() for level in COVERAGE_LEVELS)]
+            total, *counts = torch.stack([x.double() for x in sums]).tolist()
+            row[0] += total
             row[1] += a.numel()
-            for i, level in enumerate(COVERAGE_LEVELS):
-                row[2 + i] += float((a >= level).sum())
+            for i, count in enumerate(counts):
+                row[2 + i] += count
 
     def add_surfels(
         self,
@@ -143,13 +151,14 @@ class ClosureAccumulator:
         if footprints.shape != (len(gaussians),):
             raise SurfSplatInputError(f"footprints: expected [{len(gaussians)}], got {tuple(footprints.shape)}")
         smallest = gaussians.scales.detach().float().min(-1).values
-        self._ratios.append((smallest / footprints.clamp_min(1e-12)).cpu())
-        self._undersized.append(undersized(gaussians, footprints).cpu())
-        self._opacities.append(gaussians.opacities.detach().float().flatten().cpu())
+        keep = self.device
+        self._ratios.append((smallest / footprints.clamp_min(1e-12)).to(keep))
+        self._undersized.append(undersized(gaussians, footprints).to(keep))
+        self._opacities.append(gaussians.opacities.detach().float().flatten().to(keep))
         if multipliers is not None:
             if multiplier_range is None:
                 raise SurfSplatInputError("multiplier_range: needed with multipliers (the clamp's r)")
-            self._multipliers.append(multipliers.detach().float().flatten().cpu())
+            self._multipliers.append(multipliers.detach().float().flatten().to(keep))
             self._range = float(multiplier_range)
 
     def report(self) -> ClosureMetrics:
@@ -159,7 +168,7 @@ class ClosureAccumulator:
         coverage = {s: {lvl: r[2 + i] / r[1] for i, lvl in enumerate(COVERAGE_LEVELS)} for s, r in self._alpha.items()}
         ratios = torch.cat(self._ratios)
         opacities = torch.cat(self._opacities)
-        q = torch.tensor(OPACITY_QUANTILES)
+        q = torch.tensor(OPACITY_QUANTILES, device=self.device)
         quantiles = torch.quantile(_subsample(opacities), q) if opacities.numel() else torch.full_like(q, float("nan"))
         low = high = None
         if self._multipliers:
@@ -209,7 +218,7 @@ def closure_metrics(
 
     if 1 not in factors:
         raise SurfSplatInputError(f"factors: closure compares with x1, got {tuple(factors)}")
-    acc = ClosureAccumulator()
+    acc = ClosureAccumulator(gaussians.means.device)  # one scene: its figures computed where it is
     alphas = {}
     for s in sorted(set(int(f) for f in factors)):
         out = render(

@@ -166,7 +166,7 @@ def unproject_depth(depths: Tensor, K: Tensor, offsets: Tensor | None = None) ->
     if offsets is not None:
         xy = xy + offsets
     homogeneous = torch.cat((xy, torch.ones_like(xy[..., :1])), dim=-1)  # [..., H, W, 3]
-    K_inv = torch.linalg.inv(K)[..., None, None, :, :]
+    K_inv = torch.linalg.inv_ex(K).inverse[..., None, None, :, :]  # inv_ex: no error read on the host
     rays = (K_inv @ homogeneous[..., None]).squeeze(-1)  # z = 1 for a pinhole K
     return rays * depths[..., None]
 
@@ -409,34 +409,41 @@ class GaussianAdapter(torch.nn.Module):
         return self.cfg.alpha_threshold_train if self.training else self.cfg.alpha_threshold_eval
 
     # ------------------------------------------------------------------ forward
-    def forward(self, depths: Tensor, raw: Tensor, images: Tensor, K: Tensor, c2w: Tensor) -> AdapterOutput:
+    def forward(
+        self, depths: Tensor, raw: Tensor, images: Tensor, K: Tensor, c2w: Tensor, validate: bool = True
+    ) -> AdapterOutput:
         """
         depths: [B, V, H, W] camera z
         raw:    [B, V, C, H, W] head output, C = num_raw_channels
         images: [B, V, 3, H, W] in [0, 1]
         K:      [B, V, 3, 3] intrinsics in pixels of the H x W maps
         c2w:    [B, V, 4, 4] OpenCV camera-to-world
+        validate: check the values too (finite, pinhole K, rigid c2w: host reads; shapes always)
         """
-        self._validate(depths, raw, images, K, c2w)
+        self._validate(depths, raw, images, K, c2w, validate)
         if self.cfg.mode == "official":
             return self._forward_official(depths, raw, images, K, c2w)
         return self._forward_paper(depths, raw, images, K, c2w)
 
-    def _validate(self, depths: Tensor, raw: Tensor, images: Tensor, K: Tensor, c2w: Tensor) -> None:
-        check_tensor("depths", depths, ("B", "V", "H", "W"))
+    def _validate(self, depths: Tensor, raw: Tensor, images: Tensor, K: Tensor, c2w: Tensor, values: bool) -> None:
+        check_tensor("depths", depths, ("B", "V", "H", "W"), finite=values)
         B, V, H, W = depths.shape
-        check_tensor("raw", raw, (B, V, self.num_raw_channels, H, W))
-        check_tensor("images", images, (B, V, 3, H, W))
-        check_tensor("K", K, (B, V, 3, 3))
-        check_tensor("c2w", c2w, (B, V, 4, 4))
-        validate_intrinsics("K", K.reshape(-1, 3, 3))
-        validate_c2w("c2w", c2w.reshape(-1, 4, 4))
+        check_tensor("raw", raw, (B, V, self.num_raw_channels, H, W), finite=values)
+        check_tensor("images", images, (B, V, 3, H, W), finite=values)
+        check_tensor("K", K, (B, V, 3, 3), finite=values)
+        check_tensor("c2w", c2w, (B, V, 4, 4), finite=values)
+        if values:
+            validate_intrinsics("K", K.reshape(-1, 3, 3))
+            validate_c2w("c2w", c2w.reshape(-1, 4, 4))
         if H < 3 or W < 3:
             raise SurfSplatInputError(f"depths: the surface prior needs maps of at least 3 x 3 pixels, got {H} x {W}")
 
     def _colour(self, raw_sh: Tensor, images: Tensor, R_c2w: Tensor, convention: SHConvention) -> Tensor:
         """SH in the world frame: raw [B, V, 3*K, H, W] -> [B, V, H, W, 3, K]."""
-        mask = torch.tensor(self.sh_mask_values, dtype=raw_sh.dtype, device=raw_sh.device)
+        # sh_mask_values made on the device from each coefficient's degree l = floor(sqrt(k)) (exact for
+        # these small integers): 1 for l = 0, else 0.1 * 0.25^l. No table uploaded from the host.
+        degree = torch.arange(len(self.sh_mask_values), device=raw_sh.device, dtype=raw_sh.dtype).sqrt().floor()
+        mask = torch.where(degree == 0, 1.0, 0.1 * torch.pow(0.25, degree))
         sh = rearrange(raw_sh, "b v (c k) h w -> b v h w c k", c=3) * mask
         if self.cfg.init_sh_from_image:
             # Sec. 3.4: the input colour goes into the DC term, so SH(d) + 0.5 = rgb at initialisation.
@@ -537,7 +544,7 @@ class GaussianAdapter(torch.nn.Module):
         offsets = rearrange(torch.sigmoid(raw[:, :, 1:3]), "b v c h w -> b v h w c")
         xy = xy + (offsets - 0.5) * pixel_size
         homogeneous = torch.cat((xy, torch.ones_like(xy[..., :1])), dim=-1)
-        dirs = (torch.linalg.inv(K_norm)[:, :, None, None] @ homogeneous[..., None]).squeeze(-1)
+        dirs = (torch.linalg.inv_ex(K_norm).inverse[:, :, None, None] @ homogeneous[..., None]).squeeze(-1)
         dirs = dirs / dirs[..., 2:]
         dirs = (R_c2w[:, :, None, None] @ dirs[..., None]).squeeze(-1)
         means = c2w[:, :, None, None, :3, 3] + dirs * depths[..., None]  # [B, V, H, W, 3] world

@@ -117,19 +117,25 @@ class SurfSplat(nn.Module):
         near: float | Tensor,  # scalar or [B, V]
         far: float | Tensor,  # scalar or [B, V]
         return_intermediates: bool = False,
+        validate: bool = True,
     ) -> SurfSplatPrediction:
-        check_tensor("images", images, ("B", "V", 3, "H", "W"))
+        """`validate`: check the values too (finite images in [0, 1], finite positive near < far, finite
+        pinhole K and rigid c2w). Each check reads a device value on the host, so a GPU waits for it:
+        the training loop, whose batches were checked where they were read, passes False; shapes and
+        types are checked either way."""
+        check_tensor("images", images, ("B", "V", 3, "H", "W"), finite=validate)
         b, v, _, height, width = images.shape
-        lo, hi = float(images.min()), float(images.max())
-        if lo < 0 or hi > 1:
-            raise SurfSplatInputError(f"images: expected values in [0, 1], got [{lo:.4g}, {hi:.4g}]")
+        if validate:
+            lo, hi = float(images.min()), float(images.max())
+            if lo < 0 or hi > 1:
+                raise SurfSplatInputError(f"images: expected values in [0, 1], got [{lo:.4g}, {hi:.4g}]")
         if not isinstance(cameras, Cameras):
             raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cameras).__name__}")
         if len(cameras) != b * v:
             raise SurfSplatInputError(f"cameras: expected {b * v} cameras (B*V = {b}*{v}), got {len(cameras)}")
-        near_t = _depth_bound("near", near, b, v, images)
-        far_t = _depth_bound("far", far, b, v, images)
-        if bool((near_t >= far_t).any()):
+        near_t = _depth_bound("near", near, b, v, images, validate)
+        far_t = _depth_bound("far", far, b, v, images, validate)
+        if validate and bool((near_t >= far_t).any()):
             raise SurfSplatInputError("near/far: expected near < far for every view")
         K = cameras.K.to(images).reshape(b, v, 3, 3)
         c2w = cameras.c2w.to(images).reshape(b, v, 4, 4)
@@ -137,7 +143,9 @@ class SurfSplat(nn.Module):
         # The adapter's geometry (unprojection, Sobel tangents, rotations) runs in float32 under
         # autocast too: bf16 matrix products there would move surfels by ~0.4% of their depth.
         with without_autocast(images.device.type):
-            out = self.adapter(enc.depths.float(), enc.raw.float(), images.float(), K.float(), c2w.float())
+            out = self.adapter(
+                enc.depths.float(), enc.raw.float(), images.float(), K.float(), c2w.float(), validate=validate
+            )
         return SurfSplatPrediction(
             gaussians=out.gaussians,
             depths=enc.depths,
@@ -147,8 +155,8 @@ class SurfSplat(nn.Module):
         )
 
 
-def _depth_bound(name: str, value: float | Tensor, b: int, v: int, like: Tensor) -> Tensor:
-    """A near/far plane as a positive [B, V] tensor."""
+def _depth_bound(name: str, value: float | Tensor, b: int, v: int, like: Tensor, validate: bool = True) -> Tensor:
+    """A near/far plane as a positive [B, V] tensor (its values checked with `validate`)."""
     if isinstance(value, Tensor):
         if value.shape != (b, v):
             raise SurfSplatInputError(
@@ -159,6 +167,6 @@ def _depth_bound(name: str, value: float | Tensor, b: int, v: int, like: Tensor)
         t = torch.full((b, v), float(value), dtype=like.dtype, device=like.device)
     else:
         raise SurfSplatInputError(f"{name}: expected a float or a [B, V] tensor, got {type(value).__name__}")
-    if not bool(torch.isfinite(t).all()) or bool((t <= 0).any()):
+    if validate and (not bool(torch.isfinite(t).all()) or bool((t <= 0).any())):
         raise SurfSplatInputError(f"{name}: expected finite positive depths")
     return t

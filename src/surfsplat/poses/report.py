@@ -98,8 +98,9 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
     """An SVG of the cameras seen from above: the x-z plane of the first camera, each camera a
     dot and its horizontal field of view as a wedge, labelled with its photo's name where the label
     has room (`_place_labels`); every dot names its photo on hover."""
-    c2w = camera_set.cameras.c2w.to(torch.float64).numpy()
-    K = camera_set.cameras.K.to(torch.float64).numpy()
+    # drawn on the host, wherever the cameras are
+    c2w = camera_set.cameras.c2w.detach().to("cpu", torch.float64).numpy()
+    K = camera_set.cameras.K.detach().to("cpu", torch.float64).numpy()
     centres = c2w[:, [0, 2], 3]
     span = max(float(np.ptp(centres, axis=0).max()), 1e-9)
     wedge = 0.5 * span  # wedge length: half the extent of the camera layout

@@ -19,6 +19,10 @@ Steps:
 5. the fused scene fitted to the context photos: the refinement (colours, opacities, sizes), or
    with `CaptureOptions.optimize` every surfel attribute (`optimize_scene`); held-out views are
    never fitted, and are scored before and after.
+
+Device: the surfels stay where the network made them. Fusion, compaction, the refinement or the
+optimization, the held-out scores and the returned Scene (its renders, closure figures and `save`)
+all run on the `device` chosen here; the photos are read on the host and sent there once per pass.
 """
 
 from __future__ import annotations
@@ -185,11 +189,13 @@ def reconstruct(
     passes = context_sets(ctx_c2w[:, :3, 3], capture.views_per_pass, views.ordered)
 
     def network_views(indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The photos [V, 3, H, W] at the network's size and their K [V, 3, 3], on the device: the
+        photos are read on the host, and every stage after the network runs where it ran."""
         from ..data.transforms import rescale_and_crop
 
         stack = torch.stack([views.image(i) for i in indices])
         stack, K_net, _ = rescale_and_crop(stack, K[indices].to(torch.float32), shape)
-        return stack.clamp(0, 1), K_net
+        return stack.clamp(0, 1).to(device), K_net.to(device)
 
     # ---- forward passes, fused as they stream by
     from ..utils.log import progress as progress_bar
@@ -207,21 +213,22 @@ def reconstruct(
         stack, K_net = network_views(indices)
         for j, kk in zip(members, K_net):
             ctx_K[j] = kk
-        cams = Cameras(c2w[indices].to(torch.float32), K_net)
+        cams = Cameras(c2w[indices].to(device, torch.float32), K_net)
         if compile and "compile" not in seconds:  # the compilation, timed apart from the passes
             tick = time.perf_counter()
             with torch.inference_mode(), autocast(precision, device):
-                model(stack[None].to(device), cams.to(device), near, far)
+                model(stack[None], cams, near, far)
             seconds["compile"] = time.perf_counter() - tick
         tick = time.perf_counter()
         with torch.inference_mode(), autocast(precision, device) as ran:
-            prediction = model(stack[None].to(device), cams.to(device), near, far)
+            prediction = model(stack[None], cams, near, far)
         seconds["forward"] += time.perf_counter() - tick
         alpha_threshold = prediction.alpha_threshold
-        # copied out of inference mode: the compaction's refit and the refinement differentiate them
-        gaussians = prediction.gaussians.select(0).to("cpu", torch.float32).clone()
+        # copied out of inference mode: the compaction's refit and the refinement differentiate them;
+        # they stay on the device, where every later stage runs
+        gaussians = prediction.gaussians.select(0).to(torch.float32).clone()
         if model.cfg.adapter.prior == "surface" and compact is None and len(passes) == 1:
-            multipliers = prediction.adapter_output.scales_mul[0].to("cpu", torch.float32).clone()
+            multipliers = prediction.adapter_output.scales_mul[0].to(torch.float32).clone()
         pixels = None
         if compact is not None:
             tick = time.perf_counter()
@@ -235,7 +242,7 @@ def reconstruct(
         fusion.add(gaussians, cams, shape[0], shape[1], pixels)
         seconds["fusion"] += time.perf_counter() - tick
     gaussians = single if fusion is None else fusion.gaussians()
-    scene_cameras = Cameras(ctx_c2w.to(torch.float32), torch.stack(ctx_K))
+    scene_cameras = Cameras(ctx_c2w.to(device, torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
     # the optimization frees what the refinement fits and more: where it runs, the refinement does not
     if fusion is not None and capture.refine.steps_for(len(context)) > 0 and capture.optimize.steps == 0:
@@ -260,7 +267,7 @@ def reconstruct(
     holdout = None
     if held:
         images_h, K_h = network_views(held)
-        holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(torch.float32), K_h), images_h)
+        holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(device, torch.float32), K_h), images_h)
     scene = Scene(
         gaussians=gaussians,
         cameras=scene_cameras,
@@ -331,11 +338,14 @@ def _check_options(
 
 
 def resolve_device(choice: str | torch.device) -> torch.device:
-    """The torch device of "auto" (CUDA when available), "cpu", "cuda" or a torch.device."""
+    """The torch device of "auto" (CUDA when available), "cpu", "cuda" / "cuda:N", or a torch.device,
+    which is taken as given (every stage after the network runs where the network ran)."""
     if isinstance(choice, torch.device):
-        choice = str(choice)
-    if choice not in ("auto", "cpu") and not choice.startswith("cuda"):
-        raise SurfSplatInputError(f"device (--device): expected auto, cpu or cuda, got {choice!r}")
+        if choice.type == "cuda" and not torch.cuda.is_available():
+            raise SurfSplatInputError(f"device: {choice} was asked for and no CUDA device is available")
+        return choice
+    if not isinstance(choice, str) or (choice not in ("auto", "cpu") and not choice.startswith("cuda")):
+        raise SurfSplatInputError(f"device (--device): expected auto, cpu, cuda or a torch.device, got {choice!r}")
     if choice.startswith("cuda") and not torch.cuda.is_available():
         raise SurfSplatInputError("device (--device cuda): no CUDA device is available")
     if choice == "auto":

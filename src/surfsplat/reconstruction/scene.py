@@ -3,6 +3,10 @@
 scene.render()                       # RenderOutput at the context cameras
 scene.render(cameras, scale=4)       # any cameras (K in pixels of width x height), 4x the resolution
 scene.save("out/")                   # {what: path}: PLY, renders, videos, mesh, reconstruction.json, ...
+scene.to("cuda")                     # the scene on another device: rendering and saving run there
+
+A scene's tensors live on the device `reconstruct` ran on; every method computes there, and only
+the files written (and the figures printed) reach the host.
 """
 
 from __future__ import annotations
@@ -67,9 +71,18 @@ class HeldOut:
 
         color = out.color.clamp(0, 1)
         truth = self.images.to(color)
-        self.psnr = [float(psnr(color[i : i + 1], truth[i : i + 1])) for i in range(len(self.names))]
-        self.coverage = [float((out.alpha[i] >= 0.5).float().mean()) for i in range(len(self.names))]
-        self.ssim = [float(ssim(color[i : i + 1].double(), truth[i : i + 1].double())) for i in range(len(self.names))]
+        views = range(len(self.names))
+        # computed where the scene is and read back once (each read makes a GPU host wait)
+        scores = torch.stack(
+            [
+                torch.cat([psnr(color[i : i + 1], truth[i : i + 1]) for i in views]),
+                (out.alpha >= 0.5).float().mean(dim=(1, 2, 3)),
+                torch.stack([ssim(color[i : i + 1].double(), truth[i : i + 1].double()).reshape(()) for i in views]).to(
+                    color.dtype
+                ),
+            ]
+        )
+        self.psnr, self.coverage, self.ssim = scores.tolist()
         model = _lpips(color.device)
         if isinstance(model, str):
             self.lpips, self.lpips_note = None, model
@@ -131,6 +144,27 @@ class Scene:
     scale_multipliers: Tensor | None = None  # [N, 2] Eq. 9 multipliers (one uncompacted pass only)
     multiplier_range: float | None = None  # the clamp's r of those multipliers
 
+    @property
+    def device(self) -> torch.device:
+        """Where the surfels are, and where rendering, the closure figures and saving compute."""
+        return self.gaussians.means.device
+
+    def to(self, device: str | torch.device) -> Scene:
+        """The scene with its surfels, cameras, held-out views and multipliers on `device` (this one
+        when they are there already; fields other than tensors are shared)."""
+        device = torch.device(device)
+        holdout = self.holdout
+        if holdout is not None:
+            holdout = replace(holdout, cameras=holdout.cameras.to(device), images=holdout.images.to(device))
+        multipliers = self.scale_multipliers
+        return replace(
+            self,
+            gaussians=self.gaussians.to(device),
+            cameras=self.cameras.to(device),
+            holdout=holdout,
+            scale_multipliers=multipliers.to(device) if multipliers is not None else None,
+        )
+
     def closure(self, factors: tuple[int, ...] = (1, 2, 4), max_views: int = 4):
         """ClosureMetrics (`surfsplat.metrics.closure`) from the context cameras (at most `max_views`,
         evenly spread): does the surface keep its alpha when rendered at each factor?"""
@@ -138,7 +172,8 @@ class Scene:
         from ..metrics.closure import closure_metrics
 
         n = len(self.cameras)
-        picked = torch.linspace(0, n - 1, min(n, max_views)).round().long().unique()
+        # which views: a few integers, chosen on the host and sent once
+        picked = torch.linspace(0, n - 1, min(n, max_views)).round().long().unique().to(self.cameras.device)
         one_per_pixel = self.scale_multipliers is not None and len(self.gaussians) == n * self.width * self.height
         return closure_metrics(
             self.gaussians,
@@ -147,7 +182,7 @@ class Scene:
             self.height,
             factors,
             source_cameras=self.cameras,
-            views=views_of_pixels(n, self.height, self.width) if one_per_pixel else None,
+            views=views_of_pixels(n, self.height, self.width, self.device) if one_per_pixel else None,
             multipliers=self.scale_multipliers if one_per_pixel else None,
             multiplier_range=self.multiplier_range if one_per_pixel else None,
             mode=self.mode,

@@ -77,9 +77,9 @@ def _take(x: Tensor, index: Tensor) -> Tensor:
     return x.index_select(0, index.reshape(-1)).reshape(*index.shape, *x.shape[1:])
 
 
-def _opacity_extent(opacity: Tensor) -> Tensor:
+def _opacity_extent(opacity: Tensor, dtype: torch.dtype = torch.float64) -> Tensor:
     """k^2 such that alpha = o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
-    return 2.0 * torch.log((opacity.to(torch.float64) / ALPHA_MIN).clamp_min(1.0))
+    return 2.0 * torch.log((opacity.to(dtype) / ALPHA_MIN).clamp_min(1.0))
 
 
 def _pixel_box(xmin: Tensor, xmax: Tensor, ymin: Tensor, ymax: Tensor, width: int, height: int) -> Tensor:
@@ -103,16 +103,20 @@ def _release_tile_box(center: Tensor, a: Tensor, b: Tensor, c: Tensor, width: in
     mid = 0.5 * (a + c)
     lam = mid + (mid * mid - (a * c - b * b)).clamp_min(EWA_LAMBDA_GAP_MIN).sqrt()
     radius = torch.ceil(EWA_RADIUS_SIGMAS * lam.clamp_min(0).sqrt())
-    p = center - 0.5
-    grid = torch.tensor([-(-width // EWA_TILE), -(-height // EWA_TILE)], dtype=p.dtype, device=p.device)
-    t0 = torch.minimum(torch.floor((p - radius[:, None]) / EWA_TILE).clamp_min(0), grid)
-    t1 = torch.minimum(torch.floor((p + radius[:, None] + EWA_TILE - 1) / EWA_TILE).clamp_min(0), grid)
-    empty = (t1 <= t0).any(dim=1)
-    size = torch.tensor([width, height], dtype=p.dtype, device=p.device)
-    first = t0 * EWA_TILE
-    last = torch.minimum(t1 * EWA_TILE, size) - 1
-    last = torch.where(empty[:, None], first - 1, last)  # an empty range, culled below
-    return torch.stack((first[:, 0], last[:, 0], first[:, 1], last[:, 1]), dim=-1).long()
+    ranges = []
+    # Per axis with Python bounds (no tensor built from host numbers: no host-to-device copy on a GPU).
+    for p, size in ((center[..., 0] - 0.5, width), (center[..., 1] - 0.5, height)):
+        tiles = -(-size // EWA_TILE)
+        t0 = torch.floor((p - radius) / EWA_TILE).clamp(0, tiles)
+        t1 = torch.floor((p + radius + EWA_TILE - 1) / EWA_TILE).clamp(0, tiles)
+        ranges.append((t0, t1))
+    empty = (ranges[0][1] <= ranges[0][0]) | (ranges[1][1] <= ranges[1][0])
+    box = []
+    for (t0, t1), size in zip(ranges, (width, height)):
+        first = t0 * EWA_TILE
+        last = (t1 * EWA_TILE).clamp_max(size) - 1
+        box += [first, torch.where(empty, first - 1, last)]  # an empty range, culled below
+    return torch.stack(box, dim=-1).long()
 
 
 def _cull_and_sort(depth: Tensor, box: Tensor, opacity: Tensor, settings: TorchRenderSettings) -> Tensor:
@@ -124,8 +128,9 @@ def _cull_and_sort(depth: Tensor, box: Tensor, opacity: Tensor, settings: TorchR
 
 
 def _camera_facing(normals: Tensor, means_cam: Tensor, R_cw: Tensor) -> Tensor:
-    """World normals flipped to face the camera (n . view direction <= 0)."""
-    n_cam = normals @ R_cw.T
+    """World normals [N, 3] flipped to face the camera (n . view direction <= 0): [..., N, 3] for
+    camera-frame means [..., N, 3] and world-to-camera rotations [..., 3, 3]."""
+    n_cam = normals @ R_cw.mT
     flip = (n_cam * means_cam).sum(-1, keepdim=True) > 0
     return torch.where(flip, -normals, normals)
 
@@ -136,13 +141,13 @@ def _colors(sh: Tensor, means: Tensor, center: Tensor) -> Tensor:
 
 
 def projected_center(Tx: Tensor, Ty: Tensor, z: Tensor) -> Tensor:
-    """[N, 2] the surfel centre's pixel (T_x[2], T_y[2]) / z (z guarded away from 0)."""
+    """[..., N, 2] the surfel centre's pixel (T_x[2], T_y[2]) / z (z guarded away from 0)."""
     safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
-    return torch.stack((Tx[:, 2] / safe_z, Ty[:, 2] / safe_z), dim=-1)
+    return torch.stack((Tx[..., 2] / safe_z, Ty[..., 2] / safe_z), dim=-1)
 
 
 def lowpass_center(Tx: Tensor, Ty: Tensor, Tw: Tensor, projected: Tensor, sigma: float | None) -> Tensor:
-    """[N, 2] centre c of the surfel low-pass term rho2d = 2 |p - c|^2 (see `RenderConventions`).
+    """[..., N, 2] centre c of the surfel low-pass term rho2d = 2 |p - c|^2 (see `RenderConventions`).
 
     With k = sigma, the k-sigma ellipse u^2 + v^2 = k^2 maps under T to a conic whose dual is
     T diag(1, 1, -1/k^2) T^T; its box centre is (C02, C12) / C22 while C22 < 0 (an ellipse).
@@ -152,13 +157,67 @@ def lowpass_center(Tx: Tensor, Ty: Tensor, Tw: Tensor, projected: Tensor, sigma:
     if sigma is None:
         return projected
     e = -1.0 / (sigma * sigma)
-    c02 = Tx[:, 0] * Tw[:, 0] + Tx[:, 1] * Tw[:, 1] + e * Tx[:, 2] * Tw[:, 2]
-    c12 = Ty[:, 0] * Tw[:, 0] + Ty[:, 1] * Tw[:, 1] + e * Ty[:, 2] * Tw[:, 2]
-    c22 = Tw[:, 0] * Tw[:, 0] + Tw[:, 1] * Tw[:, 1] + e * Tw[:, 2] * Tw[:, 2]
+    c02 = Tx[..., 0] * Tw[..., 0] + Tx[..., 1] * Tw[..., 1] + e * Tx[..., 2] * Tw[..., 2]
+    c12 = Ty[..., 0] * Tw[..., 0] + Ty[..., 1] * Tw[..., 1] + e * Ty[..., 2] * Tw[..., 2]
+    c22 = Tw[..., 0] * Tw[..., 0] + Tw[..., 1] * Tw[..., 1] + e * Tw[..., 2] * Tw[..., 2]
     bounded = c22 < -1e-12
     safe22 = torch.where(bounded, c22, -torch.ones_like(c22))
     box = torch.stack((c02 / safe22, c12 / safe22), dim=-1)
-    return torch.where(bounded[:, None], box, projected)
+    return torch.where(bounded[..., None], box, projected)
+
+
+def surfel_transforms(
+    means: Tensor, rotations: Tensor, scales: Tensor, w2c: Tensor, K: Tensor, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """2DGS's T = K [R S e1, R S e2, mu_cam] [..., N, 3, 3] and the camera-frame means [..., N, 3].
+
+    means [N, 3], rotations [N, 3, 3], scales [N, 2+]; the leading dimensions are the cameras'
+    (w2c [..., 4, 4], K [..., 3, 3]: one camera, or a batch of them). T's rows T_x, T_y, T_w map the
+    surfel's (u, v, 1) to homogeneous pixels.
+    """
+    R_cw, t_cw = w2c[..., :3, :3].to(dtype), w2c[..., :3, 3].to(dtype)
+    mu = means.to(dtype) @ R_cw.mT + t_cw[..., None, :]
+    Rc = R_cw[..., None, :, :] @ rotations.to(dtype)  # [..., N, 3, 3]
+    s = scales.to(dtype)
+    M = torch.stack((Rc[..., 0] * s[:, :1], Rc[..., 1] * s[:, 1:], mu), dim=-1)  # columns tu, tv, mu
+    return K.to(dtype)[..., None, :, :] @ M, mu
+
+
+def surfel_footprint(
+    T: Tensor, z: Tensor, opacities: Tensor, lowpass_sigma: float | None
+) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """Projected centre [..., N, 2], low-pass centre [..., N, 2] and the continuous pixel box
+    (xmin, xmax, ymin, ymax, each [..., N]) where the surfel's alpha can reach ALPHA_MIN, in T's dtype.
+
+    The k-sigma ellipse u^2 + v^2 = k^2 is the conic diag(1, 1, -k^2); its image under T has the dual
+    conic T diag(1, 1, -1/k^2) T^T, whose vertical and horizontal tangent lines give the exact
+    axis-aligned box (valid while the conic is an ellipse, C22 < 0; unbounded otherwise, the surfel
+    crossing the camera plane). The screen-space low-pass filter widens it by its own reach.
+    """
+    Tx, Ty, Tw = T[..., 0, :], T[..., 1, :], T[..., 2, :]
+    k2 = _opacity_extent(opacities, T.dtype)
+    D = torch.stack((torch.ones_like(k2), torch.ones_like(k2), -1.0 / k2.clamp_min(1e-12)), dim=-1)
+    c00 = (Tx * D * Tx).sum(-1)
+    c11 = (Ty * D * Ty).sum(-1)
+    c02 = (Tx * D * Tw).sum(-1)
+    c12 = (Ty * D * Tw).sum(-1)
+    c22 = (Tw * D * Tw).sum(-1)
+    bounded = c22 < -1e-12
+    safe22 = torch.where(bounded, c22, -torch.ones_like(c22))
+    cx_e, cy_e = c02 / safe22, c12 / safe22
+    hx = (c02 * c02 - c00 * safe22).clamp_min(0).sqrt() / safe22.abs()
+    hy = (c12 * c12 - c11 * safe22).clamp_min(0).sqrt() / safe22.abs()
+    # The cross product is expanded around the projected centre (always next to the surfel, so
+    # tile offsets stay small); the low-pass term has its own centre (see `RenderConventions`).
+    center = projected_center(Tx, Ty, z)
+    lowpass = lowpass_center(Tx, Ty, Tw, center, lowpass_sigma)
+    r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
+    inf = torch.full_like(hx, math.inf)
+    xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), lowpass[..., 0] - r_lp)
+    xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), lowpass[..., 0] + r_lp)
+    ymin = torch.minimum(torch.where(bounded, cy_e - hy, -inf), lowpass[..., 1] - r_lp)
+    ymax = torch.maximum(torch.where(bounded, cy_e + hy, inf), lowpass[..., 1] + r_lp)
+    return center, lowpass, (xmin, xmax, ymin, ymax)
 
 
 def project_surfels(
@@ -181,44 +240,13 @@ def project_surfels(
     h_u x h_v = A + p_x B + p_y C with A = T_x x T_y, B = T_y x T_w, C = T_w x T_x, so every pixel of
     a tile costs one 3x3 matrix product. The intersection's camera z is det(T) / (h_u x h_v).z.
     """
-    dt = torch.float64
-    R_cw, t_cw = w2c[:3, :3].to(dt), w2c[:3, 3].to(dt)
-    mu = means.to(dt) @ R_cw.T + t_cw  # [N, 3] camera frame
-    Rc = R_cw @ rotations.to(dt)  # [N, 3, 3]
-    s = scales.to(dt)
-    M = torch.stack((Rc[:, :, 0] * s[:, :1], Rc[:, :, 1] * s[:, 1:], mu), dim=-1)  # columns tu, tv, mu
-    T = K.to(dt) @ M  # [N, 3, 3]
-    Tx, Ty, Tw = T[:, 0], T[:, 1], T[:, 2]
-
-    # Opacity-aware bounding box: the k-sigma ellipse u^2 + v^2 = k^2 is the conic diag(1, 1, -k^2);
-    # its image under T has the dual conic T diag(1, 1, -1/k^2) T^T, whose vertical and horizontal
-    # tangent lines give the exact axis-aligned box (valid while the conic is an ellipse, C22 < 0).
-    k2 = _opacity_extent(opacities)
-    D = torch.stack((torch.ones_like(k2), torch.ones_like(k2), -1.0 / k2.clamp_min(1e-12)), dim=-1)
-    c00 = (Tx * D * Tx).sum(-1)
-    c11 = (Ty * D * Ty).sum(-1)
-    c02 = (Tx * D * Tw).sum(-1)
-    c12 = (Ty * D * Tw).sum(-1)
-    c22 = (Tw * D * Tw).sum(-1)
-    bounded = c22 < -1e-12
-    safe22 = torch.where(bounded, c22, -torch.ones_like(c22))
-    cx_e, cy_e = c02 / safe22, c12 / safe22
-    hx = (c02 * c02 - c00 * safe22).clamp_min(0).sqrt() / safe22.abs()
-    hy = (c12 * c12 - c11 * safe22).clamp_min(0).sqrt() / safe22.abs()
+    T, mu = surfel_transforms(means, rotations, scales, w2c, K, torch.float64)
     z = mu[:, 2]
-    # The cross product is expanded around the projected centre (always next to the surfel, so
-    # tile offsets stay small); the low-pass term has its own centre (see `RenderConventions`).
-    center = projected_center(Tx, Ty, z)
-    lowpass = lowpass_center(Tx, Ty, Tw, center, settings.lowpass_center_sigma)
-    r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
-    inf = torch.full_like(hx, math.inf)
-    xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), lowpass[:, 0] - r_lp)
-    xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), lowpass[:, 0] + r_lp)
-    ymin = torch.minimum(torch.where(bounded, cy_e - hy, -inf), lowpass[:, 1] - r_lp)
-    ymax = torch.maximum(torch.where(bounded, cy_e + hy, inf), lowpass[:, 1] + r_lp)
-    box = _pixel_box(xmin.detach(), xmax.detach(), ymin.detach(), ymax.detach(), width, height)
+    center, lowpass, bounds = surfel_footprint(T, z, opacities, settings.lowpass_center_sigma)
+    box = _pixel_box(*(b.detach() for b in bounds), width, height)
 
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
+    Tx, Ty, Tw = T[:, 0], T[:, 1], T[:, 2]
     Tx, Ty, Tw, center = _take(Tx, idx), _take(Ty, idx), _take(Tw, idx), _take(center, idx)
     lowpass_shift = _take(lowpass, idx) - center
     B = torch.linalg.cross(Ty, Tw)
@@ -235,6 +263,67 @@ def project_surfels(
     return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform)
 
 
+def ewa_conics(
+    means: Tensor,
+    covariances: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    jacobian_clamp: float | None,
+    dtype: torch.dtype,
+) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor, Tensor]]:
+    """3DGS's projection: camera-frame means [..., N, 3], centre [..., N, 2], conic [..., N, 3] (the inverse 2D
+    covariance's a, b, c) and the dilated 2D covariance (a, b, c), in `dtype`.
+
+    Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean; the leading
+    dimensions are the cameras' (w2c [..., 4, 4], K [..., 3, 3]).
+    """
+    R_cw, t_cw = w2c[..., :3, :3].to(dtype), w2c[..., :3, 3].to(dtype)
+    mu = means.to(dtype) @ R_cw.mT + t_cw[..., None, :]
+    z = mu[..., 2]
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    K = K.to(dtype)
+    fx, fy, cx, cy, skew = (K[..., i, j, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1)))
+    x, y = mu[..., 0] / safe_z, mu[..., 1] / safe_z
+    center = torch.stack((fx * x + skew * y + cx, fy * y + cy), dim=-1)
+    if jacobian_clamp is not None:  # 3DGS: the Jacobian is taken at a point kept near the view
+        lim_x = jacobian_clamp * width / (2 * fx)
+        lim_y = jacobian_clamp * height / (2 * fy)
+        x, y = x.clamp(-lim_x, lim_x), y.clamp(-lim_y, lim_y)
+    zero = torch.zeros_like(z)
+    # d(pixel)/d(camera point) at the (clamped) mean.
+    J = torch.stack(
+        (
+            torch.stack((fx / safe_z, skew / safe_z, -(fx * x + skew * y) / safe_z), dim=-1),
+            torch.stack((zero, fy / safe_z, -fy * y / safe_z), dim=-1),
+        ),
+        dim=-2,
+    )  # [..., N, 2, 3]
+    JW = J @ R_cw[..., None, :, :]
+    cov2d = JW @ covariances.to(dtype) @ JW.transpose(-1, -2)
+    a = cov2d[..., 0, 0] + EWA_DILATION
+    b = cov2d[..., 0, 1]
+    c = cov2d[..., 1, 1] + EWA_DILATION
+    det = (a * c - b * b).clamp_min(1e-20)
+    conic = torch.stack((c / det, -b / det, a / det), dim=-1)  # inverse of [[a, b], [b, c]]
+    return mu, center, conic, (a, b, c)
+
+
+def ewa_pixel_box(
+    center: Tensor, cov2d: tuple[Tensor, Tensor, Tensor], opacities: Tensor, width: int, height: int, support: str
+) -> Tensor:
+    """[..., N, 4] inclusive pixel box (col0, col1, row0, row1) an EWA Gaussian reaches (`ewa_support`)."""
+    a, b, c = (t.detach() for t in cov2d)
+    center = center.detach()
+    if support == "release":
+        return _release_tile_box(center, a, b, c, width, height)
+    k2 = _opacity_extent(opacities, center.dtype)
+    hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
+    x, y = center[..., 0], center[..., 1]
+    return _pixel_box(x - hx, x + hx, y - hy, y + hy, width, height)
+
+
 def project_ewa(
     means: Tensor,
     covariances: Tensor,
@@ -249,50 +338,12 @@ def project_ewa(
     settings: TorchRenderSettings,
 ) -> Projected:
     """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean."""
-    dt = torch.float64
-    R_cw, t_cw = w2c[:3, :3].to(dt), w2c[:3, 3].to(dt)
-    mu = means.to(dt) @ R_cw.T + t_cw
+    mu, center, conic, cov2d = ewa_conics(
+        means, covariances, w2c, K, width, height, settings.ewa_jacobian_clamp, torch.float64
+    )
     z = mu[:, 2]
-    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
-    fx, fy, cx, cy, skew = K[0, 0].to(dt), K[1, 1].to(dt), K[0, 2].to(dt), K[1, 2].to(dt), K[0, 1].to(dt)
-    x, y = mu[:, 0] / safe_z, mu[:, 1] / safe_z
-    center = torch.stack((fx * x + skew * y + cx, fy * y + cy), dim=-1)
-    if settings.ewa_jacobian_clamp is not None:  # 3DGS: the Jacobian is taken at a point kept near the view
-        lim_x = settings.ewa_jacobian_clamp * width / (2 * fx)
-        lim_y = settings.ewa_jacobian_clamp * height / (2 * fy)
-        x, y = x.clamp(-lim_x, lim_x), y.clamp(-lim_y, lim_y)
-    zero = torch.zeros_like(z)
-    # d(pixel)/d(camera point) at the (clamped) mean.
-    J = torch.stack(
-        (
-            torch.stack((fx / safe_z, skew / safe_z, -(fx * x + skew * y) / safe_z), dim=-1),
-            torch.stack((zero, fy / safe_z, -fy * y / safe_z), dim=-1),
-        ),
-        dim=-2,
-    )  # [N, 2, 3]
-    JW = J @ R_cw
-    cov2d = JW @ covariances.to(dt) @ JW.transpose(1, 2)
-    a = cov2d[:, 0, 0] + EWA_DILATION
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + EWA_DILATION
-    det = (a * c - b * b).clamp_min(1e-20)
-    conic = torch.stack((c / det, -b / det, a / det), dim=-1)  # inverse of [[a, b], [b, c]]
-
-    if settings.ewa_support == "release":
-        box = _release_tile_box(center.detach(), a.detach(), b.detach(), c.detach(), width, height)
-    else:
-        k2 = _opacity_extent(opacities)
-        hx, hy = (k2 * a).sqrt(), (k2 * c).sqrt()
-        box = _pixel_box(
-            (center[:, 0] - hx).detach(),
-            (center[:, 0] + hx).detach(),
-            (center[:, 1] - hy).detach(),
-            (center[:, 1] + hy).detach(),
-            width,
-            height,
-        )
+    box = ewa_pixel_box(center, cov2d, opacities, width, height, settings.ewa_support)
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
-
     n = _camera_facing(_take(normals, idx), _take(mu, idx).to(means.dtype), w2c[:3, :3])
     colors = _colors(_take(sh, idx), _take(means, idx), cam_center)
     features = torch.cat((colors, n, _take(z, idx)[:, None].to(means.dtype)), dim=-1)

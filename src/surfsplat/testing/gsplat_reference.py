@@ -262,27 +262,45 @@ def _isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
     return ref._isect_offset_encode(isect_ids, n_images, tile_width, tile_height)
 
 
-def _rasterize_2dgs(means2d, transforms, colors, opacities, normals, densify, W, H, tile, offsets, flat, **_):
-    return ref2d._rasterize_to_pixels_2dgs(
-        means2d, transforms, colors, normals, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
-    )
+class _Rasterize2DGS:
+    """Stands in for gsplat's `_RasterizeToPixels2DGS` autograd function (its CUDA forward and
+    backward): gsplat's reference, differentiated by autograd. The public wrapper around it - its
+    input checks and its channel padding - stays gsplat's own."""
+
+    @staticmethod
+    def apply(
+        means2d, transforms, colors, opacities, normals, densify, backgrounds, masks, W, H, tile, offsets, flat, *_
+    ):
+        out, alpha, normal = ref2d._rasterize_to_pixels_2dgs(
+            means2d, transforms, colors, normals, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
+        )
+        unused = alpha.new_zeros(alpha.shape)  # distortion and median depth: not part of the reference
+        return out, alpha, normal, unused, unused
 
 
-def _rasterize_3dgs(means2d, conics, colors, opacities, W, H, tile, offsets, flat, **_):
-    return ref._rasterize_to_pixels(
-        means2d, conics, colors, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
-    )
+class _Rasterize3DGS:
+    """Stands in for gsplat's `_RasterizeToPixels` autograd function (see `_Rasterize2DGS`)."""
+
+    @staticmethod
+    def apply(means2d, conics, colors, opacities, backgrounds, masks, W, H, tile, offsets, flat, *_):
+        return ref._rasterize_to_pixels(
+            means2d, conics, colors, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
+        )
 
 
 @contextlib.contextmanager
 def cpu_kernels():
     """gsplat's CUDA entry points (tile intersection, 2DGS and 3DGS rasterization) answered by its
-    pure-PyTorch references, inside the block: the project's gsplat backend then runs on a CPU."""
+    pure-PyTorch references, inside the block: the project's gsplat backend then runs on a CPU.
+
+    The rasterizers are replaced below gsplat's public wrappers (`rasterize_to_pixels_2dgs`,
+    `rasterize_to_pixels`), at their autograd functions, so everything the wrappers do on a GPU -
+    shape checks, channel padding, the layout of their outputs - runs here too."""
     patched = {
         "isect_tiles": _isect_tiles,
         "isect_offset_encode": _isect_offset_encode,
-        "rasterize_to_pixels_2dgs": _rasterize_2dgs,
-        "rasterize_to_pixels": _rasterize_3dgs,
+        "_RasterizeToPixels2DGS": _Rasterize2DGS,
+        "_RasterizeToPixels": _Rasterize3DGS,
     }
     saved = {name: getattr(_wrapper, name) for name in patched}
     try:

@@ -248,7 +248,8 @@ class StandinDevice(SyncLog, contextlib.AbstractContextManager):
         try:
             self._stack.enter_context(_AutocastShim())
             self._stack.enter_context(_Constructors(self))
-            self._stack.enter_context(_Ops(self))
+            self._ops = _Ops(self)
+            self._stack.enter_context(self._ops)
         except BaseException:
             _ACTIVE = None
             self._stack.close()
@@ -264,6 +265,15 @@ class StandinDevice(SyncLog, contextlib.AbstractContextManager):
 
     # ------------------------------------------------------------------ the rules
     def dispatch(self, func, args: tuple, kwargs: dict):
+        if func.overloadpacket is aten.to:
+            # Inference mode skips the autograd keys where Tensor.to decomposes, so it arrives whole,
+            # e.g. Tensor.to(other) as aten.to.device with the device positional: decomposed here,
+            # the rules see the _to_copy(device=...) it is made of (the mode is entered again: a
+            # handler runs with it off, and the decomposition's ops must meet it).
+            with self._ops:
+                out = func.decompose(*args, **kwargs)
+            if out is not NotImplemented:
+                return out
         leaves, _ = tree_flatten((args, kwargs))
         tensors = [t for t in leaves if isinstance(t, Tensor)]
         on_device = [t for t in tensors if isinstance(t, StandinTensor)]
@@ -301,11 +311,24 @@ class StandinDevice(SyncLog, contextlib.AbstractContextManager):
         if target != STANDIN:
             return out
 
+        # Under inference mode a view of a normal tensor is a normal tensor sharing its base's
+        # version counter, which autograd sets after this returns: a wrapper made here would be an
+        # inference tensor, which has none ("Cannot set version_counter for inference tensor").
+        normal_view = (
+            torch.is_inference_mode_enabled()
+            and func.is_view
+            and isinstance(args[0], Tensor)
+            and not args[0].is_inference()
+        )
+
         def wrap(x):
             if not isinstance(x, Tensor):
                 return x
             if id(x) in inputs:  # in-place and out= ops return their (wrapped) argument
                 return inputs[id(x)]
+            if normal_view:
+                with torch.inference_mode(False):
+                    return StandinTensor(x)
             return StandinTensor(x)
 
         return tree_map(wrap, out)

@@ -118,6 +118,7 @@ class TrainResult:
     validation: dict[int, dict[str, float]] = field(default_factory=dict)  # step -> metrics
     checkpoint: Path | None = None  # the newest checkpoint of the run (written, or resumed from)
     seconds: float = 0.0  # wall time of the loop
+    data_seconds: float = 0.0  # of which waiting for the next batch: the loader and the copy to the device
     nonfinite_steps: list[tuple[int, str]] = field(default_factory=list)  # (step, reason) of skipped updates
     precision: str = "fp32"  # what the forward passes ran in: fp32, or autocast bf16 / fp16 (float32 weights)
 
@@ -311,7 +312,15 @@ def training_step(
     _, _, h, w = target.shape
     device_type = context.images.device.type
     with torch.autocast(device_type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
-        prediction = net(context.images, context.cameras(), context.near, context.far, return_intermediates=cascade)
+        # validate=False: the batch's values were checked where they were read (each check is a host wait)
+        prediction = net(
+            context.images,
+            context.cameras(),
+            context.near,
+            context.far,
+            return_intermediates=cascade,
+            validate=False,
+        )
     # Coarse cascade surfels first, the final ones last (the order cascade_loss weights); the
     # renderer always works in float32, at the training tau_alpha the adapter reports.
     coarse = intermediate_gaussians(model, prediction, context.images, context.cameras(), context.near, context.far)
@@ -392,8 +401,12 @@ def _nonfinite_reason(model: nn.Module, loss: Tensor, grad_norm: Tensor, fp16_ov
     """None when the step may be applied; else what is not finite, named (the loss, or the first
     parameter whose gradient holds NaN/inf). Under fp16 loss scaling an inf gradient with a finite
     loss is the scaler's routine overflow, not a fault."""
-    loss_ok = bool(torch.isfinite(loss.detach()))
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
+    finite_loss = torch.isfinite(loss.detach())
+    distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+    if not distributed and bool(finite_loss & torch.isfinite(grad_norm)):
+        return None  # the healthy step reads one flag on the host, not two
+    loss_ok = bool(finite_loss)
+    if distributed:
         flags = torch.tensor([0 if loss_ok else 1], device=loss.device)
         torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
         if loss_ok and int(flags[0]):
@@ -595,7 +608,9 @@ def _fit(config: TrainConfig, ctx: DistributedContext, resume_from: Path | None)
     try:
         for step in range(start_step, config.steps):
             lr = set_learning_rate(optimizer, step, config)
+            tick = time.perf_counter()
             batch: TrainBatch = augment(source.next(step), config.data.flip_probability, config.seed).to(device)
+            result.data_seconds += time.perf_counter() - tick  # a starved device shows here (data.num_workers)
             context, target = batch.context, batch.target
 
             out = training_step(

@@ -60,7 +60,8 @@ def _source_pixels(K: Tensor, ref_to_src: Tensor, depth: Tensor, height: int, wi
         indexing="ij",
     )
     pixels = torch.stack((xs, ys, torch.ones_like(xs))).reshape(1, 3, -1).expand(n, -1, -1)
-    rays = ref_to_src[:, :3, :3] @ (torch.linalg.inv(K) @ pixels)  # [N, 3, H*W]
+    # inv_ex: the same inverse without reading its error flag on the host (a GPU would wait for it)
+    rays = ref_to_src[:, :3, :3] @ (torch.linalg.inv_ex(K).inverse @ pixels)  # [N, 3, H*W]
     points = rays[:, :, None, :] * depth[:, None] + ref_to_src[:, :3, 3, None, None]  # [N, 3, D, H*W]
     proj = (K @ points.flatten(2)).view(n, 3, -1, height * width)
     return proj[:, :2] / proj[:, 2:].clamp(min=1e-3)
@@ -91,7 +92,7 @@ def plane_sweep_cost_volume(
     d = inv_depth.shape[1]
     with torch.no_grad():
         # relative pose: reference camera -> partner camera
-        ref_to_src = torch.linalg.inv(src_c2w) @ ref_c2w[:, None]  # [N, M, 4, 4]
+        ref_to_src = torch.linalg.inv_ex(src_c2w).inverse @ ref_c2w[:, None]  # [N, M, 4, 4]
         depth = 1.0 / inv_depth.reshape(n, d, -1)  # [N, D, 1] or [N, D, H*W]
         grid = _sampling_grid(
             K.repeat_interleave(m, 0), ref_to_src.flatten(0, 1), depth.repeat_interleave(m, 0), h, w
@@ -135,7 +136,7 @@ def gathered_cost_volume(
     n, m, c, h, w = src.shape
     d = inv_depth.shape[1]
     with torch.no_grad():
-        ref_to_src = torch.linalg.inv(src_c2w) @ ref_c2w[:, None]  # [N, M, 4, 4]
+        ref_to_src = torch.linalg.inv_ex(src_c2w).inverse @ ref_c2w[:, None]  # [N, M, 4, 4]
         depth = 1.0 / inv_depth.reshape(n, d, -1)
         xy = _source_pixels(
             K.repeat_interleave(m, 0), ref_to_src.flatten(0, 1), depth.repeat_interleave(m, 0), h, w

@@ -78,7 +78,7 @@ def shifted_window_mask(height: int, width: int, splits: int, device) -> Tensor:
             label += 1
     windows = rearrange(region, "(kh wh) (kw ww) -> (kh kw) (wh ww)", kh=splits, kw=splits)
     diff = windows[:, None, :] - windows[:, :, None]
-    return torch.where(diff != 0, torch.tensor(-100.0, device=device), torch.tensor(0.0, device=device))
+    return torch.where(diff != 0, -100.0, 0.0)  # Python scalars: no tensor uploaded from the host
 
 
 def release_cross_view_mask(mask: Tensor, num_neighbours: int) -> Tensor:
@@ -202,8 +202,10 @@ def select_neighbours(centers: Tensor, max_neighbours: int) -> Tensor:
     """
     b, v, _ = centers.shape
     if v <= 3:
-        others = [[j for j in range(v) if j != i] for i in range(v)]
-        return torch.tensor(others, device=centers.device, dtype=torch.long).expand(b, -1, -1)
+        # Row i holds 0..v-1 without i, made on the device (a table from Python data would be uploaded).
+        slots = torch.arange(v - 1, device=centers.device)
+        others = slots[None] + (slots[None] >= torch.arange(v, device=centers.device)[:, None])
+        return others.expand(b, -1, -1)
     with torch.no_grad():
         distance = torch.cdist(centers, centers)
         order = torch.argsort(distance, dim=-1, stable=True)
