@@ -116,7 +116,7 @@ def _assert_same_gaussians(on_device: Gaussians, on_cpu: Gaussians) -> None:
 
 
 def _syncs_in(dev: StandinDevice, path: str) -> int:
-    """Host waits recorded at lines of one source file (e.g. "capture/refine.py")."""
+    """Host waits recorded at lines of one source file (e.g. "capture/fit.py")."""
     return sum(s.waits for s in dev.syncs if s.where.startswith(path))
 
 
@@ -169,11 +169,11 @@ def test_refinement_on_the_device_matches_the_cpu_and_reads_no_loss_per_step(fus
         with StandinDevice() as dev:
             on_device = _on(dev.device, g, cams, images)
             out, stats = refine_on_views(*on_device, SIZE, SIZE, RefineConfig(steps=steps, views_per_step=2))
-            waits[steps] = Counter(s.where for s in dev.syncs if s.where.startswith("capture/refine.py"))
+            waits[steps] = Counter(s.where for s in dev.syncs if s.where.startswith("capture/fit.py"))
             if steps == 3:
                 _assert_same_gaussians(out, cpu)
     assert {k: v for k, v in stats.items() if k != "seconds"} == {k: v for k, v in cpu_stats.items() if k != "seconds"}
-    # the same waits at any step count: the render size and the views' draws sent once, the colour
+    # the same waits at any step count (the shared fit loop's): the render size and the views' draws sent once, the colour
     # error before and after read once each
     assert waits[1] == waits[3] and sum(waits[3].values()) == 4, waits
 
@@ -185,7 +185,7 @@ def test_refinement_reads_its_losses_once_a_window_with_the_early_stop(fused):
     with StandinDevice() as dev:
         out, stats = refine_on_views(*_on(dev.device, g, cams, images), SIZE, SIZE, config)
         _assert_same_gaussians(out, cpu)
-        assert _syncs_in(dev, "capture/refine.py") == 4 + 2  # and one read per window of 2 steps
+        assert _syncs_in(dev, "capture/fit.py") == 4 + 2  # and one read per window of 2 steps
     assert stats["steps"] == cpu_stats["steps"] == 4
 
 
@@ -258,8 +258,9 @@ def test_tsdf_fusion_runs_on_the_device_without_a_host_wait_per_view():
 STAGES = {
     ("capture/fusion.py", None): "fusion",
     ("capture/refine.py", "refine_on_views"): "refine",
+    ("reconstruction/optimize.py", "optimize_scene"): "optimize",
     ("compaction/", None): "compaction",
-    ("reconstruction/pipeline.py", "_score_holdout"): "held-out scores",
+    ("reconstruction/scene.py", "score_holdout"): "held-out scores",
     ("metrics/closure.py", "closure_metrics"): "closure",
     ("export/bake.py", "bake_for_viewers"): "bake",
     ("export/flow.py", "render_frames"): "renders",
@@ -342,6 +343,22 @@ def test_reconstruct_runs_fusion_refinement_and_held_out_scores_on_its_device(fi
     assert scene.fusion_stats["passes"] == 2 and scene.fusion_stats["duplicates"] > 0
     assert scene.refine_stats["steps"] == 2 and scene.holdout.names == ["v0.png", "v4.png"]
     assert all(0 < p < 60 for p in scene.holdout.psnr) and all(0 <= c <= 1 for c in scene.holdout.coverage)
+
+
+def test_reconstruct_optimizes_every_surfel_on_its_device(five_views, model):
+    paths, cameras = five_views
+    options = surfsplat.CaptureOptions(
+        views_per_pass=2, holdout_every=4, optimize=surfsplat.OptimizeConfig(steps=3, prunings=1)
+    )
+    with StageOps() as dev:
+        scene = surfsplat.reconstruct(
+            paths, copy.deepcopy(model), cameras=cameras, device=dev.device, size=(SIZE, SIZE), capture=options,
+            progress=False,
+        )  # fmt: skip
+        _assert_on_device(*_gaussian_tensors(scene.gaussians).values())
+        _assert_stages_on_device(dev, ["fusion", "optimize"])  # it scores the held-out views before and after
+    assert scene.optimize_stats["steps"] == 3 and not scene.refine_stats
+    assert scene.holdout.before is not None and all(0 < p < 60 for p in scene.holdout.psnr)
 
 
 def test_reconstruct_compacts_each_pass_on_its_device(five_views, model):
