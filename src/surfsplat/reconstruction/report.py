@@ -75,19 +75,19 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
     if h is not None:
         report.heading("Held-out views: never a context view, rendered from the fused scene")
         out_h = scene.render(h.cameras)
-        figures = []
-        for i, name in enumerate(h.names):
+        for i, name in enumerate(h.names):  # one row a view: photo, [before the optimization,] render
             photo = write_png(out / "capture" / f"{name}_photo.png", h.images[i])
-            figures.append((str(photo.relative_to(out)), f"{name}: photo"))
+            figures = [(str(photo.relative_to(out)), f"{name}: photo")]
+            after = ""
             if h.before_renders is not None:
                 early = write_png(out / "capture" / f"{name}_render_before.png", h.before_renders[i])
                 caption = f"{name}: before the optimization, {h.before['psnr'][i]:.2f} dB"
                 figures.append((str(early.relative_to(out)), caption))
+                after = " after the optimization"
             render = write_png(out / "capture" / f"{name}_render.png", out_h.color[i].clamp(0, 1))
-            figures.append(
-                (str(render.relative_to(out)), f"{name}: render, {h.psnr[i]:.2f} dB, coverage {h.coverage[i]:.2f}")
-            )
-        report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
+            caption = f"{name}: render{after}, {h.psnr[i]:.2f} dB, coverage {h.coverage[i]:.2f}"
+            figures.append((str(render.relative_to(out)), caption))
+            report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
         report.paragraph(held_out_line(h.scores(), len(h.names), h.lpips_note))
         if h.before is not None:
             report.paragraph("Before the per-scene optimization: " + held_out_line(h.before, len(h.names), None))
