@@ -398,6 +398,22 @@ def test_a_scene_moved_to_the_device_saves_every_output_from_there(five_views, m
     assert (tmp_path / "out" / "surfels.ply").read_bytes() == (tmp_path / "cpu" / "surfels.ply").read_bytes()
 
 
+def test_a_saved_scene_is_optimized_on_the_device(five_views, model, tmp_path):
+    from surfsplat.reconstruction.optimize import optimize_saved
+
+    paths, cameras = five_views
+    scene = surfsplat.reconstruct(paths[:3], model, cameras=cameras, size=(SIZE, SIZE), progress=False)
+    scene.save(tmp_path / "scene", options=ExportOptions(formats=("ply",), bake=None, progress=False))
+    config = surfsplat.OptimizeConfig(steps=2)
+    with StageOps() as dev:
+        optimized, _ = optimize_saved(
+            tmp_path / "scene", tmp_path / "out", config, formats=("ply",), bake=False, device=dev.device
+        )
+        assert optimized.device == STANDIN
+        _assert_stages_on_device(dev, ["optimize"])
+    assert optimized.optimize_stats["steps"] == 2 and (tmp_path / "out" / "surfels.ply").is_file()
+
+
 def test_export_and_render_commands_take_a_device(five_views, model, tmp_path, capsys):
     paths, cameras = five_views
     scene = surfsplat.reconstruct(paths[:2], model, cameras=cameras, size=(SIZE, SIZE), progress=False)
@@ -405,10 +421,14 @@ def test_export_and_render_commands_take_a_device(five_views, model, tmp_path, c
     ply, cams = tmp_path / "scene" / "surfels.ply", tmp_path / "scene" / "cameras.json"
     export = ["export", str(ply), "--cameras", str(cams), "--formats", "ply", "--raw-3dgs", "--no-progress"]
     render = ["render", str(ply), "--cameras", str(cams), "--views", "0"]
+    optimize = ["optimize", str(tmp_path / "scene"), "--optimize-steps", "1", "--formats", "ply", "--raw-3dgs"]
+    optimize += ["--no-progress"]
     assert main([*export, "--device", "cpu", "--out", str(tmp_path / "e")]) == 0, capsys.readouterr().err
     assert main([*render, "--device", "cpu", "--out", str(tmp_path / "r")]) == 0, capsys.readouterr().err
+    assert main([*optimize, "--device", "cpu", "--out", str(tmp_path / "o")]) == 0, capsys.readouterr().err
     assert (tmp_path / "e" / "surfels_3dgs.ply").is_file() and (tmp_path / "r" / "v0_color.png").is_file()
+    assert (tmp_path / "o" / "surfels.ply").is_file()
     if not torch.cuda.is_available():  # the choice reaches the library, which names what is missing
-        for argv in (export, render):
+        for argv in (export, render, optimize):
             assert main([*argv, "--device", "cuda", "--out", str(tmp_path / "x")]) != 0
             assert "no CUDA device" in capsys.readouterr().err

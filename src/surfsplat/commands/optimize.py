@@ -18,6 +18,7 @@ from ..capture.optimize import SAVED_STEPS
 from ..export.flow import FORMATS
 from ..utils.checks import SurfSplatInputError, check_output_dir
 from .export import print_written
+from .options import add_device
 from .reconstruct import add_optimize_arguments, optimize_from_args
 
 
@@ -31,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--raw-3dgs", action="store_true", help="write surfels_3dgs.ply as the surfels are, without baking it"
     )
     parser.add_argument("--no-progress", action="store_true")
+    add_device(parser, "the optimization, bake and renders")
     add_optimize_arguments(parser, steps=SAVED_STEPS)
 
 
@@ -51,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         formats=tuple(args.formats),
         bake=not args.raw_3dgs,
         progress=not args.no_progress,
+        device=args.device,
     )
     print(optimize_summary(scene.optimize_stats))
     print(f"wrote {out}/:")

@@ -129,14 +129,18 @@ def optimize_saved(
     formats: tuple[str, ...] = ("ply", "renders"),
     bake: bool = True,
     progress: bool = False,
+    device: str | torch.device = "auto",
 ) -> tuple[Scene, dict[str, Path]]:
-    """Load the reconstruction in `folder`, optimize it, and save `formats` to `out_dir` (which
-    `load_reconstruction` reads again; `bake` False writes surfels_3dgs.ply unbaked, as --raw-3dgs);
-    returns the scene and {what: path}."""
+    """Load the reconstruction in `folder`, optimize it on `device` ("auto": CUDA when available),
+    and save `formats` to `out_dir` (which `load_reconstruction` reads again; `bake` False writes
+    surfels_3dgs.ply unbaked, as --raw-3dgs); returns the scene and {what: path}."""
     from ..export.bake import BakeConfig
     from ..export.flow import ExportOptions
+    from .pipeline import resolve_device
 
-    scene, images = load_reconstruction(folder)
+    device = resolve_device(device)
+    scene, images = load_reconstruction(folder)  # read on the host, then every step runs on the device
+    scene, images = scene.to(device), images.to(device)
     tick = time.perf_counter()
     optimize_scene(scene, images, config, progress=progress)
     scene.seconds["total"] = time.perf_counter() - tick
