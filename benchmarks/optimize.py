@@ -1,24 +1,30 @@
-"""Per-scene optimization benchmark: held-out quality against seconds, beside the unrefined fusion
-and the refinement, on real captures; geometry before and after on the procedural rooms.
+"""Per-scene optimizer benchmark: held-out PSNR against CPU seconds, by start, beside OpenSplat's point.
 
-    python benchmarks/optimize.py                                   # fern, dtu, rooms; every point
-    python benchmarks/optimize.py --parts fern --fern-size 176 240  # fern at half the working size
-    python benchmarks/optimize.py --points '[{"steps": 50}]'        # other OptimizeConfig points
+    python benchmarks/optimize.py                                   # fern, dtu, rooms; every start
+    python benchmarks/optimize.py --parts fern --starts points      # one capture, one start
+    python benchmarks/optimize.py --config '{"steps": 1000}'        # other OptimizeConfig fields
+    python benchmarks/optimize.py --parts fern-cli                  # the whole `surfsplat reconstruct` process
 
-Parts (each writes its entry of benchmarks/results/optimize.json as soon as it is measured, and
-prints a table):
-- fern: LLFF fern, cameras from poses_bounds.npy, 17 context views (all but 0, 8, 16: IMG_4026,
-  IMG_4034, IMG_4042 held out, `holdout_every=8`), at `--fern-size` (the working size `reconstruct`
-  picks is 368x496). One fused scene (no refinement), then from it: the refinement with its
-  defaults, and each optimization point of POINTS. Held-out PSNR / SSIM (and LPIPS where its
-  weights are) and the seconds of each, the network and fusion's seconds apart.
-- dtu: DTU scan 24, views 13..25 with `holdout_every=2` (13, 15, ..., 25 held out; 6 context
-  views), at `--dtu-size`; the same rows.
-- rooms: procedural rooms (`surfsplat.data.synthetic`), 25 frames at 64x64 along a 1 m path with
-  exact cameras, every 4th held out: held-out PSNR, depth AbsRel and the median normal error
-  (degrees) against the exact truth, over pixels the scene covers, before and after each point.
-The model is `tiny-synthetic` (64x64 rooms): on real photos it starts far from the truth, which is
-what the optimization has to make up.
+Parts (each writes its entry of benchmarks/results/optimize.json as soon as it is measured, prints a
+table, and `--plot` draws every curve into one PNG):
+- fern: LLFF fern, cameras from poses_bounds.npy, 17 context views (IMG_4026, IMG_4034, IMG_4042 held
+  out: `holdout_every=8`) at the working size `reconstruct` picks (368x496). One `reconstruct` with
+  the optimization off gives the network's fused surfels and the held-out views; the refinement (the
+  `--optimize-steps 0` default) is scored, then each start (`--starts`) is optimized with the
+  configuration given, its held-out PSNR recorded every tenth of the fit against the CPU seconds of
+  the process so far (the network, fusion and the start's triangulation included, the scoring not).
+  OpenSplat's held-out renders (`../shared/anchors/opensplat_fern`, where present) are scored on the
+  same crop of the same photos, and its CPU seconds are its own record's.
+- dtu: DTU scan 24, views 12..26 at 400x300 with `holdout_every=3` (12, 15, 18, 21, 24 held out, 10
+  fitted); the same rows.
+- rooms: procedural rooms (`surfsplat.data.synthetic`), 25 frames at 64x64 with exact cameras, every
+  4th held out: held-out PSNR, depth AbsRel and median normal error against the exact truth, for the
+  network's fusion and each start.
+- fern-cli / dtu-cli: the issue's end-to-end measure, `surfsplat reconstruct ... --formats ply
+  --raw-3dgs` with the shipped defaults, as a child process: its CPU seconds (user + system, from the
+  operating system) and the held-out PSNR its reconstruction.json reports.
+The CPU model is recorded: the same fit costs 1.6x more CPU seconds on an AVX2-only EPYC than on an
+AVX-512 Xeon (OpenSplat's record), so compare seconds on one model only.
 """
 
 from __future__ import annotations
@@ -26,116 +32,186 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 
-from common import machine, sample_data, text_table, write_results
+from common import ROOT, machine, sample_data, text_table, write_results
 
-# OptimizeConfig fields of each point (the steps' budget first, then one change at a time at 100 steps)
-POINTS = [
-    {"steps": 25},
-    {"steps": 50},
-    {"steps": 100},
-    {"steps": 200},
-    {"steps": 100, "views_per_step": 1},
-    {"steps": 100, "views_per_step": 4},
-    {"steps": 100, "scale": 0.5},
-    {"steps": 100, "lr_scale": 3.0},
-    {"steps": 100, "normal_weight": 0.0},
-    {"steps": 100, "prunings": 0},
-    {"steps": 100, "parameters": ["scales", "opacities", "sh"]},
-]
+STARTS = ("points", "network", "both")
+ANCHORS = ROOT.parent / "shared" / "anchors" / "opensplat_fern"
 
 
-def held_out(scene_gaussians, fused, cameras, images) -> dict:
-    """PSNR / SSIM / LPIPS (where available) of surfels from held-out cameras, as `reconstruct` scores them."""
+def cpu_model() -> str:
+    """The processor's model name and whether it has AVX-512 (the figures depend on both)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    name = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")), "")
+    flags = next((line for line in info.splitlines() if line.startswith("flags")), "")
+    return f"{name} ({'AVX-512' if 'avx512f' in flags else 'AVX2 only' if 'avx2' in flags else 'no AVX2'})"
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process so far (both cores count)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def held_out_scores(surfels, scene, cameras, images) -> dict:
+    """PSNR / SSIM (and LPIPS where its weights are) of surfels seen from held-out cameras, as `reconstruct` scores them."""
     from surfsplat.reconstruction.scene import HeldOut
 
-    scene = dataclasses.replace(fused, gaussians=scene_gaussians, holdout=None)
     h = HeldOut(["held"] * len(cameras), cameras, images)
-    h.score(scene.render(cameras))
-    scores = h.scores()
-    return {k: scores[k] for k in ("mean_psnr", "mean_ssim", "mean_lpips", "mean_coverage")}
+    h.score(dataclasses.replace(scene, gaussians=surfels, holdout=None).render(cameras))
+    s = h.scores()
+    return {k: s[k] for k in ("mean_psnr", "mean_ssim", "mean_lpips", "psnr")}
 
 
-def real_capture(args, name: str, folder, images: str, indices: list[int], every: int, size) -> dict:
-    """One fused scene of the context views, then the refinement and each point from it."""
+def real_capture(args, name: str, folder: Path, images: str, indices: list[int], every: int) -> dict:
+    """The network's fused scene, the refinement, and each start optimized, with held-out curves."""
     import surfsplat
     from surfsplat.capture import OptimizeConfig, RefineConfig, optimize_on_views, refine_on_views
+    from surfsplat.capture.starts import StartConfig
     from surfsplat.data.cameras import load_cameras
     from surfsplat.data.images import list_images
 
     photos = [list_images(folder / images)[i] for i in indices]
     cameras = load_cameras(folder, images=images)
     options = surfsplat.CaptureOptions(holdout_every=every, refine=RefineConfig(steps=0))
-    start = time.perf_counter()
-    fused = surfsplat.reconstruct(photos, "tiny-synthetic", cameras=cameras, size=size, capture=options, progress=False)
-    network_seconds = time.perf_counter() - start
+    cpu0 = cpu_seconds()
+    fused = surfsplat.reconstruct(photos, "tiny-synthetic", cameras=cameras, capture=options, progress=False)
+    network_cpu = cpu_seconds() - cpu0
     h = fused.holdout
-    context_images = _context_images(fused, photos, size)
+    context_images = context_photos(fused, photos)
     result = {
         "context": fused.names,
         "held_out": h.names,
         "size": [fused.height, fused.width],
-        "surfels": len(fused.gaussians),
-        "seconds_network_and_fusion": network_seconds,
+        "network_surfels": len(fused.gaussians),
+        "network_and_fusion_cpu_seconds": network_cpu,
         "stages": fused.seconds,
-        "lpips": h.lpips_note or "computed",
         "rows": [],
     }
+    args.results[args.key] = result
 
     def add(row: dict) -> None:
         result["rows"].append(row)
-        print(f"{name} {json.dumps(row)}", flush=True)
+        print(f"{name} {json.dumps({k: v for k, v in row.items() if k != 'curve'})}", flush=True)
         args.save()
 
-    add({"what": "fusion (unrefined)", "seconds": 0.0, **held_out(fused.gaussians, fused, h.cameras, h.images)})
-    refined, stats = refine_on_views(
-        fused.gaussians,
-        fused.cameras,
-        context_images,
-        fused.width,
-        fused.height,
-        RefineConfig(),
-        mode=fused.mode,
-        alpha_threshold=fused.alpha_threshold,
-    )
     add(
         {
-            "what": "refinement (defaults)",
-            "steps": stats["steps"],
-            "seconds": stats["seconds"],
-            **held_out(refined, fused, h.cameras, h.images),
+            "what": "network (fusion)",
+            "cpu_seconds": network_cpu,
+            **held_out_scores(fused.gaussians, fused, h.cameras, h.images),
         }
     )
-    args.results[args.key] = result
-    for point in args.points:
-        config = OptimizeConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in point.items()})
+    tick = cpu_seconds()
+    refined, stats = refine_on_views(
+        fused.gaussians, fused.cameras, context_images, fused.width, fused.height, RefineConfig(),
+        mode=fused.mode, alpha_threshold=fused.alpha_threshold,
+    )  # fmt: skip
+    add(
+        {
+            "what": "refinement (--optimize-steps 0)",
+            "cpu_seconds": network_cpu + cpu_seconds() - tick,
+            **held_out_scores(refined, fused, h.cameras, h.images),
+        }
+    )
+    if name == "fern" and ANCHORS.is_dir():
+        add(opensplat_row(fused, h))
+    for start in args.starts:
+        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.config.items()}
+        fields["start"] = StartConfig(kind=start, **args.start)
+        config = OptimizeConfig(**fields)
+        curve = Curve(f"{name}/{start}", fused, network_cpu)
         fitted, stats = optimize_on_views(
-            fused.gaussians,
-            fused.cameras,
-            context_images,
-            fused.width,
-            fused.height,
-            config,
-            mode=fused.mode,
-            alpha_threshold=fused.alpha_threshold,
-        )
+            fused.gaussians, fused.cameras, context_images, fused.width, fused.height, config,
+            mode=fused.mode, alpha_threshold=fused.alpha_threshold, monitor=curve,
+        )  # fmt: skip
         add(
             {
-                "what": "optimize",
-                **point,
-                "seconds": stats["seconds"],
+                "what": f"optimize from {start}",
+                "start": start,
+                "config": args.config,
+                "steps": stats["steps"],
+                "cpu_seconds": curve.points[-1]["cpu_seconds"],
+                "fit_wall_seconds": stats["seconds"],
+                "start_surfels": stats["start_surfels"],
+                "points": stats.get("points"),
                 "surfels_after": stats["surfels_after"],
-                "context_psnr_after": -10 * torch.log10(torch.tensor(stats["mse_after"])).item(),
-                **held_out(fitted, fused, h.cameras, h.images),
+                **held_out_scores(fitted, fused, h.cameras, h.images),
+                "reached_opensplat_at_cpu_seconds": first_reaching(curve.points, result),
+                "curve": curve.points,
             }
         )
     return result
 
 
-def _context_images(fused, photos, size) -> torch.Tensor:
+class Curve:
+    """A fit's monitor: held-out PSNR against the CPU seconds of the process so far (network and fusion
+    included, the scoring left out)."""
+
+    def __init__(self, label: str, fused, network_cpu: float) -> None:
+        self.label, self.fused, self.network_cpu = label, fused, network_cpu
+        self.points: list[dict] = []
+        self.fit_cpu = cpu_seconds()  # made just before the fit starts
+        self.scoring = 0.0
+
+    def __call__(self, step: int, seconds: float, surfels) -> None:
+        now = cpu_seconds()
+        h = self.fused.holdout
+        scores = held_out_scores(surfels, self.fused, h.cameras, h.images)
+        self.points.append(
+            {
+                "step": step,
+                "wall_seconds": seconds,
+                "cpu_seconds": self.network_cpu + now - self.fit_cpu - self.scoring,
+                "surfels": len(surfels),
+                "psnr": scores["mean_psnr"],
+            }
+        )
+        self.scoring += cpu_seconds() - now
+        print(f"  {self.label}: {json.dumps(self.points[-1])}", flush=True)
+
+
+def first_reaching(curve: list[dict], result: dict) -> float | None:
+    """CPU seconds at which the curve first reaches OpenSplat's held-out PSNR (None: never, or no anchor)."""
+    anchor = next((r for r in result["rows"] if r["what"].startswith("OpenSplat")), None)
+    if anchor is None:
+        return None
+    return next((p["cpu_seconds"] for p in curve if p["psnr"] >= anchor["mean_psnr"]), None)
+
+
+def opensplat_row(fused, h) -> dict:
+    """OpenSplat 1.1.5's held-out renders scored on the crop the scene's held-out photos went through."""
+    from surfsplat.data.images import read_image
+    from surfsplat.data.transforms import rescale_and_crop
+    from surfsplat.metrics import psnr
+
+    record = json.loads((ANCHORS / "result.json").read_text())
+    renders = torch.stack([read_image(ANCHORS / f"{n.rsplit('.', 1)[0]}.png")[0] for n in h.names]).float()
+    cropped, _, _ = rescale_and_crop(renders, torch.eye(3).expand(len(renders), 3, 3), (fused.height, fused.width))
+    values = psnr(cropped.clamp(0, 1), h.images.cpu()).tolist()
+    return {
+        "what": "OpenSplat 1.1.5 (2,000 steps, its record)",
+        "cpu_seconds": record["cpu_s"],
+        "mean_psnr": sum(values) / len(values),
+        "psnr": values,
+        "surfels_after": record["num_gaussians"],
+        "cpu": "AVX-512 Xeon of this machine kind (3,221 CPU s on an AVX2-only EPYC)",
+    }
+
+
+def context_photos(fused, photos) -> torch.Tensor:
     """The context photos at the scene's working size, as `reconstruct` gave them to the network."""
     from surfsplat.data.images import read_image
     from surfsplat.data.transforms import rescale_and_crop
@@ -147,10 +223,11 @@ def _context_images(fused, photos, size) -> torch.Tensor:
 
 
 def rooms(args) -> dict:
-    """Held-out PSNR, depth AbsRel and median normal error on the procedural rooms, before and after."""
+    """Held-out PSNR, depth AbsRel and median normal error on the procedural rooms, by start."""
     import capture as capture_benchmark  # the rooms' straight paths
     import surfsplat
     from surfsplat.capture import OptimizeConfig, RefineConfig, frame_name, optimize_on_views
+    from surfsplat.capture.starts import StartConfig
     from surfsplat.data.cameras import CameraSet
     from surfsplat.data.synthetic import make_scene, render_synthetic
     from surfsplat.metrics import angular_error_deg, psnr
@@ -171,7 +248,7 @@ def rooms(args) -> dict:
             "normal_median_deg": float(angles.median()),
         }
 
-    per_point: dict[str, list] = {}
+    per_row: dict[str, list] = {}
     for seed in range(args.rooms):
         room = make_scene(1000 + seed)
         path = capture_benchmark.long_path(room, torch.Generator().manual_seed(seed), 1.0)
@@ -183,118 +260,203 @@ def rooms(args) -> dict:
             list(truth.image), "tiny-synthetic", cameras=every, capture=options, progress=False
         )
         held_truth = type(truth)(**{f.name: getattr(truth, f.name)[held] for f in dataclasses.fields(truth)})
-        per_point.setdefault("network (fusion)", []).append(
+        per_row.setdefault("network (fusion)", []).append(
             {"seconds": 0.0, **scores(fused.gaussians, fused, cams[held], held_truth)}
         )
-        refined = surfsplat.reconstruct(
-            list(truth.image),
-            "tiny-synthetic",
-            cameras=every,
-            capture=dataclasses.replace(options, refine=RefineConfig()),
-            progress=False,
-        )
-        per_point.setdefault("refinement (defaults)", []).append(
-            {"seconds": refined.seconds.get("refine", 0.0), **scores(refined.gaussians, fused, cams[held], held_truth)}
-        )
-        for point in args.room_points:
-            config = OptimizeConfig(**point)
-            fitted, stats = optimize_on_views(
-                fused.gaussians,
-                fused.cameras,
-                truth.image[ctx],
-                size,
-                size,
-                config,
-                mode=fused.mode,
-                alpha_threshold=fused.alpha_threshold,
-            )
-            per_point.setdefault(json.dumps(point), []).append(
+        for start in args.starts:
+            fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.room_config.items()}
+            config = OptimizeConfig(**fields, start=StartConfig(kind=start, **args.start))
+            try:
+                fitted, stats = optimize_on_views(
+                    fused.gaussians, fused.cameras, truth.image[ctx], size, size, config,
+                    mode=fused.mode, alpha_threshold=fused.alpha_threshold,
+                )  # fmt: skip
+            except surfsplat.SurfSplatInputError as error:  # 64x64 renders of flat colours: too few SIFT points
+                print(f"room {1000 + seed}, start {start}: {error}", flush=True)
+                per_row.setdefault(f"optimize from {start}", []).append({"failed": str(error)})
+                continue
+            per_row.setdefault(f"optimize from {start}", []).append(
                 {"seconds": stats["seconds"], **scores(fitted, fused, cams[held], held_truth)}
             )
         print(f"room {1000 + seed} measured", flush=True)
     rows = []
-    for what, runs in per_point.items():
-        rows.append({"what": what, **{k: sum(r[k] for r in runs) / len(runs) for k in runs[0]}})
-        print(f"rooms {json.dumps(rows[-1])}", flush=True)
-    return {"rooms": args.rooms, "size": [size, size], "frames": n, "held_out_every": 4, "rows": rows}
+    for what, runs in per_row.items():
+        ok = [r for r in runs if "failed" not in r]
+        row = {"what": what, "rooms": len(ok), "failed": len(runs) - len(ok)}
+        if ok:
+            row.update({k: sum(r[k] for r in ok) / len(ok) for k in ok[0]})
+        rows.append(row)
+        print(f"rooms {json.dumps(row)}", flush=True)
+    return {
+        "rooms": args.rooms,
+        "size": [size, size],
+        "frames": n,
+        "held_out_every": 4,
+        "config": args.room_config,
+        "rows": rows,
+    }
+
+
+def cli_run(args, name: str, folder: Path, images_folder: str, holdout_every: int, views: list[int] | None) -> dict:
+    """`surfsplat reconstruct` with the shipped defaults as a child process: CPU seconds and held-out PSNR."""
+    from surfsplat.data.images import list_images
+
+    with tempfile.TemporaryDirectory() as tmp:
+        images = [str(p) for p in list_images(folder / images_folder)]
+        if views is not None:
+            images = [images[i] for i in views]
+        out = Path(tmp) / "out"
+        command = [
+            sys.executable, "-m", "surfsplat", "reconstruct", "--images", *images, "--cameras", str(folder),
+            "--images-folder", images_folder, "--holdout-every", str(holdout_every), "--formats", "ply",
+            "--raw-3dgs", "--device", "cpu", "--out", str(out), *args.cli_args,
+        ]  # fmt: skip
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        tick = time.perf_counter()
+        run = subprocess.run(command, capture_output=True, text=True)
+        wall = time.perf_counter() - tick
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if run.returncode:
+            raise SystemExit(f"{name}: surfsplat reconstruct failed:\n{run.stderr[-3000:]}")
+        summary = json.loads((out / "reconstruction.json").read_text())
+    capture = summary.get("capture", {})
+    held = capture.get("held_out", {})
+    return {
+        "command": " ".join(command[1:]),
+        "cpu_seconds": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "wall_seconds": wall,
+        "peak_rss_mb": after.ru_maxrss / 1024,
+        "held_out_psnr": held.get("mean_psnr"),
+        "held_out_psnr_before": (held.get("before_optimization") or {}).get("mean_psnr"),
+        "held_out": held,
+        "seconds": summary.get("seconds"),
+        "optimize": summary.get("optimize"),
+        "stdout_tail": run.stdout[-2000:],
+    }
+
+
+def plot(results: dict, path: Path) -> None:
+    """Every capture's held-out PSNR against CPU seconds, one panel a capture, OpenSplat's point marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in ("fern", "dtu_scan24") if k in results]
+    if not keys:
+        return
+    figure, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 4.5), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        for row in results[key]["rows"]:
+            if "curve" in row:
+                xs = [p["cpu_seconds"] for p in row["curve"]]
+                ys = [p["psnr"] for p in row["curve"]]
+                ax.plot(xs, ys, marker=".", label=row["what"])
+            else:
+                ax.scatter(
+                    [row["cpu_seconds"]],
+                    [row["mean_psnr"]],
+                    marker="*" if "OpenSplat" in row["what"] else "o",
+                    s=90,
+                    label=row["what"],
+                    zorder=3,
+                )
+        for cli in ("fern-cli", "dtu-cli"):
+            entry = results.get(cli)
+            if entry and key.startswith(cli.split("-")[0]) and entry.get("held_out_psnr") is not None:
+                ax.scatter(
+                    [entry["cpu_seconds"]],
+                    [entry["held_out_psnr"]],
+                    marker="D",
+                    s=70,
+                    color="black",
+                    label="surfsplat reconstruct (whole process)",
+                    zorder=4,
+                )
+        ax.set_title(f"{key}: held-out PSNR ({results[key]['size'][1]}x{results[key]['size'][0]})")
+        ax.set_xlabel(f"CPU seconds, {results['machine']['cpu_model']}")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    print(f"plot: {path}")
 
 
 def print_table(results: dict) -> None:
+    print(f"\nCPU: {results['machine']['cpu_model']}")
     for key in ("fern", "dtu_scan24"):
         if key not in results:
             continue
         r = results[key]
         print(
-            f"\n{key}: {len(r['context'])} context views at {r['size'][1]}x{r['size'][0]}, {r['surfels']:,} surfels; "
-            f"network and fusion {r['seconds_network_and_fusion']:.1f} s; LPIPS: {r['lpips']}"
+            f"\n{key}: {len(r['context'])} context views at {r['size'][1]}x{r['size'][0]}, held out {r['held_out']}; "
+            f"network and fusion {r['network_and_fusion_cpu_seconds']:.1f} CPU s"
         )
         rows = [
-            [
-                row["what"],
-                json.dumps({k: v for k, v in row.items() if k not in _COLUMNS})[1:-1],
-                row["seconds"],
-                row["mean_psnr"],
-                row["mean_ssim"],
-                row["mean_lpips"],
-            ]
+            [row["what"], row.get("steps"), row["cpu_seconds"], row["mean_psnr"], row.get("mean_ssim"), row.get("surfels_after"), row.get("reached_opensplat_at_cpu_seconds")]
             for row in r["rows"]
-        ]
-        print(text_table(["what", "point", "seconds", "PSNR", "SSIM", "LPIPS"], rows))
+        ]  # fmt: skip
+        print(text_table(["what", "steps", "CPU s", "PSNR", "SSIM", "surfels", "OpenSplat's PSNR at CPU s"], rows))
+    for cli in ("fern-cli", "dtu-cli"):
+        if cli in results:
+            e = results[cli]
+            print(
+                f"\n{cli}: {e['cpu_seconds']:.1f} CPU s ({e['wall_seconds']:.1f} s wall), held-out PSNR {e['held_out_psnr_before']} -> {e['held_out_psnr']}"
+            )
     if "rooms" in results:
         rows = [
-            [r["what"], r["seconds"], r["psnr"], r["depth_absrel"], r["normal_median_deg"]]
+            [
+                r["what"],
+                r.get("rooms"),
+                r.get("failed"),
+                r.get("psnr"),
+                r.get("depth_absrel"),
+                r.get("normal_median_deg"),
+            ]
             for r in results["rooms"]["rows"]
         ]
         print(f"\nrooms ({results['rooms']['rooms']}), held-out views")
-        print(text_table(["what", "seconds", "PSNR", "depth AbsRel", "normal median (deg)"], rows))
-
-
-_COLUMNS = {
-    "what",
-    "seconds",
-    "mean_psnr",
-    "mean_ssim",
-    "mean_lpips",
-    "mean_coverage",
-    "surfels_after",
-    "context_psnr_after",
-}
+        print(text_table(["what", "rooms", "failed", "PSNR", "depth AbsRel", "normal median (deg)"], rows))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", nargs="+", default=["fern", "dtu", "rooms"], choices=["fern", "dtu", "rooms"])
-    parser.add_argument("--fern-size", nargs=2, type=int, default=[368, 496], metavar=("H", "W"))
-    parser.add_argument("--dtu-size", nargs=2, type=int, default=[288, 400], metavar=("H", "W"))
-    parser.add_argument("--points", type=json.loads, default=POINTS, help="a JSON list of OptimizeConfig fields")
-    parser.add_argument(
-        "--room-points", type=json.loads, default=[{"steps": 50}, {"steps": 100}, {"steps": 100, "normal_weight": 0.0}]
-    )
+    parts = ["fern", "dtu", "rooms", "fern-cli", "dtu-cli"]
+    parser.add_argument("--parts", nargs="+", default=["fern", "dtu", "rooms"], choices=parts)
+    parser.add_argument("--starts", nargs="+", default=list(STARTS), choices=STARTS)
+    parser.add_argument("--config", type=json.loads, default={"steps": 2000}, help="OptimizeConfig fields (JSON)")
+    parser.add_argument("--start", type=json.loads, default={}, help="StartConfig fields besides kind (JSON)")
+    parser.add_argument("--room-config", type=json.loads, default={"steps": 300})
     parser.add_argument("--rooms", type=int, default=2)
+    parser.add_argument("--cli-args", nargs=argparse.REMAINDER, default=[], help="more reconstruct flags (last)")
     parser.add_argument("--out", default="optimize", help="results file (a name under benchmarks/results or a path)")
+    parser.add_argument("--plot", default=str(ROOT / "docs" / "optimize_curve.png"), help="the PNG ('' for none)")
     args = parser.parse_args()
     torch.manual_seed(0)
     data = sample_data()
-    args.results = {"machine": machine(), "parts": args.parts}
+    args.results = {"machine": {**machine(), "cpu_model": cpu_model()}, "parts": args.parts}
 
     def save() -> None:
         write_results(args.out, args.results)
 
     args.save = save
     runs = {
-        "fern": lambda: real_capture(
-            args, "fern", data / "llff_fern", "images_8", list(range(20)), 8, tuple(args.fern_size)
-        ),
-        "dtu": lambda: real_capture(
-            args, "dtu", data / "dtu_scan24", "images_4", list(range(13, 26)), 2, tuple(args.dtu_size)
-        ),
+        "fern": lambda: real_capture(args, "fern", data / "llff_fern", "images_8", list(range(20)), 8),
+        "dtu": lambda: real_capture(args, "dtu", data / "dtu_scan24", "images_4", list(range(12, 27)), 3),
         "rooms": lambda: rooms(args),
+        "fern-cli": lambda: cli_run(args, "fern", data / "llff_fern", "images_8", 8, None),
+        "dtu-cli": lambda: cli_run(args, "dtu", data / "dtu_scan24", "images_4", 3, list(range(12, 27))),
     }
     for part in args.parts:  # in the order asked for
         args.key = {"dtu": "dtu_scan24"}.get(part, part)
         args.results[args.key] = runs[part]()
         save()
     print_table(args.results)
+    if args.plot:
+        plot(args.results, Path(args.plot))
 
 
 if __name__ == "__main__":

@@ -440,7 +440,7 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
         "surfels_3dgs.ply",
         "cameras.json",
         "renders/view02_depth.png",
-        "capture/v4.png_render.png",
+        "capture/v4_render.png",
     ):
         assert (tmp_path / "cli" / name).read_bytes() == (tmp_path / "api" / name).read_bytes(), name
     cli, api = (json.loads((tmp_path / d / "reconstruction.json").read_text()) for d in ("cli", "api"))

@@ -15,8 +15,10 @@ from skimage.metrics import structural_similarity
 
 import surfsplat
 from surfsplat.capture import OptimizeConfig, RefineConfig, optimize_on_views, refine_on_views
-from surfsplat.capture.fit import FitPlan, colour_loss, depth_normal_error, fit_on_views
+from surfsplat.capture.fit import FitPlan, fit_on_views
+from surfsplat.capture.losses import colour_loss, depth_normal_error
 from surfsplat.capture.optimize import scene_extent
+from surfsplat.capture.starts import StartConfig
 from surfsplat.cli import main
 from surfsplat.data.cameras import save_cameras
 from surfsplat.data.synthetic import make_scene, make_trajectory, render_synthetic
@@ -117,10 +119,16 @@ def test_cpu_backend_position_and_rotation_gradients_of_the_loss_match_torch():
 
 
 # ----------------------------------------------------------------------------------------- the fit
+def _from_network(**fields) -> OptimizeConfig:
+    """The fit of the given surfels as they are: the network's start, every one kept, no growth, full size."""
+    defaults = {"start": StartConfig(kind="network", budget=10**6), "densify": None, "levels": (), "sh_degree": 2}
+    return OptimizeConfig(**{**defaults, **fields})
+
+
 def test_optimization_moves_every_attribute_and_matches_the_photos():
     plane, cameras, photos = _two_views_of_a_textured_plane()
     start = _noisy(plane)
-    config = OptimizeConfig(steps=60, lr_scale=5.0)
+    config = _from_network(steps=60, lr_scale=5.0, views_per_step=2, sh_degree_share=None)
     fitted, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, config)
     assert stats["kept"] == 1.0 and stats["steps"] == 60
     assert stats["mse_after"] < 0.05 * stats["mse_before"], stats
@@ -139,9 +147,9 @@ def test_pruning_removes_the_faint_surfels_and_their_adam_moments():
     opacities = start.opacities.clone()
     opacities[::3] = 1e-3  # a third start below the pruning threshold and the photos do not need them
     start = surfsplat.Gaussians(start.means, start.quats, start.scales, opacities, start.sh)
-    fitted, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, OptimizeConfig(steps=8, prunings=1))
+    fitted, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, _from_network(steps=8, prunings=1))
     assert len(fitted) < len(start) - len(start) // 4 and stats["surfels_after"] == len(fitted)
-    never, _ = optimize_on_views(start, cameras, photos, SIZE, SIZE, OptimizeConfig(steps=8, prunings=0))
+    never, _ = optimize_on_views(start, cameras, photos, SIZE, SIZE, _from_network(steps=8, prunings=0))
     assert len(never) == len(start)
 
 
@@ -149,12 +157,12 @@ def test_only_the_chosen_parameters_move_and_the_sh_degree_rises_during_the_fit(
     plane, cameras, photos = _two_views_of_a_textured_plane()
     start = _noisy(plane)
     fitted, _ = optimize_on_views(
-        start, cameras, photos, SIZE, SIZE, OptimizeConfig(steps=6, parameters=("sh", "opacities"), prunings=0)
+        start, cameras, photos, SIZE, SIZE, _from_network(steps=6, parameters=("sh", "opacities"), prunings=0)
     )
     assert torch.equal(fitted.means, start.means) and torch.equal(fitted.quats, start.quats)
     assert torch.equal(fitted.scales, start.scales) and not torch.equal(fitted.sh, start.sh)
-    plan = OptimizeConfig(steps=90).plan(1.0)
-    assert plan.sh_degree_every == 3  # every 1/30 of the steps, as 3DGS's 1,000 of 30,000
+    plan = OptimizeConfig(steps=90, sh_degree_share=1 / 30).plan(1.0, views=3)
+    assert plan.sh_degree_share == pytest.approx(1 / 30)  # as 3DGS's 1,000 of 30,000 steps
     assert plan.rates["sh_rest"] == pytest.approx(plan.rates["sh_dc"] / 20)
     assert plan.means_final_rate == pytest.approx(plan.rates["means"] / 100)
 
@@ -194,6 +202,10 @@ def test_the_refinement_is_the_shared_loop_with_its_own_plan_and_unchanged_resul
         ({"ssim_weight": 1.5}, "optimize.ssim_weight"),
         ({"sh_degree_share": 0.0}, "optimize.sh_degree_share"),
         ({"prunings": -1}, "optimize.prunings"),
+        ({"seconds": 0.0}, "optimize.seconds"),
+        ({"levels": ((0.5, 0.5), (0.2, 0.25))}, "optimize.levels"),
+        ({"parameters": ("sh",)}, "optimize.densify"),
+        ({"sh_degree": 4}, "optimize.sh_degree"),
     ],
 )
 def test_optimize_config_refuses_bad_values(options, needle):
@@ -227,7 +239,7 @@ def five_views(tmp_path_factory):
 
 def test_held_out_views_are_scored_before_and_after_and_never_fitted(five_views, tiny_checkpoint, tmp_path):
     paths, cameras = five_views
-    options = surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, optimize=OptimizeConfig(steps=3))
+    options = surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, optimize=_from_network(steps=3))
     scene = surfsplat.reconstruct(paths, tiny_checkpoint, cameras=cameras, capture=options, progress=False)
     h = scene.holdout
     assert h.names == ["v0.png", "v4.png"] and scene.names == ["v1.png", "v2.png", "v3.png"]
@@ -248,7 +260,7 @@ def test_held_out_views_are_scored_before_and_after_and_never_fitted(five_views,
     held = summary["capture"]["held_out"]
     assert held["before_optimization"]["mean_psnr"] == pytest.approx(h.before["mean_psnr"])
     assert summary["optimize"]["steps"] == 3 and "optimize" in summary["seconds"]
-    assert (tmp_path / "out" / "capture" / "v0.png_render_before.png").is_file()
+    assert (tmp_path / "out" / "capture" / "v0_render_before.png").is_file()
     assert "before the optimization" in (tmp_path / "out" / "capture.html").read_text()
 
 
@@ -266,7 +278,8 @@ def test_a_saved_reconstruction_is_optimized_and_reads_back(five_views, tiny_che
     assert main([*argv, "--images", *map(str, paths[:3])]) == 0, capsys.readouterr().err
     capsys.readouterr()
     out = tmp_path / "first_optimized"
-    assert main(["optimize", str(tmp_path / "first"), "--optimize-steps", "4", "--raw-3dgs", "--no-progress"]) == 0
+    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "4", "--optimize-start", "network"]
+    assert main([*command, "--raw-3dgs", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "optimized on the context views: 4 steps at 32x32" in printed, printed
     from surfsplat.reconstruction import load_reconstruction

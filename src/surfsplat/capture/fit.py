@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -29,6 +30,8 @@ from torch import Tensor
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
+from .densify import Densify, DensifyConfig
+from .losses import colour_loss, depth_normal_error
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +40,8 @@ logger = logging.getLogger(__name__)
 # as logarithms, opacities as logits, and the SH's DC and higher-degree coefficients apart (3DGS gives
 # them different rates).
 TENSORS = ("means", "quats", "log_scales", "logits", "sh_dc", "sh_rest")
+MIN_LEVEL_SIZE = 32  # px: a coarse level whose short side would be smaller is skipped
+_DRAW_BLOCK = 256  # steps whose views are drawn and moved to the device at once
 
 
 @dataclass(frozen=True)
@@ -54,9 +59,16 @@ class FitPlan:
     normal_weight: float = 0.0  # 2DGS's depth-normal consistency term (0: off)
     normal_from: float = 0.0  # the share of the steps after which that term joins
     means_final_rate: float | None = None  # the position rate decays exponentially to this (None: constant)
-    sh_degree_every: int | None = None  # steps between raising the SH degree used from 0 (None: all at once)
+    sh_degree_share: float | None = None  # share of the fit between raisings of the SH degree from 0 (None: all)
     prune_every: int | None = None  # steps between prunings of faint surfels (None: never)
     prune_opacity: float = 0.005  # a pruning removes the surfels below this opacity
+    # coarse to fine: (until this share of the fit, render scale) pairs, in order; then `scale`
+    levels: tuple[tuple[float, float], ...] = ()
+    densify: DensifyConfig | None = None  # 3DGS's clone / split / prune / opacity reset (None: none)
+    extent: float = 1.0  # the scene extent the densification's world sizes are shares of
+    # a time budget: the fit runs until this many seconds have passed (or `steps`), and its progress,
+    # which every schedule follows, is the share of the budget spent (None: the share of the steps)
+    seconds: float | None = None
     patience: int | None = None  # steps per window of the early stop (None: every step runs)
     min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
     extra: dict = field(default_factory=dict)  # figures the plan's owner adds to the stats
@@ -79,10 +91,16 @@ def fit_on_views(
     alpha_threshold: float | None = 0.001,
     backend: str = "auto",
     progress: bool = False,
+    monitor: Callable[[int, float, Gaussians], None] | None = None,
+    monitor_every: float = 0.1,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels fitted as `plan` says, and the fit's figures: {"steps", "max_steps", "mse_before",
     "mse_after", "kept", "scale", "width", "height", "seconds"} (colour errors over every view at the
-    full size; a fit that raised it is not kept and the given surfels come back)."""
+    full size; a fit that raised it is not kept and the given surfels come back).
+
+    `monitor(step, seconds, surfels)` is called before the first step, each time the fit's progress
+    passes another `monitor_every`, and after the last step, with the surfels as they then are and
+    the seconds the fit has run; its own time is not counted in them (held-out scores along the way)."""
     from ..render import render
     from ..utils.log import progress as progress_bar
 
@@ -100,15 +118,22 @@ def fit_on_views(
     images = images.to(g0.means.device, g0.means.dtype)
     cameras = cameras.to(device=g0.means.device, dtype=g0.means.dtype)
 
-    fit_w, fit_h = max(1, round(width * plan.scale)), max(1, round(height * plan.scale))
-    if plan.loss == "l1_dssim" and plan.ssim_weight > 0 and min(fit_w, fit_h) < 11:
-        raise SurfSplatInputError(
-            f"{plan.name}: the D-SSIM term needs renders of at least 11x11 pixels, got {fit_w}x{fit_h} "
-            "(raise the render scale or set the SSIM weight to 0)"
-        )
-    resize = torch.tensor([fit_w / width, fit_h / height, 1.0], dtype=cameras.K.dtype, device=cameras.K.device)
-    fit_cameras = Cameras(cameras.c2w, cameras.K * resize[:, None], validate=False)
-    fit_images = images if plan.scale == 1 else F.interpolate(images, size=(fit_h, fit_w), mode="area")
+    def at_scale(scale: float) -> tuple[Cameras, Tensor, int, int]:
+        """The cameras and photos (area-averaged) the fit renders at `scale` of the working size."""
+        w, h = max(1, round(width * scale)), max(1, round(height * scale))
+        if plan.loss == "l1_dssim" and plan.ssim_weight > 0 and min(w, h) < 11:
+            raise SurfSplatInputError(
+                f"{plan.name}: the D-SSIM term needs renders of at least 11x11 pixels, got {w}x{h} "
+                "(raise the render scale or set the SSIM weight to 0)"
+            )
+        resize = torch.tensor([w / width, h / height, 1.0], dtype=cameras.K.dtype, device=cameras.K.device)
+        cams = Cameras(cameras.c2w, cameras.K * resize[:, None], validate=False)
+        return cams, (images if (w, h) == (width, height) else F.interpolate(images, size=(h, w), mode="area")), w, h
+
+    # coarse levels too small to hold detail (or the D-SSIM window) are skipped: their steps render finer
+    coarse = [(until, s) for until, s in plan.levels if min(width, height) * s >= MIN_LEVEL_SIZE]
+    levels = [(until, at_scale(s)) for until, s in coarse] + [(None, at_scale(plan.scale))]
+    fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
     def draw(g: Gaussians, cams: Cameras, w: int, h: int):
         return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold)
@@ -129,31 +154,65 @@ def fit_on_views(
 
     free = _Free(g0, plan)
     optimizer = torch.optim.Adam(free.groups())
-    # Every step's views drawn up front on the host's generator (the same draws on every device)
-    # and moved to the device once: [steps, views rendered a step].
+    densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
+    split_generator = torch.Generator().manual_seed(plan.seed + 1)
+    # Every step's views drawn on the host's generator (the same draws on every device) and moved to
+    # the device a block of steps at a time: [block, views rendered a step].
     generator = torch.Generator().manual_seed(plan.seed)
-    draws = [torch.randperm(v, generator=generator)[: plan.views_per_step].sort().values for _ in range(total)]
-    draws = torch.stack(draws).to(images.device)
-    normal_start = math.ceil(plan.normal_from * total) if plan.normal_weight > 0 else None
+    draws: list[Tensor] = []
+
+    def views_of(step: int) -> Tensor:
+        if step % _DRAW_BLOCK == 0:
+            block = min(_DRAW_BLOCK, total - step)
+            rows = [torch.randperm(v, generator=generator)[: plan.views_per_step].sort().values for _ in range(block)]
+            draws[:] = list(torch.stack(rows).to(images.device))
+        return draws[step % _DRAW_BLOCK]
+
     # Each step's loss stays on the device until a window of the early stop ends (never without
     # one): reading it every step would make the host wait for the device every step.
     losses: list[float] = []
     pending: list[Tensor] = []
+    fit_start = time.perf_counter()
+    watched = 0.0  # seconds spent in the monitor, not counted as the fit's
+    marks = 0  # monitor calls so far after the first
+
+    def watch(step: int, done: float) -> None:
+        nonlocal watched
+        if monitor is None:
+            return
+        tick = time.perf_counter()
+        with torch.no_grad():
+            monitor(step, tick - fit_start - watched, free.current(done).detach())
+        watched += time.perf_counter() - tick
+
+    watch(0, 0.0)
     with progress_bar(total=total, desc=plan.name, unit="step", enabled=progress) as bar:
         for step in range(total):
-            free.schedule(optimizer, step)
-            which = draws[step]
-            out = draw(free.current(step), fit_cameras[which], fit_w, fit_h)
+            done = progress_of(plan, step, time.perf_counter() - fit_start - watched)
+            if done >= 1:
+                break
+            if int(done / monitor_every) > marks:
+                marks = int(done / monitor_every)
+                watch(step, done)
+            free.schedule(optimizer, done)
+            which = views_of(step)
+            fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
+            out = draw(free.current(done), fit_cameras[which], fit_w, fit_h)
             loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
-            if normal_start is not None and step >= normal_start:
+            if plan.normal_weight > 0 and done >= plan.normal_from:
                 loss = loss + plan.normal_weight * depth_normal_error(
                     out.depth, out.normal, out.alpha, fit_cameras[which]
                 )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if densify is not None:
+                means = free.tensors["means"]
+                densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
             optimizer.step()
             pending.append(loss.detach())
             bar.update(1)
+            if densify is not None:
+                densify.step(free, optimizer, step, done, split_generator)
             if plan.prune_every and (step + 1) % plan.prune_every == 0 and step + 1 < total:
                 free.prune(optimizer, plan.prune_opacity)
             if plan.patience is not None and (step + 1) % plan.patience == 0:
@@ -162,11 +221,14 @@ def fit_on_views(
                 if _stalled(losses, plan.patience, plan.min_improvement):
                     break
     steps = len(losses) + len(pending)
+    watch(steps, 1.0)
     with torch.no_grad():
-        fitted = free.current(steps - 1).detach()
+        fitted = free.current(1.0).detach()
     after = mse(fitted)
     stats = {"steps": steps, "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
-    stats["seconds"] = time.perf_counter() - start
+    if densify is not None:
+        stats["densify"] = densify.history
+    stats["seconds"] = time.perf_counter() - start - watched
     if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
         logger.warning(
             "%s: the fit raised the context views' colour error (%.3g -> %.3g); the surfels are kept as they were "
@@ -198,24 +260,25 @@ class _Free:
     def groups(self) -> list[dict]:
         return [{"params": [t], "lr": self.plan.rates[k], "name": k} for k, t in self.tensors.items()]
 
-    def schedule(self, optimizer: torch.optim.Optimizer, step: int) -> None:
-        """The position rate's exponential decay (3DGS's `get_expon_lr_func` without its delay)."""
+    def schedule(self, optimizer: torch.optim.Optimizer, done: float) -> None:
+        """The position rate's exponential decay over the fit's progress `done` in [0, 1] (3DGS's
+        `get_expon_lr_func` without its delay)."""
         final = self.plan.means_final_rate
         if final is None or "means" not in self.tensors:
             return
-        t = step / max(1, self.plan.steps - 1)
         first = self.plan.rates["means"]
-        rate = math.exp((1 - t) * math.log(first) + t * math.log(final))
+        rate = math.exp((1 - done) * math.log(first) + done * math.log(final))
         for group in optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = rate
 
-    def degree(self, step: int) -> int:
-        """The SH degree rendered at `step`: raised by one every `sh_degree_every` steps from 0, as 3DGS does."""
-        every = self.plan.sh_degree_every
-        return self.max_degree if every is None else min(self.max_degree, step // every)
+    def degree(self, done: float) -> int:
+        """The SH degree rendered at progress `done`: raised by one every `sh_degree_share` of the fit
+        from 0, as 3DGS raises it every 1,000 of its 30,000 steps."""
+        share = self.plan.sh_degree_share
+        return self.max_degree if share is None else min(self.max_degree, int(done / share + 1e-9))
 
-    def current(self, step: int) -> Gaussians:
+    def current(self, done: float) -> Gaussians:
         t, g0 = self.tensors, self.g0
         means = t.get("means", g0.means)
         quats = F.normalize(t["quats"], dim=-1) if "quats" in t else g0.quats
@@ -225,18 +288,54 @@ class _Free:
             sh = torch.cat((t.get("sh_dc", g0.sh[..., :1]), t.get("sh_rest", g0.sh[..., 1:])), -1)
         else:
             sh = g0.sh
-        degree = self.degree(step)
+        degree = self.degree(done)
         if degree < self.max_degree:  # the higher degrees neither render nor learn until their turn
             sh = torch.cat((sh[..., : (degree + 1) ** 2], torch.zeros_like(sh[..., (degree + 1) ** 2 :])), -1)
         return replace(g0, means=means, quats=quats, scales=scales, opacities=opacities, sh=sh, validate=False)
 
-    def prune(self, optimizer: torch.optim.Optimizer, threshold: float) -> None:
-        """Remove the surfels whose opacity fell below `threshold` (3DGS's min_opacity pruning),
-        from the tensors and from Adam's moments alike."""
-        opacities = torch.sigmoid(self.tensors["logits"]) if "logits" in self.tensors else self.g0.opacities
-        keep = opacities.detach() >= threshold
-        if bool(keep.all()) or not bool(keep.any()):  # one sync per pruning, a few per fit
+    def append(self, optimizer: torch.optim.Optimizer, new: dict[str, Tensor]) -> None:
+        """Add rows to every fitted tensor (and to the given surfels the plan does not fit, copied from
+        the row each new one came from is not known here, so every tensor must be fitted); Adam's
+        moments of the new rows start at zero (3DGS's `cat_tensors_to_optimizer`)."""
+        if set(new) != set(self.tensors) or set(self.tensors) != set(TENSORS):
+            raise SurfSplatInputError(f"{self.plan.name}: densification needs every surfel attribute fitted")
+        count = len(next(iter(new.values())))
+        if count == 0:
             return
+        for group in optimizer.param_groups:
+            old = group["params"][0]
+            grown = torch.cat((old.detach(), new[group["name"]].to(old))).requires_grad_(True)
+            state = optimizer.state.pop(old, None)
+            if state:
+                state = {
+                    k: (
+                        torch.cat((v, torch.zeros(count, *v.shape[1:], dtype=v.dtype, device=v.device)))
+                        if isinstance(v, Tensor) and v.shape[:1] == old.shape[:1]
+                        else v
+                    )
+                    for k, v in state.items()
+                }
+                optimizer.state[grown] = state
+            group["params"] = [grown]
+            self.tensors[group["name"]] = grown
+        self.g0 = self._grown_base(count)
+
+    def _grown_base(self, count: int) -> Gaussians:
+        """The given surfels with `count` rows appended (their values are never read: every attribute is fitted)."""
+        g0 = self.g0
+        pad = lambda t: torch.cat((t, t[:1].expand(count, *t.shape[1:])))  # noqa: E731
+        return replace(
+            g0,
+            means=pad(g0.means),
+            quats=pad(g0.quats),
+            scales=pad(g0.scales),
+            opacities=pad(g0.opacities),
+            sh=pad(g0.sh),
+            validate=False,
+        )
+
+    def keep(self, optimizer: torch.optim.Optimizer, keep: Tensor) -> None:
+        """Keep the rows `keep` selects, in the tensors and in Adam's moments alike."""
         self.g0 = self.g0.subset(keep)
         for group in optimizer.param_groups:
             old = group["params"][0]
@@ -251,52 +350,23 @@ class _Free:
             group["params"] = [new]
             self.tensors[group["name"]] = new
 
-
-def colour_loss(prediction: Tensor, target: Tensor, kind: str, ssim_weight: float = 0.2) -> Tensor:
-    """The colour term of a fit: the mean squared error ("mse"), or 3DGS's (1 - w) L1 + w (1 - SSIM)
-    ("l1_dssim"), SSIM being the project's metric (`surfsplat.metrics.ssim`, scikit-image's Gaussian
-    window of 11 taps, sigma 1.5) so the fit climbs the figure it is scored on.
-    prediction, target: [V, 3, H, W]."""
-    if kind == "mse":
-        return (prediction - target).square().mean()
-    from ..metrics import ssim
-
-    l1 = (prediction - target).abs().mean()
-    if ssim_weight == 0:
-        return l1
-    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(prediction, target).mean())
+    def prune(self, optimizer: torch.optim.Optimizer, threshold: float) -> None:
+        """Remove the surfels whose opacity fell below `threshold` (3DGS's min_opacity pruning),
+        from the tensors and from Adam's moments alike."""
+        opacities = torch.sigmoid(self.tensors["logits"]) if "logits" in self.tensors else self.g0.opacities
+        keep = opacities.detach() >= threshold
+        if bool(keep.all()) or not bool(keep.any()):  # one sync per pruning, a few per fit
+            return
+        self.keep(optimizer, keep)
 
 
-def depth_normal_error(
-    depth: Tensor,  # [V, 1, H, W] camera z, rendered
-    normal: Tensor,  # [V, 3, H, W] world frame, facing the camera, rendered
-    alpha: Tensor,  # [V, 1, H, W]
-    cameras: Cameras,  # [V] K in pixels of W x H
-) -> Tensor:
-    """2DGS's depth-normal consistency (its Eq. 14): 1 - n . N, where n is the rendered normal and N
-    the normal of the surface the rendered depth describes (the cross product of its central
-    differences, in the world frame, facing the camera), weighted by alpha as 2DGS does; the mean
-    over the inner pixels. Differentiable in both maps."""
-    v, _, h, w = depth.shape
-    rows = torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5
-    cols = torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5
-    pixels = torch.stack(
-        (
-            cols[None, :].expand(h, w),
-            rows[:, None].expand(h, w),
-            torch.ones(h, w, dtype=depth.dtype, device=depth.device),
-        )
-    )
-    # inv_ex: no error flag read on the host (a GPU would wait for it every step)
-    rays = torch.einsum("vij,jhw->vihw", torch.linalg.inv_ex(cameras.K.to(depth)).inverse, pixels)  # z = 1
-    c2w = cameras.c2w.to(depth)
-    points = torch.einsum("vij,vjhw->vihw", c2w[:, :3, :3], rays * depth) + c2w[:, :3, 3, None, None]
-    right = points[..., 1:-1, 2:] - points[..., 1:-1, :-2]
-    down = points[..., 2:, 1:-1] - points[..., :-2, 1:-1]
-    # down x right faces the camera: for a fronto-parallel plane (0, 1, 0) x (1, 0, 0) = (0, 0, -1)
-    surface = F.normalize(torch.cross(down, right, dim=1), dim=1)
-    agreement = (normal[..., 1:-1, 1:-1] * surface).sum(1, keepdim=True)
-    return ((1 - agreement) * alpha[..., 1:-1, 1:-1]).mean()
+def progress_of(plan: FitPlan, step: int, elapsed: float) -> float:
+    """How far the fit has come when `step` starts, in [0, 1): the share of the steps run, or with a
+    time budget the larger of that and the share of the seconds spent (1: the fit is over)."""
+    done = step / plan.steps if plan.steps > 0 else 1.0
+    if plan.seconds is not None:
+        done = max(done, elapsed / plan.seconds)
+    return min(done, 1.0)
 
 
 def _stalled(losses: list[float], patience: int | None, min_improvement: float) -> bool:

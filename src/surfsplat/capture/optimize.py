@@ -27,16 +27,18 @@ out, the network's one surfel per pixel being denser than 3DGS ends with; the ca
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
+from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
+from .starts import StartConfig, make_start
 
-SAVED_STEPS = 100  # `surfsplat optimize`'s steps: asked for explicitly, it runs by default (see OptimizeConfig.steps)
+DEFAULT_STEPS = 2000  # the fit's length where none is given (benchmarks/optimize.py)
 
 # OptimizeConfig.parameters names -> the fit's tensors (`fit.TENSORS`)
 PARAMETERS = {
@@ -52,44 +54,49 @@ PARAMETERS = {
 class OptimizeConfig:
     """How a scene is optimized on its context photos (steps 0: not at all).
 
-    The defaults come from `benchmarks/optimize.py` (docs/optimize.md has its curves): see `steps`.
+    The defaults come from `benchmarks/optimize.py` (docs/optimize.md has its curves).
     """
 
-    # Off by default, from `benchmarks/optimize.py` (docs/optimize.json; 2 shared CPU cores, tiny-synthetic):
-    # at equal or slightly better held-out PSNR it costs more than the refinement it replaces. Fern at
-    # 176x240 (17 views): refinement 16.70 dB, 100 steps 16.74 dB (SSIM 0.279 -> 0.348); DTU scan 24 at
-    # 144x192 (6 views): 10.05 -> 10.70 dB in about 3x the refinement's time; the rooms at 64x64:
-    # 25.63 -> 25.33 dB, but depth AbsRel 0.160 -> 0.138 and median normal error 23.1 -> 18.9 degrees.
-    # `surfsplat optimize` runs SAVED_STEPS when asked for.
-    steps: int = 0  # Adam steps (0: no optimization)
-    # views a step (not measured against 1 or 4 here: 3DGS draws 1, two average each step's gradient over two
-    # viewpoints); the full working size, since half of it scored lower (fern 16.61 vs 16.74 dB, DTU 9.93 vs 10.70)
-    views_per_step: int = 2  # context views rendered in one step (3DGS: 1)
+    # Adam steps at most (0: no optimization; None: DEFAULT_STEPS where there are more than two context
+    # views, none for two, whose pass the network alone makes best)
+    steps: int | None = None
+    seconds: float | None = None  # a time budget: the fit runs this long (at most `steps`), its schedules follow it
+    start: StartConfig = field(default_factory=StartConfig)  # the network's surfels, SfM points, or both
+    # None: the surfels neither grow nor go (the fit of the network's start alone)
+    densify: DensifyConfig | None = field(default_factory=DensifyConfig)
+    views_per_step: int = 1  # context views rendered in one step (3DGS: 1)
     scale: float = 1.0  # the fit renders at this fraction of the working size (photos area-averaged)
+    # coarse to fine: until 10 % of the fit at a quarter of the size, until 20 % at half
+    # (OpenSplat's --num-downscales 2 --resolution-schedule 200 of 2,000 steps)
+    levels: tuple[tuple[float, float], ...] = ((0.1, 0.25), (0.2, 0.5))
     parameters: tuple[str, ...] = ("means", "quats", "scales", "opacities", "sh")  # what is fitted
     means_lr: float = 1.6e-4  # position rate at the first step, times the scene extent (3DGS)
-    means_lr_final: float = 1.6e-6  # ... decayed exponentially to this at the last step (3DGS)
+    means_lr_final: float = 1.6e-6  # ... decayed exponentially to this at the end (3DGS)
     quats_lr: float = 1e-3  # rotation (3DGS, 2DGS)
     scales_lr: float = 5e-3  # log tangent scales (3DGS, 2DGS)
     opacities_lr: float = 0.05  # opacity logits (3DGS, 2DGS)
     sh_lr: float = 2.5e-3  # SH DC; the higher degrees at sh_lr / 20 (3DGS)
-    # 5: 3DGS's rates are made for 30,000 steps; in 100 the fit barely leaves the network's start (DTU
-    # scan 24 held out: 9.84 dB at 1x, 10.70 dB at 5x; fern at 176x240: 15.89 dB at 1x, 16.32 dB at 5x in 50 steps)
-    lr_scale: float = 5.0  # every rate above times this
+    lr_scale: float = 1.0  # every rate above times this
     ssim_weight: float = 0.2  # loss (1 - w) L1 + w D-SSIM (3DGS's lambda_dssim)
-    # 2DGS's 0.05 kept: it is what straightens the surface (rooms: median normal error 18.9 degrees with
-    # it, 21.4 without) at a held-out PSNR cost (fern -0.14 dB, DTU -0.62 dB, rooms -0.06 dB at 100 steps)
-    normal_weight: float = 0.05  # 2DGS's depth-normal consistency (0: off)
-    normal_from: float = 7 / 30  # ... from this share of the steps on (2DGS: step 7,000 of 30,000)
-    sh_degree_share: float | None = 1 / 30  # the SH degree rises from 0 every this share of the steps (None: all)
-    prunings: int = 3  # times the faint surfels are pruned, evenly over the fit (0: never)
+    normal_weight: float = 0.0  # 2DGS's depth-normal consistency (0: off)
+    normal_from: float = 7 / 30  # ... from this share of the fit on (2DGS: step 7,000 of 30,000)
+    # the SH degree rises from 0 every this share of the fit (3DGS: 1,000 of 30,000 steps; OpenSplat: 1,000 of 2,000)
+    sh_degree_share: float | None = 0.5
+    sh_degree: int = 3  # the fitted surfels' SH degree (a start of another degree is padded or cut)
+    prunings: int = 0  # times faint surfels are pruned, evenly over the fit, besides the densification's (0: never)
     prune_opacity: float = 0.005  # ... those below this opacity (3DGS's min_opacity)
-    seed: int = 0  # which views each step renders
+    seed: int = 0  # which views each step renders, the splits' samples
 
     def __post_init__(self) -> None:
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
+        if self.steps is not None and (
+            isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0
+        ):
             raise SurfSplatInputError(
                 f"optimize.steps (--optimize-steps): expected an integer >= 0, got {self.steps!r}"
+            )
+        if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds > 0):
+            raise SurfSplatInputError(
+                f"optimize.seconds (--optimize-seconds): expected a positive number of seconds, got {self.seconds}"
             )
         if self.views_per_step < 1:
             raise SurfSplatInputError(f"optimize.views_per_step: expected at least 1, got {self.views_per_step}")
@@ -97,11 +104,18 @@ class OptimizeConfig:
             raise SurfSplatInputError(
                 f"optimize.scale (--optimize-scale): expected a fraction in (0, 1], got {self.scale}"
             )
+        shares = [share for share, _ in self.levels]
+        if shares != sorted(shares) or any(not (0 < a <= 1 and 0 < b <= 1) for a, b in self.levels):
+            raise SurfSplatInputError(
+                f"optimize.levels: expected (share, scale) pairs in (0, 1] with rising shares, got {self.levels}"
+            )
         unknown = [p for p in self.parameters if p not in PARAMETERS]
         if unknown or not self.parameters:
             raise SurfSplatInputError(
                 f"optimize.parameters: expected some of {sorted(PARAMETERS)}, got {list(self.parameters)}"
             )
+        if self.densify is not None and set(self.parameters) != set(PARAMETERS):
+            raise SurfSplatInputError("optimize.densify: densification needs every parameter fitted")
         for name in ("means_lr", "means_lr_final", "quats_lr", "scales_lr", "opacities_lr", "sh_lr", "lr_scale"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -116,6 +130,8 @@ class OptimizeConfig:
             raise SurfSplatInputError(
                 f"optimize.sh_degree_share: expected a share in (0, 1] or None, got {self.sh_degree_share}"
             )
+        if self.sh_degree not in (0, 1, 2, 3):
+            raise SurfSplatInputError(f"optimize.sh_degree: expected 0 to 3, got {self.sh_degree}")
         if self.prunings < 0:
             raise SurfSplatInputError(f"optimize.prunings: expected >= 0, got {self.prunings}")
         if not 0 <= self.prune_opacity < 1:
@@ -123,7 +139,16 @@ class OptimizeConfig:
                 f"optimize.prune_opacity: expected an opacity in [0, 1), got {self.prune_opacity}"
             )
 
-    def plan(self, extent: float) -> FitPlan:
+    def steps_for(self, views: int) -> int:
+        """The steps the fit of `views` context views runs at most (0: none): `steps` where given; else
+        with a time budget a bound it never reaches, and without one DEFAULT_STEPS for three views or more."""
+        if self.steps is not None:
+            return self.steps
+        if views <= 2:
+            return 0
+        return 1_000_000 if self.seconds is not None else DEFAULT_STEPS
+
+    def plan(self, extent: float, views: int) -> FitPlan:
         """The shared loop's plan for a scene of `extent` (3DGS's camera extent, scaling the position rate)."""
         base = {
             "means": self.means_lr * extent,
@@ -135,12 +160,10 @@ class OptimizeConfig:
         }
         fitted = {t for p in self.parameters for t in PARAMETERS[p]}
         rates = {k: r * self.lr_scale for k, r in base.items() if k in fitted}
-        every = None
-        if self.sh_degree_share is not None and "sh" in self.parameters:
-            every = max(1, round(self.sh_degree_share * self.steps))
+        steps = self.steps_for(views)
         return FitPlan(
             name="optimize",
-            steps=self.steps,
+            steps=steps,
             rates=rates,
             views_per_step=self.views_per_step,
             seed=self.seed,
@@ -150,9 +173,13 @@ class OptimizeConfig:
             normal_weight=self.normal_weight,
             normal_from=self.normal_from,
             means_final_rate=self.means_lr_final * extent * self.lr_scale if "means" in fitted else None,
-            sh_degree_every=every,
-            prune_every=self.steps // (self.prunings + 1) if self.prunings and "opacities" in self.parameters else None,
+            sh_degree_share=self.sh_degree_share if "sh" in self.parameters else None,
+            prune_every=steps // (self.prunings + 1) if self.prunings and "opacities" in self.parameters else None,
             prune_opacity=self.prune_opacity,
+            levels=self.levels,
+            densify=self.densify,
+            extent=extent,
+            seconds=self.seconds,
         )
 
 
@@ -165,7 +192,7 @@ def scene_extent(cameras: Cameras) -> float:
 
 
 def optimize_on_views(
-    gaussians: Gaussians,  # [N] unbatched
+    gaussians: Gaussians | None,  # [N] unbatched: the network's surfels (None: none, for a start of points)
     cameras: Cameras,  # [V] the context views, K in pixels of height x width
     images: Tensor,  # [V, 3, H, W] in [0, 1]
     width: int,
@@ -176,25 +203,37 @@ def optimize_on_views(
     alpha_threshold: float | None = 0.001,
     backend: str = "auto",
     progress: bool = False,
+    monitor=None,
 ) -> tuple[Gaussians, dict[str, float]]:
-    """The surfels optimized on the photos and the fit's figures: those of the refinement
-    (`fit.fit_on_views`) and "surfels_before", "surfels_after" (faint ones pruned), "extent".
-    `backend`: the renderer ("auto": the one `render` picks for the surfels' device)."""
+    """The surfels optimized on the photos and the fit's figures: those of the loop
+    (`fit.fit_on_views`), the start's (`starts.make_start`: "start", "start_surfels", "points") and
+    "surfels_before" (the network's), "surfels_after", "extent".
+    `backend`: the renderer ("auto": the one `render` picks for the surfels' device); `monitor`: see
+    `fit.fit_on_views` (held-out scores along the fit)."""
     config = config or OptimizeConfig()
     extent = scene_extent(cameras)
+    start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree)
     fitted, stats = fit_on_views(
-        gaussians,
+        start,
         cameras,
         images,
         width,
         height,
-        config.plan(extent),
+        config.plan(extent, len(cameras)),
         mode=mode,
         alpha_threshold=alpha_threshold,
         backend=backend,
         progress=progress,
+        monitor=monitor,
     )
-    stats.update({"surfels_before": len(gaussians), "surfels_after": len(fitted), "extent": extent})
+    stats.update(start_figures)
+    stats.update(
+        {
+            "surfels_before": len(gaussians) if gaussians is not None else 0,
+            "surfels_after": len(fitted),
+            "extent": extent,
+        }
+    )
     return fitted, stats
 
 

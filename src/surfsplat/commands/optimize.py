@@ -1,7 +1,7 @@
 """`surfsplat optimize OUTPUT_DIR`: the per-scene optimization of a reconstruction saved earlier.
 
     surfsplat reconstruct --images photos/ --cameras cams.json --out out/ --formats ply
-    surfsplat optimize out/ --optimize-steps 100 --out out_optimized/
+    surfsplat optimize out/ --optimize-seconds 300 --out out_optimized/
 
 It reads what `reconstruct` saved (surfels.ply, cameras.json, reconstruction.json and the context
 photos it names), optimizes every surfel on those photos (`surfsplat.capture.OptimizeConfig`) and
@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..capture.optimize import SAVED_STEPS
 from ..export.flow import FORMATS
 from ..utils.checks import SurfSplatInputError, check_output_dir
 from .export import print_written
@@ -33,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-progress", action="store_true")
     add_device(parser, "the optimization, bake and renders")
-    add_optimize_arguments(parser, steps=SAVED_STEPS)
+    add_optimize_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.folder.is_dir():
         raise FileNotFoundError(f"{args.folder}: no such reconstruction folder")
-    if args.optimize_steps < 1:
+    if args.optimize_steps is not None and args.optimize_steps < 1:
         raise SurfSplatInputError(f"--optimize-steps: expected at least 1 step, got {args.optimize_steps}")
     out = args.out if args.out is not None else args.folder.with_name(args.folder.name + "_optimized")
     check_output_dir(out, "--out", inputs=[args.folder])

@@ -106,21 +106,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_optimize_arguments(group)
 
 
-def add_optimize_arguments(group, steps: int | None = None) -> None:
-    """--optimize-steps and --optimize-scale: the per-scene optimization (reconstruct, and optimize
-    with its own default `steps`)."""
+def add_optimize_arguments(group) -> None:
+    """--optimize-steps, --optimize-seconds, --optimize-start and --optimize-scale: the per-scene
+    optimization (reconstruct, and optimize)."""
     from ..capture import OptimizeConfig
+    from ..capture.optimize import DEFAULT_STEPS
+    from ..capture.starts import START_KINDS, StartConfig
 
     optimize = OptimizeConfig()
-    steps = optimize.steps if steps is None else steps
     group.add_argument(
         "--optimize-steps",
         type=int,
-        default=steps,
+        default=None,
         metavar="N",
-        help="steps optimizing every surfel (positions, rotations, sizes, opacities, colours) on the context "
-        f"views, {optimize.views_per_step} views each; replaces the refinement (default {steps}"
-        + (": none)" if steps == 0 else ")"),
+        help="steps of the per-scene optimization (every surfel's position, rotation, size, opacity and colour "
+        "fitted to the context photos, the surfels grown and pruned as 3DGS does; it replaces the refinement); "
+        f"0: none (the network's pass and the refinement alone); default {DEFAULT_STEPS} for three context "
+        "views or more, none for two",
+    )
+    group.add_argument(
+        "--optimize-seconds",
+        type=float,
+        default=None,
+        metavar="S",
+        help="a time budget for the optimization instead of a step count: it runs S seconds, its schedules "
+        "(resolution, rates, growth) following the time spent",
+    )
+    group.add_argument(
+        "--optimize-start",
+        choices=START_KINDS,
+        default=StartConfig().kind,
+        help="what the optimization starts from: points COLMAP triangulates from the photos, the network's "
+        f"surfels, or both (default {StartConfig().kind})",
     )
     group.add_argument(
         "--optimize-scale",
@@ -132,10 +149,17 @@ def add_optimize_arguments(group, steps: int | None = None) -> None:
 
 
 def optimize_from_args(args: argparse.Namespace):
-    """The OptimizeConfig of --optimize-steps / --optimize-scale."""
+    """The OptimizeConfig of the --optimize-* flags."""
     from ..capture import OptimizeConfig
 
-    return dataclasses.replace(OptimizeConfig(), steps=args.optimize_steps, scale=args.optimize_scale)
+    config = OptimizeConfig()
+    return dataclasses.replace(
+        config,
+        steps=args.optimize_steps,
+        seconds=args.optimize_seconds,
+        scale=args.optimize_scale,
+        start=dataclasses.replace(config.start, kind=args.optimize_start),
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -12,7 +12,6 @@ torch, so it runs on the GPU and inside a loss.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
@@ -58,9 +57,26 @@ def _gaussian_filter_valid(maps: Tensor, taps: Tensor) -> Tensor:
     scikit-image filters with padding and then crops r = (win_size - 1) / 2 pixels off the SSIM
     map; with win_size 11 and sigma 1.5 the filter radius is also 5, so no kept pixel ever sees
     the padding and an unpadded ("valid") convolution gives the same numbers for less work.
+
+    Each pass is one product with a banded matrix (the taps on its diagonals) rather than a
+    convolution: one-channel 11-tap convolutions run far below the machine's speed on a CPU (a
+    fit's D-SSIM term at 368x496 took 0.86 s forward and backward as conv2d, 0.10 s as matrix
+    products, measured side by side), and a matrix product's backward is two more of them.
     """
-    vertical = F.conv2d(maps, taps.view(1, 1, -1, 1))
-    return F.conv2d(vertical, taps.view(1, 1, 1, -1))
+    height, width = maps.shape[-2:]
+    rows = _band(height, taps)  # [H - 2r, H]
+    cols = _band(width, taps)  # [W - 2r, W]
+    return rows @ maps @ cols.T
+
+
+def _band(size: int, taps: Tensor) -> Tensor:
+    """[size - len(taps) + 1, size]: row i holds the taps at columns i .. i + len(taps) - 1."""
+    n = len(taps)
+    out = torch.zeros(size - n + 1, size, dtype=taps.dtype, device=taps.device)
+    index = torch.arange(size - n + 1, device=taps.device)
+    for k in range(n):
+        out[index, index + k] = taps[k]
+    return out
 
 
 def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tensor:

@@ -33,10 +33,24 @@ def optimize_scene(
     `optimize_stats`, `seconds["optimize"]`, and, with held-out views, their figures and renders
     before the fit in `holdout.before` / `holdout.before_renders` and after it in `holdout`."""
     held = scene.holdout
+    curve: list[dict] = []
+    monitor = None
     if held is not None:
         out = scene.score_holdout()
         held.before = held.scores()
         held.before_renders = out.color.clamp(0, 1)
+
+        def monitor(step: int, seconds: float, surfels) -> None:
+            """The held-out PSNR along the fit (its time is not the fit's), for the report's curve."""
+            from ..metrics import psnr
+            from ..render import render
+
+            colour = render(
+                surfels, held.cameras, scene.width, scene.height, mode=scene.mode, alpha_threshold=scene.alpha_threshold
+            ).color
+            value = psnr(colour.clamp(0, 1), held.images.to(colour)).mean()
+            curve.append({"step": step, "seconds": seconds, "surfels": len(surfels), "psnr": float(value)})
+
     tick = time.perf_counter()
     scene.gaussians, scene.optimize_stats = optimize_on_views(
         scene.gaussians,
@@ -49,7 +63,10 @@ def optimize_scene(
         alpha_threshold=scene.alpha_threshold,
         backend=backend,
         progress=progress,
+        monitor=monitor,
     )
+    if curve:
+        scene.optimize_stats["held_out_curve"] = curve
     scene.seconds["optimize"] = time.perf_counter() - tick
     if held is not None:
         scene.score_holdout()
@@ -59,8 +76,9 @@ def optimize_scene(
 def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
     """The scene `Scene.save` wrote in `folder` (surfels.ply, cameras.json, reconstruction.json) and its
     context photos at the working size ([V, 3, height, width]), read from the files reconstruction.json
-    names and resized as `reconstruct` resized them. Held-out views are not saved with their cameras, so
-    the scene comes back without them."""
+    names and resized as `reconstruct` resized them. Where the reconstruction held views out (its
+    capture/held_out_cameras.json and the photos reconstruction.json names), they come back as the
+    scene's `holdout`, to be scored again and never fitted."""
     from ..data.cameras import load_cameras
     from ..data.images import read_image
     from ..data.transforms import rescale_and_crop
@@ -83,23 +101,37 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         raise SurfSplatInputError(
             f"{cameras_file}: cameras of {cams.width}x{cams.height}, the scene is {width}x{height}"
         )
-    photos = []
-    for source in summary["images"]:
+
+    def photo(source: str, what: str) -> Tensor:
         path = Path(source)
         if not path.is_absolute() and not path.is_file():
             path = folder / path
         if not path.is_file():
             raise SurfSplatInputError(
-                f"{summary_file}: context photo {source!r} not found (the optimization fits the photos it was made from)"
+                f"{summary_file}: {what} photo {source!r} not found (the optimization fits and scores the photos "
+                "the reconstruction was made from)"
             )
         rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))  # as reconstruct composites them
-        stack = rgb[None].float()
-        identity = torch.eye(3)[None]
-        resized, _, _ = rescale_and_crop(stack, identity, (height, width))
-        photos.append(resized[0].clamp(0, 1))
+        resized, _, _ = rescale_and_crop(rgb[None].float(), torch.eye(3)[None], (height, width))
+        return resized[0].clamp(0, 1)
+
+    photos = [photo(source, "context") for source in summary["images"]]
     if len(photos) != len(cams.names):
         raise SurfSplatInputError(f"{summary_file}: {len(photos)} photos for {len(cams.names)} cameras")
     gaussians = load_ply(ply)
+    holdout = None
+    held = (summary.get("capture") or {}).get("held_out") or {}
+    held_cameras = folder / "capture" / "held_out_cameras.json"
+    if held.get("sources") and held_cameras.is_file():
+        from .scene import HeldOut
+
+        held_set = load_cameras(held_cameras)
+        holdout = HeldOut(
+            list(held_set.names),
+            held_set.cameras.to(torch.float32),
+            torch.stack([photo(source, "held-out") for source in held["sources"]]),
+            sources=list(held["sources"]),
+        )
     scene = Scene(
         gaussians=gaussians,
         cameras=cams.cameras.to(torch.float32),
@@ -117,6 +149,7 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         passes=[list(cams.names)],
         seconds={},
         compact_level=summary.get("compact_level"),
+        holdout=holdout,
     )
     return scene, torch.stack(photos)
 

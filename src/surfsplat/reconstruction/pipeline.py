@@ -33,6 +33,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import torch
@@ -245,7 +246,8 @@ def reconstruct(
     scene_cameras = Cameras(ctx_c2w.to(device, torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
     # the optimization frees what the refinement fits and more: where it runs, the refinement does not
-    if fusion is not None and capture.refine.steps_for(len(context)) > 0 and capture.optimize.steps == 0:
+    optimizing = capture.optimize.steps_for(len(context)) > 0
+    if fusion is not None and capture.refine.steps_for(len(context)) > 0 and not optimizing:
         tick = time.perf_counter()
         images_c, _ = network_views(context)
         gaussians, refine_stats = refine_on_views(
@@ -268,6 +270,8 @@ def reconstruct(
     if held:
         images_h, K_h = network_views(held)
         holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(device, torch.float32), K_h), images_h)
+        files = [views.sources[i] for i in held]
+        holdout.sources = [str(f) for f in files] if all(isinstance(f, (str, Path)) for f in files) else []
     scene = Scene(
         gaussians=gaussians,
         cameras=scene_cameras,
@@ -297,7 +301,7 @@ def reconstruct(
         scale_multipliers=multipliers,
         multiplier_range=model.cfg.adapter.scale_multiplier_range if multipliers is not None else None,
     )
-    if capture.optimize.steps > 0:  # scores the held-out views before and after it
+    if optimizing:  # scores the held-out views before and after it
         from .optimize import optimize_scene
 
         optimize_scene(scene, network_views(context)[0], capture.optimize, progress=progress)

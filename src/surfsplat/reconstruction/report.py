@@ -33,7 +33,7 @@ def held_out_line(scores: dict, views: int, lpips_note: str | None) -> str:
 
 def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:
     """Write capture.json, capture/ (cameras from above, held-out renders) and capture.html."""
-    from ..export.figures import write_text
+    from ..export.figures import line_chart, write_text
     from ..export.images import write_png
     from ..export.report import HtmlReport
     from ..poses.report import top_view_svg
@@ -73,24 +73,46 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
     )
     h = scene.holdout
     if h is not None:
+        from ..data.cameras import save_cameras
+
+        # `surfsplat optimize` of this folder scores the same views again from these
+        written["held-out cameras"] = save_cameras(
+            out / "capture" / "held_out_cameras.json", h.cameras, scene.width, scene.height, list(h.names)
+        )
         report.heading("Held-out views: never a context view, rendered from the fused scene")
         out_h = scene.render(h.cameras)
         for i, name in enumerate(h.names):  # one row a view: photo, [before the optimization,] render
-            photo = write_png(out / "capture" / f"{name}_photo.png", h.images[i])
+            stem = Path(name).stem  # IMG_4026.JPG -> capture/IMG_4026_photo.png
+            photo = write_png(out / "capture" / f"{stem}_photo.png", h.images[i])
             figures = [(str(photo.relative_to(out)), f"{name}: photo")]
             after = ""
             if h.before_renders is not None:
-                early = write_png(out / "capture" / f"{name}_render_before.png", h.before_renders[i])
+                early = write_png(out / "capture" / f"{stem}_render_before.png", h.before_renders[i])
                 caption = f"{name}: before the optimization, {h.before['psnr'][i]:.2f} dB"
                 figures.append((str(early.relative_to(out)), caption))
                 after = " after the optimization"
-            render = write_png(out / "capture" / f"{name}_render.png", out_h.color[i].clamp(0, 1))
+            render = write_png(out / "capture" / f"{stem}_render.png", out_h.color[i].clamp(0, 1))
             caption = f"{name}: render{after}, {h.psnr[i]:.2f} dB, coverage {h.coverage[i]:.2f}"
             figures.append((str(render.relative_to(out)), caption))
             report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
         report.paragraph(held_out_line(h.scores(), len(h.names), h.lpips_note))
         if h.before is not None:
             report.paragraph("Before the per-scene optimization: " + held_out_line(h.before, len(h.names), None))
+        curve = scene.optimize_stats.get("held_out_curve") if scene.optimize_stats else None
+        if curve:
+            chart = line_chart(
+                {"held-out PSNR": [(p["seconds"], p["psnr"]) for p in curve]},
+                title="Held-out PSNR (dB) during the per-scene optimization",
+                x_label="seconds of the optimization",
+                y_label="dB",
+            )
+            written["optimization curve"] = write_text(out / "capture" / "optimize_curve.svg", chart)
+            report.figure(
+                "capture/optimize_curve.svg",
+                f"Held-out PSNR against the optimization's seconds: {curve[0]['psnr']:.2f} dB at its start "
+                f"({curve[0]['surfels']:,} surfels), {curve[-1]['psnr']:.2f} dB after {curve[-1]['seconds']:.0f} s "
+                f"and {curve[-1]['step']:,} steps ({curve[-1]['surfels']:,} surfels)",
+            )
         written["held-out renders"] = out / "capture"
     if scene.video is not None:
         rows = [

@@ -39,6 +39,7 @@ class HeldOut:
     lpips_note: str | None = None  # "LPIPS unavailable: <reason>" when it could not be computed
     before: dict | None = None  # the figures above before the per-scene optimization (None: not optimized)
     before_renders: Tensor | None = None  # [H, 3, height, width] the renders before the optimization
+    sources: list = field(default_factory=list)  # the photos' files (paths; empty for arrays), to score them again
 
     def scores(self) -> dict:
         """Per-view and mean PSNR, SSIM, LPIPS and coverage."""
@@ -59,6 +60,8 @@ class HeldOut:
 
     def to_dict(self) -> dict:
         out = {"names": self.names, **self.scores()}
+        if self.sources:
+            out["sources"] = [str(s) for s in self.sources]
         if self.lpips_note is not None:
             out["lpips_note"] = self.lpips_note
         if self.before is not None:
