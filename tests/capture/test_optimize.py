@@ -281,7 +281,7 @@ def test_a_saved_reconstruction_is_optimized_and_reads_back(five_views, tiny_che
     command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "4", "--optimize-start", "network"]
     assert main([*command, "--raw-3dgs", "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    assert "optimized on the context views: 4 steps at 32x32" in printed, printed
+    assert "optimized on the context views from the network's surfels: 4 steps at 32x32" in printed, printed
     from surfsplat.reconstruction import load_reconstruction
 
     before, photos = load_reconstruction(tmp_path / "first")

@@ -237,12 +237,21 @@ def optimize_on_views(
     return fitted, stats
 
 
-def optimize_summary(stats: dict[str, float]) -> str:
+def optimize_summary(stats: dict) -> str:
     """One line for the reconstruct summary and the capture report, from `optimize_on_views`'s figures."""
     before, after = (-10 * math.log10(max(stats[k], 1e-12)) for k in ("mse_before", "mse_after"))
+    start = stats.get("start", "network")
+    origin = {
+        "points": f"{int(stats.get('points', 0)):,} COLMAP points",
+        "network": "the network's surfels",
+        "both": f"{int(stats.get('points', 0)):,} COLMAP points and the network's surfels",
+    }.get(start, start)
+    if stats.get("start_reason"):
+        origin += f" ({stats['start_reason']})"
     line = (
-        f"optimized on the context views: {int(stats['steps'])} steps at {int(stats['width'])}x{int(stats['height'])}"
-        f" in {stats['seconds']:.1f} s, colour PSNR there {before:.2f} -> {after:.2f} dB, "
-        f"{int(stats['surfels_before']):,} -> {int(stats['surfels_after']):,} surfels"
+        f"optimized on the context views from {origin}: {int(stats['steps'])} steps at "
+        f"{int(stats['width'])}x{int(stats['height'])} in {stats['seconds']:.1f} s, colour PSNR there "
+        f"{before:.2f} -> {after:.2f} dB, {int(stats.get('start_surfels', stats['surfels_before'])):,} -> "
+        f"{int(stats['surfels_after']):,} surfels"
     )
     return line + ("" if stats["kept"] else " (not kept: the fit made it worse)")

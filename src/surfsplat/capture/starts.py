@@ -20,6 +20,8 @@ reconstruction records which it used.
   kept surfel's tangent scales grown by sqrt(N / budget) so the thinned set covers what the whole
   did.
 * "both": the union of the two.
+* "auto" (the default): the points, unless COLMAP finds fewer than `min_points` (photos too small or
+  too plain for SIFT), then the network's surfels; the figures say which and why.
 
 Why pycolmap and not our own matcher: COLMAP's SIFT, matching and multi-view triangulation (with
 its track merging, completion and reprojection filter) are what every per-scene method starts from.
@@ -46,15 +48,18 @@ from ..utils.checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
 
-StartKind = Literal["network", "points", "both"]
-START_KINDS = ("network", "points", "both")
+StartKind = Literal["auto", "network", "points", "both"]
+START_KINDS = ("auto", "network", "points", "both")
 
 
 @dataclass(frozen=True)
 class StartConfig:
     """The optimization's start."""
 
-    kind: StartKind = "points"  # "network", "points" (COLMAP's triangulated points) or "both"
+    # "points" (COLMAP's triangulated points), "network", "both", or "auto": the points where COLMAP
+    # triangulates at least `min_points` of them, else the network's surfels (and the reason is recorded)
+    kind: StartKind = "auto"
+    min_points: int = 100  # "auto": fewer points than this start from the network instead
     budget: int = 30_000  # "network"/"both": the network's surfels kept at most
     initial_opacity: float = 0.1  # "points": every new surfel's opacity (3DGS, 2DGS)
     max_features: int = 4096  # SIFT features per photo
@@ -266,16 +271,32 @@ def make_start(
     cameras: Cameras,  # [V]
     sh_degree: int = 3,
 ) -> tuple[Gaussians, dict]:
-    """The start `config` names, with its figures {"start", "start_surfels", "points", "start_seconds"}."""
+    """The start `config` names, with its figures {"start" (the kind used), "start_surfels", "points",
+    "start_seconds", and "start_reason" where "auto" fell back to the network's surfels}."""
     tick = time.perf_counter()
-    parts, figures = [], {"start": config.kind}
+    kind = config.kind
+    parts, figures = [], {}
     device = images.device
-    if config.kind in ("points", "both"):
-        points = triangulate(images, cameras, config)
-        parts.append(points_to_surfels(points, config.initial_opacity, sh_degree, config.seed).to(device))
-        figures["points"] = len(points.xyz)
-        figures["points_seconds"] = points.seconds
-    if config.kind in ("network", "both"):
+    if kind in ("points", "both", "auto"):
+        try:
+            points = triangulate(images, cameras, config)
+        except SurfSplatInputError as error:
+            if kind != "auto" or network is None:
+                raise
+            points, figures["start_reason"] = None, str(error)
+        if points is not None and kind == "auto" and len(points.xyz) < config.min_points and network is not None:
+            figures["start_reason"] = f"COLMAP triangulated {len(points.xyz)} points, fewer than {config.min_points}"
+            points = None
+        if points is not None:
+            parts.append(points_to_surfels(points, config.initial_opacity, sh_degree, config.seed).to(device))
+            figures["points"] = len(points.xyz)
+            figures["points_seconds"] = points.seconds
+        if kind == "auto":
+            kind = "points" if points is not None else "network"
+            if points is None:
+                logger.warning("optimize: starting from the network's surfels (%s)", figures["start_reason"])
+    figures["start"] = kind
+    if kind in ("network", "both"):
         if network is None:
             raise SurfSplatInputError(f"optimize start {config.kind!r}: there are no network surfels to start from")
         parts.append(with_sh_degree(thin(network.detach(), config.budget, config.seed), sh_degree).to(device))
