@@ -13,6 +13,10 @@ Pipeline for one camera:
    front-to-back alpha compositing with the early-termination rule of 3DGS/2DGS, carried across
    depth blocks. Each block's backward pass is written out by hand and recomputes the block from
    its small inputs, so peak memory is bounded by one block at any resolution.
+4. Depth distortion (surfels, only when asked): each block's weights again, in plain autograd ops,
+   with two running moments carried across depth blocks (`_distortion_block`); it is the reference
+   the other backends' hand-written gradients are checked against, and activation checkpointing
+   keeps its memory to one block too.
 """
 
 from __future__ import annotations

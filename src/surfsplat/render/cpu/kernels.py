@@ -22,6 +22,11 @@ shaped for a CPU core:
   gradient row, summed per SIMD lane and then over the lanes in a fixed order (no atomics, no
   per-thread buffers), and the next kernel sums a Gaussian's rows in a fixed order: gradients are
   bit-identical for any number of threads and any scheduling.
+* Depth distortion (2DGS Eq. 13, surfels, when asked): `_blend` also carries two runs per pixel, the
+  running moment sum w z and the distortion, and `_unblend_lane` adds its dL/dw to each weight's
+  gradient (the alpha chain rule does the rest) and its dL/dz to the centre depth's. The switch is
+  an argument that is None or an array: numba compiles one variant per type and drops the branch
+  from the None one, so rendering without it runs the kernels it ran before.
 * `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
