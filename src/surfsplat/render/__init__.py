@@ -102,11 +102,11 @@ def render(
         from .gsplat_backend import render_gsplat
 
         conventions = settings if isinstance(settings, RenderConventions) else None
-        maps = render_gsplat(gaussians, cameras, width, height, mode, conventions, distortion=distortion)
+        maps = render_gsplat(gaussians, cameras, width, height, mode, conventions, distortion)
     elif backend == "cpu":
         from .cpu import render_cpu
 
-        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion=distortion)
+        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
     else:
         maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion)
     color, alpha, depth, normal = maps[:4]
