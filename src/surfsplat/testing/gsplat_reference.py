@@ -189,8 +189,18 @@ def _tiles(means2d, radii, depths, width, height, full_coverage):
     return offsets, flatten_ids
 
 
-def render_2dgs(g, w2c: Tensor, K: Tensor, campos: Tensor, width: int, height: int, full_coverage: bool = True):
-    """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals."""
+def render_2dgs(
+    g,
+    w2c: Tensor,
+    K: Tensor,
+    campos: Tensor,
+    width: int,
+    height: int,
+    full_coverage: bool = True,
+    distortion: bool = False,
+):
+    """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals, and with
+    `distortion` the depth distortion of gsplat's kernel (`distortion_2dgs`) [1, 1, H, W]."""
     # The third scale enters only gsplat's normal (R diag(s) e3): 1 gives unit normals.
     scales = torch.cat((g.scales, torch.ones_like(g.scales[:, :1])), -1)
     radii, means2d, depths, ray_transforms, normals = ref2d._fully_fused_projection_2dgs(
@@ -214,13 +224,18 @@ def render_2dgs(g, w2c: Tensor, K: Tensor, campos: Tensor, width: int, height: i
             flat,
             batch_per_iter=1 << 20,
         )
+        if distortion:
+            distort = distortion_2dgs(
+                means2d, ray_transforms, features, g.opacities[None], width, height, TILE, offsets, flat
+            )
     normal_world = normal[0] @ w2c[:3, :3].to(normal)  # rows n_cam^T R_cw = (R_cw^T n_cam)^T
-    return (
+    maps = (
         color[0, ..., :3].permute(2, 0, 1)[None],
         alpha[0].permute(2, 0, 1)[None],
         color[0, ..., 3:4].permute(2, 0, 1)[None],
         normal_world.permute(2, 0, 1)[None],
     )
+    return (*maps, distort[0].permute(2, 0, 1)[None]) if distortion else maps
 
 
 def render_3dgs(
