@@ -912,7 +912,7 @@ def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
     g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
     if distortion is not None:
         # D = 2 sum_i w_i (z_i A_i - M_i) is a function of the weights and depths alone, so its
-        # dL/dw joins g_w and the chain rule above carries it to the alphas. With the ray's totals
+        # dL/dw joins g_w and the chain rule that follows carries it to the alphas. With the ray's totals
         # W = sum w, M = sum w z and the moments A', M' up to and including i (A' = 1 - T behind):
         # dD/dw_i = 2 (2 (z_i A'_i - M'_i) + M - z_i W),  dD/dz_i = 2 w_i (2 A'_i - w_i - W).
         g_dist = state[b, B_DIST_G * LANES + j]
