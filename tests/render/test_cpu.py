@@ -269,16 +269,29 @@ def test_float32_kernels_compute_in_float32():
     )
     last, one = np.zeros((16, lanes), dtype=np.int32), (f32(1.0),) * 6
     box = (0, 0, 1, 0, 3, 0, 3, rows)
+    # Without and with the depth distortion (its variants are compiled for None and for an array).
+    fwd_runs = (kernels.FORWARD_RUNS, kernels.FORWARD_RUNS + kernels.DISTORTION_RUNS)
+    bwd_runs = (kernels.BACKWARD_RUNS, kernels.BACKWARD_RUNS + kernels.DISTORTION_BACKWARD_RUNS)
+    dist = (None, np.zeros((2, 1, 1), f32))
     calls = [
         (kernels._box_alpha, [(surfel, g, *box, 0, lane, work) for surfel in (True, False)]),
-        (kernels._blend, [(np.zeros((16, kernels.FORWARD_RUNS * lanes), f32), last, work, *box, np.int32(1), *one)]),
+        (
+            kernels._blend,
+            [
+                (np.zeros((16, runs * lanes), f32), last, work, *box, np.int32(1), *one, f32(2.0), d)
+                for runs, d in zip(fwd_runs, dist)
+            ],
+        ),
         (
             kernels._unblend,
             [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, *box, np.int32(0), *one)],
         ),
         (
             kernels._unblend_surfel,
-            [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, g, *box, np.int32(0), lane, *one)],
+            [
+                (np.zeros((16, runs * lanes), f32), last, work, acc, g, *box, np.int32(0), lane, *one, d)
+                for runs, d in zip(bwd_runs, dist)
+            ],
         ),
         (kernels._ewa_grads, [(g, *box, np.int32(0), lane, work, acc)]),
         (kernels._sum_lanes, [(acc, np.zeros(kernels.GRAD_SIZE, f32))]),

@@ -72,6 +72,57 @@ def test_gsplat_backend_matches_the_torch_backend(cpu_gsplat, mode, support):
         assert (grads[k] - ref_grads[k]).norm() <= 2e-3 * ref_grads[k].norm() + 1e-6, k
 
 
+def test_gsplat_backend_distortion_matches_the_torch_backend(cpu_gsplat):
+    """Depth distortion: gsplat's kernel (`distloss=True`, stood in by its formula on gsplat's reference
+    pairs and weights) against the torch reference, forward and gradients. Both take each surfel's
+    centre depth, so unlike the depth map no difference is left by design; two cameras in one call."""
+    g, cams = scene(600, 4, torch.float32, 3)
+    W, H = 64, 48
+    cams = with_intrinsics(cams, W, H)
+    c2w = cams.c2w.repeat(2, 1, 1)
+    c2w[1, :3, 3] += torch.tensor([0.1, -0.05, 0.0])
+    cams = Cameras(c2w, cams.K.repeat(2, 1, 1))
+    weight = torch.rand(2, 1, H, W, generator=torch.Generator().manual_seed(6))
+    results = []
+    for backend in ("gsplat", "torch"):
+        leaves = _leaves(g)
+        gs = Gaussians(**leaves)
+        if backend == "gsplat":
+            distortion = render_gsplat(gs, cams, W, H, "surfel", distortion=True)[4]
+        else:
+            distortion = render(gs, cams, W, H, backend="torch", distortion=True).distortion
+        (distortion * weight).sum().backward()
+        results.append((distortion.detach(), {k: v.grad for k, v in leaves.items() if k != "sh"}))
+    (ours, grads), (reference, ref_grads) = results
+    assert float(reference.max()) > 0.3
+    assert (ours - reference).abs().max() < 1e-4 * float(reference.max())
+    for k in grads:
+        assert float(ref_grads[k].norm()) > 0, k
+        assert (grads[k] - ref_grads[k]).norm() <= 2e-3 * ref_grads[k].norm(), k
+
+
+def test_gsplat_backend_asks_gsplat_for_the_distortion_only_when_asked(cpu_gsplat, monkeypatch):
+    from gsplat.cuda import _wrapper
+
+    asked = []
+    original = _wrapper.rasterize_to_pixels_2dgs
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs.get("distloss", False))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(_wrapper, "rasterize_to_pixels_2dgs", recorded)
+    g, cams = scene(200, 3, torch.float32, 0)
+    cams = with_intrinsics(cams, 32, 32)
+    plain = render_gsplat(g, cams, 32, 32, "surfel")
+    with_distortion = render_gsplat(g, cams, 32, 32, "surfel", distortion=True)
+    assert asked == [False, True]
+    assert len(plain) == 4 and len(with_distortion) == 5
+    for a, b in zip(plain, with_distortion):
+        assert torch.equal(a, b)
+    assert float(with_distortion[4].max()) > 0
+
+
 def test_gsplat_backend_fits_colours_opacities_and_sizes_over_many_cameras_as_the_cpu_backend(cpu_gsplat):
     # A fit as the capture refinement runs it: several cameras a call, forced alpha blending, only
     # SH, opacities and scales differentiated, a few Adam steps. Through gsplat's references the
@@ -256,7 +307,7 @@ class _DeviceKernels:
         return per_camera[:, None, None].expand(c, height, width, -1), alpha.expand(c, height, width, 1)
 
     @classmethod
-    def rasterize_to_pixels_2dgs(cls, means2d, transforms, colors, opacities, normals, densify, W, H, *_):
+    def rasterize_to_pixels_2dgs(cls, means2d, transforms, colors, opacities, normals, densify, W, H, *_, **__):
         geometry = means2d.sum((-1, -2)) + transforms.sum((-1, -2, -3)) + densify.sum((-1, -2))
         maps, alpha = cls._maps(geometry, colors, opacities, W, H)
         normal = normals.sum(-2)[:, None, None].expand(-1, H, W, -1)
@@ -284,8 +335,12 @@ def test_render_through_the_gsplat_backend_has_no_host_synchronisation(monkeypat
         leaves = {k: standin(v, requires_grad=True) for k, v in _leaves(g).items()}
         gaussians, on_device = Gaussians(**leaves), cams.to(dev.device)  # inputs checked, cameras uploaded
         inputs = len(dev.syncs)
-        out = render(gaussians, on_device, 40, 32, mode=mode, backend="gsplat", alpha_threshold=0.1)
+        distortion = mode == "surfel"
+        out = render(
+            gaussians, on_device, 40, 32, mode=mode, backend="gsplat", alpha_threshold=0.1, distortion=distortion
+        )
         loss = out.color.sum() + out.alpha.sum() + out.depth.sum() + out.normal.sum()
+        loss = loss + (out.distortion.sum() if distortion else 0)
         loss.backward()
         grads = [leaf.grad for leaf in leaves.values()]
         assert all(grad is not None and grad.device == dev.device for grad in grads)

@@ -73,6 +73,22 @@ def test_surfel_mode_is_gsplats_2dgs(case, backend, dtype):
     assert (depth - ref_center_depth).abs().max() < extent * float(ref_alpha.max()) + tol
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_depth_distortion_is_gsplats(backend, dtype):
+    """2DGS's depth distortion against gsplat's kernel's (`distloss=True`), computed on gsplat's
+    reference pairs and weights: same centre depths, same linear distance and factor 2, so no
+    difference is left by design (gsplat's pure-PyTorch reference itself has no distortion)."""
+    n, seed, degree, (W, H) = CASES[1]
+    g, cams = scene(n, seed, dtype, degree)
+    cams = with_intrinsics(cams, W, H)
+    settings = (CpuRenderSettings if backend == "cpu" else TorchRenderSettings)(**ALIGNED)
+    out = render(g, cams, W, H, backend=backend, alpha_threshold=None, settings=settings, distortion=True)
+    reference = render_2dgs(g, cams.w2c[0], cams.K[0], cams.centers[0], W, H, distortion=True)[4]
+    assert float(reference.max()) > 0.3
+    assert (out.distortion - reference).abs().max() < tolerance(dtype) * float(reference.max())
+
+
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
 def test_surfel_depth_equals_gsplats_for_fronto_parallel_surfels(backend):
     g, cams = scene(400, 3, torch.float64, 1, fronto=True)

@@ -18,8 +18,8 @@ distance of a context camera from their mean centre. 3DGS runs 30,000 steps of o
 affords hundreds, so the schedules scale to the steps run: the SH degree is raised every 1/30 of
 them (3DGS: every 1,000 of 30,000), the depth-normal term joins after 7/30 (2DGS: step 7,000).
 
-Not here: 2DGS's depth-distortion term needs each ray's pairwise depth spread accumulated by the
-rasterizer, which none of the backends computes; densification (cloning and splitting) is left
+Not here: 2DGS's depth-distortion term (every backend renders it, `render(..., distortion=True)`,
+but the fit does not use it yet); densification (cloning and splitting) is left
 out, the network's one surfel per pixel being denser than 3DGS ends with; the cameras stay fixed
 (only the torch backend differentiates them, at several times the compiled backend's cost).
 """

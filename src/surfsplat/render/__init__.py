@@ -52,6 +52,7 @@ def render(
     background: Tensor | Sequence[float] | None = None,
     alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD,
     settings: TorchRenderSettings | CpuRenderSettings | None = None,
+    distortion: bool = False,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -67,9 +68,27 @@ def render(
     settings:        TorchRenderSettings or CpuRenderSettings of the chosen backend; with "auto" the
                      settings' type picks that backend. Both carry the `RenderConventions` (low-pass
                      centre, EWA Jacobian clamp and support) that every backend, gsplat's too, follows.
-    Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
+    distortion:      also return 2DGS's depth distortion map (its Eq. 13) in `RenderOutput.distortion`
+                     [C, 1, H, W], differentiable; "surfel" mode only. Off by default: nothing else pays for it.
+    Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]
+    (and distortion [C, 1, H, W] when asked).
+
+    Depth distortion, per ray: D = sum over ordered pairs i != j of w_i w_j |z_i - z_j| (2DGS Eq. 13),
+    computed front to back from two running moments, the weights' sum A_i = 1 - T_i and M_i = sum_{j<i}
+    w_j z_j, as D = 2 sum_i w_i (z_i A_i - M_i) - 2DGS's rasterizer's scheme. The choices where the
+    field's implementations differ are gsplat's (`rasterization_2dgs(distloss=True)`, `render_distort`),
+    the maintained one, so every backend computes one function and the gsplat backend returns gsplat's
+    own map: z is each surfel's centre depth (camera z, the depth sort key, hence |z_i - z_j| is exact
+    from the moments), the distance is linear, and both orders of each pair count (gsplat's factor 2).
+    2DGS's own rasterizer instead uses the ray-splat intersection depth mapped to NDC,
+    m = f / (f - n) (1 - n / z) with n = 0.2, f = 100, and squared distances; neither is used here.
+    The map is the raw per-ray sum: no forced-alpha normalization, no background.
     """
     _validate(gaussians, cameras, width, height, mode, alpha_threshold)
+    if not isinstance(distortion, bool):
+        raise SurfSplatInputError(f"distortion: expected True or False, got {distortion!r}")
+    if distortion and mode != "surfel":
+        raise SurfSplatInputError("distortion: 2DGS's depth distortion is computed in mode 'surfel' only")
     device = gaussians.means.device
     dtype = gaussians.means.dtype
     bg = _background(background, dtype, device)
@@ -83,16 +102,19 @@ def render(
         from .gsplat_backend import render_gsplat
 
         conventions = settings if isinstance(settings, RenderConventions) else None
-        color, alpha, depth, normal = render_gsplat(gaussians, cameras, width, height, mode, conventions)
+        maps = render_gsplat(gaussians, cameras, width, height, mode, conventions, distortion)
     elif backend == "cpu":
         from .cpu import render_cpu
 
-        color, alpha, depth, normal = render_cpu(gaussians, cameras, width, height, mode, settings)
+        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
     else:
-        color, alpha, depth, normal = _render_torch_all(gaussians, cameras, width, height, mode, settings)
+        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion)
+    color, alpha, depth, normal = maps[:4]
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
     color = color + (1 - coverage) * bg[None, :, None, None]
-    return RenderOutput(color=color, alpha=alpha, depth=depth, normal=normal)
+    return RenderOutput(
+        color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+    )
 
 
 def resolve_backend(
@@ -152,8 +174,14 @@ def normalize_by_alpha(
 
 
 def _render_torch_all(
-    g: Gaussians, cameras: Cameras, width: int, height: int, mode: RenderMode, settings: TorchRenderSettings | None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    g: Gaussians,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    mode: RenderMode,
+    settings: TorchRenderSettings | None,
+    distortion: bool = False,
+) -> tuple[Tensor, ...]:
     settings = settings or TorchRenderSettings()
     rotations = g.rotations
     covariances = g.covariances if mode == "ewa" else None
@@ -175,6 +203,7 @@ def _render_torch_all(
             height,
             mode,
             settings,
+            distortion=distortion,
         )
         for c in range(len(cameras))
     ]
@@ -182,6 +211,8 @@ def _render_torch_all(
     alpha = torch.stack([o[1] for o in outs])[:, None]
     depth = torch.stack([o[2] for o in outs])[:, None]
     normal = torch.stack([o[3] for o in outs]).permute(0, 3, 1, 2)
+    if distortion:
+        return color, alpha, depth, normal, torch.stack([o[4] for o in outs])[:, None]
     return color, alpha, depth, normal
 
 

@@ -32,6 +32,10 @@ padding's zero gradient - NaN in every geometry gradient (gsplat 1.5.3; the caus
 turned non-finite at its first step on a GPU). `tests/render/test_gsplat_backend.py` fills
 uninitialised memory with NaN and proves no such channel is ever read.
 
+Depth distortion (`distortion=True`, surfels): gsplat's kernel computes it with `distloss=True` from the
+last colour channel, here the centre depth, and returns it as `render_distort`; that is the definition
+every backend computes (see `render`), so it is returned as it is.
+
 Differences that remain by design (gsplat's kernels, not configurable):
 - depth: gsplat blends a per-Gaussian value, so the "surfel" depth map is the blended centre depth
   (camera z of each surfel's centre), not the ray-splat intersection depth of the other backends;
@@ -101,9 +105,11 @@ def render_gsplat(
     height: int,
     mode: RenderMode,
     conventions: RenderConventions | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    distortion: bool = False,
+) -> tuple[Tensor, ...]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W],
-    every camera in one batched call, in the Gaussians' dtype."""
+    and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W], every camera in one batched
+    call, in the Gaussians' dtype."""
     rules = conventions or RenderConventions()
     settings = TorchRenderSettings(**{f.name: getattr(rules, f.name) for f in fields(RenderConventions)})
     dtype = g.means.dtype
@@ -150,9 +156,13 @@ def render_gsplat(
             TILE,
             offsets,
             flatten_ids,
+            distloss=distortion,  # of the last channel: the centre depth
         )
         rgbd, alpha, normal = out[0], out[1], out[2]  # [C, H, W, 4], [C, H, W, 1], [C, H, W, 3]
         color, depth_map = rgbd[..., 0:3], rgbd[..., 3:4]
+        if distortion:
+            maps = (color, alpha, depth_map, normal, out[3])  # render_distort [C, H, W, 1]
+            return tuple(t.permute(0, 3, 1, 2).to(dtype) for t in maps)
     else:
         features = torch.cat((colors, normals, depth[..., None], torch.zeros_like(depth[..., None])), dim=-1)
         maps, alpha = kernels.rasterize_to_pixels(

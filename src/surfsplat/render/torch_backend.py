@@ -13,6 +13,10 @@ Pipeline for one camera:
    front-to-back alpha compositing with the early-termination rule of 3DGS/2DGS, carried across
    depth blocks. Each block's backward pass is written out by hand and recomputes the block from
    its small inputs, so peak memory is bounded by one block at any resolution.
+4. Depth distortion (surfels, only when asked): each block's weights again, in plain autograd ops,
+   with two running moments carried across depth blocks (`_distortion_block`); it is the reference
+   the other backends' hand-written gradients are checked against, and activation checkpointing
+   keeps its memory to one block too.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+import torch.utils.checkpoint
 from torch import Tensor
 
 from ..geometry.sh import sh_to_color
@@ -544,6 +549,36 @@ class _CompositeBlock(torch.autograd.Function):
         return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None, None
 
 
+def _distortion_block(coef, depth_params, log_opacity, transmittance, moment, done, basis):
+    """One block's share of 2DGS's depth distortion, in plain autograd-tracked ops (the reference).
+
+    Recomputes the block's blending weights w_i = a_i T_i with the rules of `_block_state`, from its
+    own transmittance `transmittance` [n, P] (differentiable, unlike the `done` mask), and walks
+    front to back with two running moments, A_i = 1 - T_i (the weights in front) and M_i = sum_{j<i}
+    w_j z_j: D += 2 w_i (z_i A_i - M_i), z the centre depth. Returns the transmittance and moment
+    after the block and the block's D [n, P]. `composite` runs it under activation checkpointing, so
+    its [n, k, P] intermediates live only while one block is (re)computed.
+    """
+    n, k = log_opacity.shape
+    hx, hy, hz, rho2d = (coef.reshape(4, n * k, -1) @ basis).reshape(4, n, k, -1).unbind(0)
+    q = hx * hx + hy * hy
+    use3d = (q < rho2d * (hz * hz)).detach()
+    inv_hz = torch.where(use3d, hz, torch.ones_like(hz)).reciprocal()  # no division off the 3D branch
+    rho = torch.where(use3d, q * inv_hz * inv_hz, rho2d)
+    log_alpha = log_opacity[..., None] - 0.5 * rho
+    alpha = torch.where(log_alpha < LOG_ALPHA_MIN, 0.0, torch.exp(log_alpha).clamp_max(ALPHA_MAX))
+    one_minus = 1 - alpha
+    trans_incl = torch.cumprod(one_minus, dim=1) * transmittance[:, None, :]
+    keep = ((trans_incl >= TRANSMITTANCE_MIN) & ~done[:, None, :]).detach()
+    trans_excl = trans_incl / one_minus
+    w = torch.where(keep, alpha * trans_excl, 0.0)
+    z = depth_params[..., 1:2]  # [n, k, 1] centre depth
+    wz = w * z
+    moment_excl = moment[:, None, :] + wz.cumsum(1) - wz
+    D = 2 * (w * (z * (1 - trans_excl) - moment_excl)).sum(1)
+    return transmittance - w.sum(1), moment + wz.sum(1), D
+
+
 def composite(
     mode: RenderMode,
     proj: Projected,
@@ -551,8 +586,10 @@ def composite(
     width: int,
     height: int,
     settings: TorchRenderSettings,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Returns per-pixel (features [H, W, F], alpha [H, W], surfel depth sum [H, W]) before normalization."""
+    distortion: bool = False,
+) -> tuple[Tensor, ...]:
+    """Returns per-pixel (features [H, W, F], alpha [H, W], surfel depth sum [H, W]) before normalization,
+    and with `distortion` (surfel mode) 2DGS's depth distortion [H, W] (`_distortion_block`)."""
     tile = settings.tile_size
     P = tile * tile
     dtype = proj.features.dtype
@@ -573,6 +610,7 @@ def composite(
     tile_feats = torch.zeros(n_tiles, P, F_, dtype=dtype, device=device)
     tile_depth = torch.zeros(n_tiles, P, dtype=dtype, device=device)
     tile_trans = torch.ones(n_tiles, P, dtype=dtype, device=device)
+    tile_dist = torch.zeros(n_tiles, P, dtype=dtype, device=device)
 
     counts = bins.count
     order = torch.argsort(counts, descending=True, stable=True)
@@ -580,7 +618,7 @@ def composite(
     counts_sorted = counts[order].tolist()
     block_k_cap = max(1, min(settings.max_block_depth, settings.block_elements // P))
     i = 0
-    results: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []
+    results: list[tuple[Tensor, ...]] = []
     while i < len(order):
         k_max = counts_sorted[i]
         kb = min(k_max, block_k_cap)
@@ -595,6 +633,8 @@ def composite(
         done = torch.zeros(group.shape[0], P, dtype=torch.bool, device=device)
         feats = torch.zeros(group.shape[0], P, F_, dtype=dtype, device=device)
         depth = torch.zeros(group.shape[0], P, dtype=dtype, device=device)
+        if distortion:  # the distortion's own differentiable transmittance, running moment and sum
+            d_trans, d_moment, dist = trans, torch.zeros_like(trans), torch.zeros_like(trans)
         for k0 in range(0, k_max, kb):
             slot = k0 + torch.arange(kb, device=device)
             valid = slot[None, :] < g_count[:, None]  # [n, kb]
@@ -606,6 +646,11 @@ def composite(
             offset = (origin[:, None, :] - rows[..., -4:-2]) - rows[..., -2:]
             log_opac = torch.where(valid, rows[..., G + F_], -math.inf)
             coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset)
+            if distortion:
+                d_trans, d_moment, dist_blk = torch.utils.checkpoint.checkpoint(
+                    _distortion_block, coef, depth_params, log_opac, d_trans, d_moment, done, basis, use_reentrant=False
+                )
+                dist = dist + dist_blk
             trans, done, f_blk, d_blk = _CompositeBlock.apply(
                 coef, depth_params, log_opac, rows[..., G : G + F_], trans, done, basis
             )
@@ -613,13 +658,15 @@ def composite(
             depth = depth + d_blk
             if bool(done.all()):
                 break  # every pixel of the group is saturated: later blocks get zero weight (and gradient)
-        results.append((group, feats, depth, trans))
+        results.append((group, feats, depth, trans, dist) if distortion else (group, feats, depth, trans))
 
     if results:
         groups = torch.cat([r[0] for r in results])
         tile_feats = tile_feats.index_copy(0, groups, torch.cat([r[1] for r in results]))
         tile_depth = tile_depth.index_copy(0, groups, torch.cat([r[2] for r in results]))
         tile_trans = tile_trans.index_copy(0, groups, torch.cat([r[3] for r in results]))
+        if distortion:
+            tile_dist = tile_dist.index_copy(0, groups, torch.cat([r[4] for r in results]))
 
     def untile(x: Tensor) -> Tensor:  # [tiles, P, ...] -> [H, W, ...]
         extra = x.shape[2:]
@@ -627,6 +674,8 @@ def composite(
         x = x.transpose(1, 2).reshape(bins.tiles_y * tile, bins.tiles_x * tile, *extra)
         return x[:height, :width]
 
+    if distortion:
+        return untile(tile_feats), 1 - untile(tile_trans), untile(tile_depth), untile(tile_dist)
     return untile(tile_feats), 1 - untile(tile_trans), untile(tile_depth)
 
 
@@ -668,13 +717,15 @@ def render_torch(
     height: int,
     mode: RenderMode,
     settings: TorchRenderSettings,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])."""
+    distortion: bool = False,
+) -> tuple[Tensor, ...]:
+    """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])
+    and, with `distortion` (surfel mode), 2DGS's depth distortion [H, W]."""
     proj = project(
         means, rotations, scales, covariances, opacities, sh, w2c, K, cam_center, width, height, mode, settings
     )
     bins = bin_tiles(proj.pixel_box, width, height, settings.tile_size)
-    feats, alpha, depth_sum = composite(mode, proj, bins, width, height, settings)
+    feats, alpha, depth_sum, *dist = composite(mode, proj, bins, width, height, settings, distortion)
     color, normal = feats[..., 0:3], feats[..., 3:6]
     depth = feats[..., 6] if mode == "ewa" else depth_sum
-    return color, alpha, depth, normal
+    return color, alpha, depth, normal, *dist

@@ -68,12 +68,17 @@ class RenderOutput:
     depth:  [C, 1, H, W] camera-z depth: the ray-splat intersection (surfel) or the centre depth (ewa),
             blended by the compositing weights and normalized like colour
     normal: [C, 3, H, W] world-frame normals facing the camera, blended and normalized like colour
+    distortion: [C, 1, H, W] 2DGS's depth distortion per ray (`render(..., distortion=True)`, "surfel"
+            mode; None otherwise): sum over ordered pairs i != j of w_i w_j |z_i - z_j|, w the
+            compositing weights and z each surfel's centre depth (camera z), the field's maintained
+            form (gsplat's `render_distort`). Never normalized; see `render` for the choices made.
     """
 
     color: Tensor
     alpha: Tensor
     depth: Tensor
     normal: Tensor
+    distortion: Tensor | None = None
 
 
 def check_render_args(

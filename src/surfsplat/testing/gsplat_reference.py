@@ -189,8 +189,18 @@ def _tiles(means2d, radii, depths, width, height, full_coverage):
     return offsets, flatten_ids
 
 
-def render_2dgs(g, w2c: Tensor, K: Tensor, campos: Tensor, width: int, height: int, full_coverage: bool = True):
-    """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals."""
+def render_2dgs(
+    g,
+    w2c: Tensor,
+    K: Tensor,
+    campos: Tensor,
+    width: int,
+    height: int,
+    full_coverage: bool = True,
+    distortion: bool = False,
+):
+    """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals, and with
+    `distortion` the depth distortion of gsplat's kernel (`distortion_2dgs`) [1, 1, H, W]."""
     # The third scale enters only gsplat's normal (R diag(s) e3): 1 gives unit normals.
     scales = torch.cat((g.scales, torch.ones_like(g.scales[:, :1])), -1)
     radii, means2d, depths, ray_transforms, normals = ref2d._fully_fused_projection_2dgs(
@@ -214,13 +224,18 @@ def render_2dgs(g, w2c: Tensor, K: Tensor, campos: Tensor, width: int, height: i
             flat,
             batch_per_iter=1 << 20,
         )
+        if distortion:
+            distort = distortion_2dgs(
+                means2d, ray_transforms, features, g.opacities[None], width, height, TILE, offsets, flat
+            )
     normal_world = normal[0] @ w2c[:3, :3].to(normal)  # rows n_cam^T R_cw = (R_cw^T n_cam)^T
-    return (
+    maps = (
         color[0, ..., :3].permute(2, 0, 1)[None],
         alpha[0].permute(2, 0, 1)[None],
         color[0, ..., 3:4].permute(2, 0, 1)[None],
         normal_world.permute(2, 0, 1)[None],
     )
+    return (*maps, distort[0].permute(2, 0, 1)[None]) if distortion else maps
 
 
 def render_3dgs(
@@ -262,20 +277,86 @@ def _isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
     return ref._isect_offset_encode(isect_ids, n_images, tile_width, tile_height)
 
 
+def distortion_2dgs(means2d, transforms, colors, opacities, W, H, tile, offsets, flat) -> Tensor:
+    """The depth distortion of gsplat's 2DGS kernel (`rasterize_to_pixels_2dgs(distloss=True)`,
+    `render_distort` [..., H, W, 1]) on the pairs, alphas and weights of gsplat's reference.
+
+    gsplat's pure-PyTorch reference has no distortion, so this is its CUDA forward written in torch
+    (differentiated by autograd): per pixel, front to back, with T the transmittance in front of a
+    pair, w its weight and d the last colour channel (the depth),
+        distort += 2 (w d (1 - T) - w sum_{j in front} w_j d_j).
+    The pairs are the kernel's (`rasterize_to_indices_in_range_2dgs`) and alpha is computed as gsplat's
+    `accumulate_2dgs` computes it.
+    """
+    image_dims = means2d.shape[:-2]
+    n = means2d.shape[-2]
+    images = math.prod(image_dims)
+    ones = torch.ones(image_dims + (H, W), dtype=means2d.dtype)
+    gs, pix, img = _wrapper.rasterize_to_indices_in_range_2dgs(
+        0, 1 << 20, ones, means2d, transforms, opacities, W, H, tile, offsets, flat
+    )
+    means2d, M = means2d.reshape(images, n, 2), transforms.reshape(images, n, 3, 3)
+    x, y = pix % W + 0.5, pix // W + 0.5
+    m = M[img, gs]
+    h_u = -m[..., 0, :] + m[..., 2, :] * x[:, None]
+    h_v = -m[..., 1, :] + m[..., 2, :] * y[:, None]
+    cr = torch.linalg.cross(h_u, h_v, dim=-1)
+    s3 = (cr[..., 0] / cr[..., 2]) ** 2 + (cr[..., 1] / cr[..., 2]) ** 2
+    delta = torch.stack((x, y), -1) - means2d[img, gs]
+    s2 = 2 * (delta**2).sum(-1)
+    alpha = torch.clamp_max(opacities.reshape(images, n)[img, gs] * torch.exp(-0.5 * torch.minimum(s3, s2)), ALPHA_CAP)
+    rays = img * H * W + pix
+    if rays.numel() == 0:
+        return means2d.new_zeros(image_dims + (H, W, 1)) + 0 * colors.sum()
+    weights, trans = _render_weight_from_alpha(alpha, rays, images * H * W)
+    depth = colors.reshape(images, n, -1)[img, gs, -1]
+    # The moment in front of each pair, summed along its ray only (a global running sum would lose the
+    # float32 precision of a short ray to the length of the list).
+    first = torch.ones_like(rays, dtype=torch.bool)
+    first[1:] = rays[1:] != rays[:-1]
+    segment = torch.cumsum(first.long(), 0) - 1
+    position = torch.arange(rays.shape[0]) - first.nonzero().squeeze(1)[segment]
+    dense = weights.new_zeros(int(segment[-1]) + 1, int(position.max()) + 1)
+    wd = weights * depth
+    dense = dense.index_put((segment, position), wd)
+    in_front = (torch.cumsum(dense, 1) - dense)[segment, position]
+    per_pair = 2 * (wd * (1 - trans) - weights * in_front)
+    out = torch.zeros(images * H * W, dtype=per_pair.dtype).index_add(0, rays, per_pair)
+    return out.reshape(image_dims + (H, W, 1))
+
+
 class _Rasterize2DGS:
     """Stands in for gsplat's `_RasterizeToPixels2DGS` autograd function (its CUDA forward and
-    backward): gsplat's reference, differentiated by autograd. The public wrapper around it - its
-    input checks and its channel padding - stays gsplat's own."""
+    backward): gsplat's reference, differentiated by autograd, and with `distloss` the distortion of
+    its kernel (`distortion_2dgs`). The public wrapper around it - its input checks and its channel
+    padding - stays gsplat's own."""
 
     @staticmethod
     def apply(
-        means2d, transforms, colors, opacities, normals, densify, backgrounds, masks, W, H, tile, offsets, flat, *_
+        means2d,
+        transforms,
+        colors,
+        opacities,
+        normals,
+        densify,
+        backgrounds,
+        masks,
+        W,
+        H,
+        tile,
+        offsets,
+        flat,
+        absgrad=False,
+        distloss=False,
     ):
         out, alpha, normal = ref2d._rasterize_to_pixels_2dgs(
             means2d, transforms, colors, normals, opacities, W, H, tile, offsets, flat, batch_per_iter=1 << 20
         )
-        unused = alpha.new_zeros(alpha.shape)  # distortion and median depth: not part of the reference
-        return out, alpha, normal, unused, unused
+        unused = alpha.new_zeros(alpha.shape)  # median depth: not part of the reference
+        distort = unused
+        if distloss:
+            distort = distortion_2dgs(means2d, transforms, colors, opacities, W, H, tile, offsets, flat)
+        return out, alpha, normal, distort, unused
 
 
 class _Rasterize3DGS:

@@ -220,8 +220,8 @@ class _Rasterize(torch.autograd.Function):
     Inputs: means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, 3, B],
     covariances [N, 3, 3] or None (EWA with the surfels' own thin covariances).
     Outputs (un-normalized, the means' dtype): colour [C, 3, H, W], alpha [C, 1, H, W],
-    depth [C, 1, H, W], normal [C, 3, H, W]. Compositing runs in `compositing_dtype`; gradients
-    come back in each input's dtype.
+    depth [C, 1, H, W], normal [C, 3, H, W], and with `distortion` 2DGS's depth distortion
+    [C, 1, H, W]. Compositing runs in `compositing_dtype`; gradients come back in each input's dtype.
     """
 
     @staticmethod
@@ -236,6 +236,7 @@ class _Rasterize(torch.autograd.Function):
         surfel: bool,
         cameras: list[_Camera],
         settings: CpuRenderSettings,
+        distortion: bool = False,
     ):
         inputs = _inputs(means, quats, scales, opacities, sh, covariances)
         rot = _rotations(inputs[1])
@@ -244,6 +245,8 @@ class _Rasterize(torch.autograd.Function):
         color, normal = np.empty((C, 3, H, W), dtype=ft), np.empty((C, 3, H, W), dtype=ft)
         depth, trans = np.empty((C, 1, H, W), dtype=ft), np.empty((C, 1, H, W), dtype=ft)
         last = np.empty((C, H, W), dtype=np.int64)
+        # Per camera the distortion and each ray's moment sum w z (which the backward needs).
+        moments = np.empty((C, 2, H, W), dtype=ft) if distortion else None
         plans = []
         for c, camera in enumerate(cameras):
             plan = _prepare(surfel, inputs, rot, camera, settings, ft)
@@ -264,16 +267,20 @@ class _Rasterize(torch.autograd.Function):
                     depth[c, 0],
                     trans[c, 0],
                     last[c],
+                    None if moments is None else moments[c],
                 )
             plans.append(plan)
-        ctx.surfel, ctx.cameras, ctx.settings = surfel, cameras, settings
+        ctx.surfel, ctx.cameras, ctx.settings, ctx.moments = surfel, cameras, settings, moments
         ctx.plans, ctx.trans, ctx.last, ctx.inputs, ctx.rot = plans, trans, last, inputs, rot
         ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)  # autograd's in-place checks
         dtype = means.dtype
-        return _tensor(color, dtype), _tensor(1.0 - trans, dtype), _tensor(depth, dtype), _tensor(normal, dtype)
+        maps = (_tensor(color, dtype), _tensor(1.0 - trans, dtype), _tensor(depth, dtype), _tensor(normal, dtype))
+        if moments is None:
+            return maps
+        return (*maps, _tensor(moments[:, 0:1], dtype))
 
     @staticmethod
-    def backward(ctx, g_color, g_alpha, g_depth, g_normal):
+    def backward(ctx, g_color, g_alpha, g_depth, g_normal, g_distortion=None):
         settings: CpuRenderSettings = ctx.settings
         saved = ctx.saved_tensors  # raises if an input was modified in place since the forward
         x, q, sc, op, shc, cov = ctx.inputs  # the forward's inputs as the kernels read them (`_inputs`)
@@ -295,6 +302,11 @@ class _Rasterize(torch.autograd.Function):
         # for one camera it is accumulated straight into the dtype it is returned in: the same bits as
         # a float64 buffer cast afterwards, without that buffer and cast (most of the per-Gaussian data).
         sh_dtype = _NP_DTYPES[saved[4].dtype] if C == 1 and saved[4].dtype in _DIRECT_GRAD else np.float64
+        # The kernels' distortion input per camera: dL/dD and the forward's moment sum (None: no gradient
+        # flows from the distortion, and the kernel without it runs).
+        distortion = None
+        if ctx.moments is not None and g_distortion is not None:
+            distortion = np.stack((_np(g_distortion, ft)[:, 0], ctx.moments[:, 1]), axis=1)
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
         wanted = ctx.needs_input_grad
@@ -321,6 +333,7 @@ class _Rasterize(torch.autograd.Function):
                     upstream[2][c, 0],
                     upstream[3][c, 0],
                     pair_grads,
+                    None if distortion is None else distortion[c],
                 )
             kernels.project_backward(
                 ctx.surfel,
@@ -367,6 +380,7 @@ class _Rasterize(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -386,8 +400,10 @@ def render_cpu(
     height: int,
     mode: RenderMode,
     settings: CpuRenderSettings | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W].
+    distortion: bool = False,
+) -> tuple[Tensor, ...]:
+    """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W],
+    and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W] (see `render`).
 
     The function of `render_torch` (float rounding aside), differentiable with respect to the
     Gaussians; camera parameters get no gradient (the dispatcher sends such requests to torch).
@@ -406,6 +422,7 @@ def render_cpu(
         mode == "surfel",
         _cameras(cameras, width, height),
         settings,
+        distortion,
     )
 
 

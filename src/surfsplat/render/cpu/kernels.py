@@ -22,6 +22,11 @@ shaped for a CPU core:
   gradient row, summed per SIMD lane and then over the lanes in a fixed order (no atomics, no
   per-thread buffers), and the next kernel sums a Gaussian's rows in a fixed order: gradients are
   bit-identical for any number of threads and any scheduling.
+* Depth distortion (2DGS Eq. 13, surfels, when asked): `_blend` also carries two runs per pixel, the
+  running moment sum w z and the distortion, and `_unblend_lane` adds its dL/dw to each weight's
+  gradient (the alpha chain rule does the rest) and its dL/dz to the centre depth's. The switch is
+  an argument that is None or an array: numba compiles one variant per type and drops the branch
+  from the None one, so rendering without it runs the kernels it ran before.
 * `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
 
@@ -647,10 +652,17 @@ WORK_RUNS = 6
 # Forward pixel state runs: features 0-5, depth, transmittance (negated once the pixel has stopped).
 S_DEPTH, S_T = FEATURES, FEATURES + 1
 FORWARD_RUNS = FEATURES + 2
+# With depth distortion, two more: the running moment sum w z and the distortion itself.
+S_MOMENT, S_DIST = FORWARD_RUNS, FORWARD_RUNS + 1
+DISTORTION_RUNS = 2
 # Backward pixel state runs: upstream dL/dfeatures (0-5), T (walked back), the weighted sum behind,
 # dL/dT_out T_out, dL/ddepth.
 B_T, B_BEHIND, B_GOUT, B_GDEPTH = FEATURES, FEATURES + 1, FEATURES + 2, FEATURES + 3
 BACKWARD_RUNS = FEATURES + 4
+# With depth distortion, four more: dL/dD, the ray's sum of weights W and moment M, and the moment
+# up to and including the current Gaussian (walked back from M).
+B_DIST_G, B_DIST_W, B_DIST_M, B_DIST_MI = BACKWARD_RUNS, BACKWARD_RUNS + 1, BACKWARD_RUNS + 2, BACKWARD_RUNS + 3
+DISTORTION_BACKWARD_RUNS = 4
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
@@ -731,7 +743,7 @@ def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, wor
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
+def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5, z, distortion):
     """Front-to-back blending of one Gaussian (features f0-f5, alpha and depth in the work rows) into
     the chunks of its box: state [chunks, FORWARD_RUNS * LANES], last [chunks, LANES] (1 + the
     tile-list position of each pixel's last blended Gaussian); rows [tile] counts the pixels of each
@@ -742,9 +754,13 @@ def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0
     Gaussian that would take its transmittance below the floor ends the pixel and is itself not
     blended. Masks select what a branch would have skipped, so a pixel's sums are those of the
     one-pixel-at-a-time loop, bit for bit.
+
+    distortion: None, or an array (only its type is read) to also accumulate 2DGS's depth distortion
+    of the Gaussian's centre depth z in the runs S_MOMENT and S_DIST. Numba compiles one variant per
+    type and drops the branch from the None one, so rendering without it costs what it did.
     """
     ft = state.dtype.type
-    zero, one, t_min = ft(0.0), ft(1.0), ft(TRANSMITTANCE_MIN)
+    zero, one, two, t_min = ft(0.0), ft(1.0), ft(2.0), ft(TRANSMITTANCE_MIN)
     total = 0
     for r in range(r0, r1 + 1):
         if rows[r - y0] <= 0:
@@ -767,6 +783,12 @@ def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0
                 state[b, 4 * LANES + j] += w * f4 if blends else zero
                 state[b, 5 * LANES + j] += w * f5 if blends else zero
                 state[b, S_DEPTH * LANES + j] += w * work[b, W_DEPTH * LANES + j] if blends else zero
+                if distortion is not None:
+                    # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
+                    # the weights in front, and M = sum w z in front.
+                    moment = state[b, S_MOMENT * LANES + j]
+                    state[b, S_DIST * LANES + j] += two * w * (z * (one - T) - moment) if blends else zero
+                    state[b, S_MOMENT * LANES + j] = moment + w * z if blends else moment
                 state[b, S_T * LANES + j] = T_next if blends else (-T if ends else T)
                 last[b, j] = position if blends else last[b, j]
                 stopped += np.int32(ends)
@@ -792,6 +814,7 @@ def composite_forward(
     out_depth,
     out_trans,
     out_last,
+    out_distortion=None,
 ):
     """Front-to-back alpha compositing of every tile (tiles in parallel).
 
@@ -801,16 +824,19 @@ def composite_forward(
     blended Gaussian). Computes in the dtype of geom, which features and the float outputs share.
     Inside a tile the loop runs over its Gaussians, front to back, and for each over the chunks of
     the rows of its box that still have a pixel running; the tile stops once all of its pixels have.
+    out_distortion: None, or [2, H, W] for 2DGS's depth distortion and the ray's moment sum w z
+    (kept for the backward); None compiles the kernel without it (see `_blend`).
     """
     ft = geom.dtype.type
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
     lane = _lane_table(ft)
+    runs = FORWARD_RUNS if out_distortion is None else FORWARD_RUNS + DISTORTION_RUNS
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        state = np.zeros((tile * chunks, FORWARD_RUNS * LANES), dtype=ft)
-        state[:, S_T * LANES :] = ft(1.0)
+        state = np.zeros((tile * chunks, runs * LANES), dtype=ft)
+        state[:, S_T * LANES : (S_T + 1) * LANES] = ft(1.0)
         last = np.zeros((tile * chunks, LANES), dtype=np.int32)
         work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
         rows = np.zeros(tile, dtype=np.int64)  # pixels of each tile row still running
@@ -847,6 +873,8 @@ def composite_forward(
                     f[3],
                     f[4],
                     f[5],
+                    geom[m, GEOM_DEPTH],
+                    out_distortion,
                 )
         for r in range(y0, y1):
             for c in range(x0, x1):
@@ -857,16 +885,20 @@ def composite_forward(
                 out_depth[r, c] = state[b, S_DEPTH * LANES + j]
                 out_trans[r, c] = abs(state[b, S_T * LANES + j])
                 out_last[r, c] = last[b, j]
+                if out_distortion is not None:
+                    out_distortion[0, r, c] = state[b, S_DIST * LANES + j]
+                    out_distortion[1, r, c] = state[b, S_MOMENT * LANES + j]
 
 
 @njit(cache=True, inline="always", boundscheck=False, error_model="numpy")
-def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5):
+def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, z, distortion):
     """The compositing's chain rule at lane j of chunk b (`_unblend`'s per-pixel step, which
     `_unblend_surfel` shares): updates the transmittance and the sum behind in state, adds the
     feature and log-opacity sums to acc, and returns (on, passes, w, depth, dL/d(depth feature),
-    dL/d(log alpha)) for the geometry gradients."""
+    dL/d(log alpha)) for the geometry gradients. distortion: None, or an array (its type selects
+    the variant, as in `_blend`) to add the depth distortion's gradients, of centre depth z."""
     ft = state.dtype.type
-    zero, one = ft(0.0), ft(1.0)
+    zero, one, two = ft(0.0), ft(1.0), ft(2.0)
     a = work[b, W_ALPHA * LANES + j]
     on = (a > zero) & (position < last[b, j])
     T_behind = state[b, B_T * LANES + j]
@@ -878,6 +910,18 @@ def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
     u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
     u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
     g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+    if distortion is not None:
+        # D = 2 sum_i w_i (z_i A_i - M_i) is a function of the weights and depths alone, so its
+        # dL/dw joins g_w and the chain rule that follows carries it to the alphas. With the ray's totals
+        # W = sum w, M = sum w z and the moments A', M' up to and including i (A' = 1 - T behind):
+        # dD/dw_i = 2 (2 (z_i A'_i - M'_i) + M - z_i W),  dD/dz_i = 2 w_i (2 A'_i - w_i - W).
+        g_dist = state[b, B_DIST_G * LANES + j]
+        total_w = state[b, B_DIST_W * LANES + j]
+        moment = state[b, B_DIST_MI * LANES + j]
+        a_incl = one - T_behind
+        g_w += two * g_dist * (two * (z * a_incl - moment) + state[b, B_DIST_M * LANES + j] - z * total_w)
+        state[b, B_DIST_MI * LANES + j] = moment - w * z if on else moment
+        acc[GRAD_DEPTH * LANES + j] += two * g_dist * w * (two * a_incl - w - total_w) if on else zero
     behind = state[b, B_BEHIND * LANES + j]
     g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
     state[b, B_T * LANES + j] = T if on else T_behind
@@ -917,7 +961,7 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
             b = (r - y0) * chunks + ch
             for j in range(LANES):
                 on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
-                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
+                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, zero, None
                 )
                 work[b, W_GRHO * LANES + j] = -half * g_log_alpha if passes else zero
                 work[b, W_GDEPTH * LANES + j] = w * g_d if on else zero
@@ -926,7 +970,7 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _unblend_surfel(
-    state, last, work, acc, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, f0, f1, f2, f3, f4, f5
+    state, last, work, acc, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, f0, f1, f2, f3, f4, f5, distortion
 ):
     """`_unblend` for a surfel, with its geometry gradients in the same pass over the chunks of the
     box: each lane's dL/drho, dL/d(pair depth) and mask go straight into the per-lane runs of acc,
@@ -934,12 +978,13 @@ def _unblend_surfel(
 
     Ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and depth = det / hz give dL/dh,
     kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and dL/ddet. Filter branch:
-    rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth.
+    rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth
+    (and, with `distortion`, the depth distortion's dL/dz; see `_unblend_lane`).
     """
     ft = state.dtype.type
     zero, half, two = ft(0.0), ft(0.5), ft(2.0)
     two_rho_scale = ft(2.0 * LOWPASS_RHO_SCALE)
-    cx, cy = g[GEOM_CX], g[GEOM_CY]
+    cx, cy, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_DEPTH]
     A0, A1, b0, b1, C0, C1 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_B], g[GEOM_B + 1], g[GEOM_C], g[GEOM_C + 1]
     lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
     for r in range(r0, r1 + 1):
@@ -953,7 +998,7 @@ def _unblend_surfel(
             fc0 = ft(x0 + ch * LANES)
             for j in range(LANES):
                 on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
-                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
+                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, z, distortion
                 )
                 g_rho = -half * g_log_alpha if passes else zero
                 g_dpair = w * g_d if on else zero
@@ -1049,6 +1094,7 @@ def composite_backward(
     g_alpha,
     g_depth,
     pair_grads,
+    distortion=None,
 ):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
@@ -1060,16 +1106,19 @@ def composite_backward(
     contributed nothing), summed per lane and then over the lanes in a fixed order: each row is
     written once, by the one thread that owns the tile, so the result does not depend on
     scheduling. Computes in the dtype of geom, which every float argument shares.
+    distortion: None, or [2, H, W] holding the upstream dL/d(depth distortion) and the forward's
+    moment sum w z of each ray (surfels; None compiles the kernel without it, see `_blend`).
     """
     ft = geom.dtype.type
-    zero = ft(0.0)
+    zero, one = ft(0.0), ft(1.0)
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
     lane = _lane_table(ft)
+    runs = BACKWARD_RUNS if distortion is None else BACKWARD_RUNS + DISTORTION_BACKWARD_RUNS
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        state = np.zeros((tile * chunks, BACKWARD_RUNS * LANES), dtype=ft)
+        state = np.zeros((tile * chunks, runs * LANES), dtype=ft)
         last_px = np.zeros((tile * chunks, LANES), dtype=np.int32)
         rows = np.zeros(tile, dtype=np.int64)  # the largest `last` of each tile row
         for r in range(y0, y1):
@@ -1081,6 +1130,11 @@ def composite_backward(
                 state[b, B_T * LANES + j] = trans_final[r, c]
                 state[b, B_GOUT * LANES + j] = -g_alpha[r, c] * trans_final[r, c]  # alpha = 1 - T_out
                 state[b, B_GDEPTH * LANES + j] = g_depth[r, c]
+                if distortion is not None:
+                    state[b, B_DIST_G * LANES + j] = distortion[0, r, c]
+                    state[b, B_DIST_W * LANES + j] = one - trans_final[r, c]
+                    state[b, B_DIST_M * LANES + j] = distortion[1, r, c]
+                    state[b, B_DIST_MI * LANES + j] = distortion[1, r, c]
                 last_px[b, j] = last[r, c]
                 rows[r - y0] = max(rows[r - y0], last[r, c])
         n_last = rows.max()
@@ -1127,6 +1181,7 @@ def composite_backward(
                     f[3],
                     f[4],
                     f[5],
+                    distortion,
                 )
                 _sum_lanes(acc, pair_grads[k])
                 continue
