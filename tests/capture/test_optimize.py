@@ -321,3 +321,17 @@ def test_a_resolution_warning_has_one_prefix(capsys):
         logging.getLogger(log.ROOT).handlers.clear()
     err = capsys.readouterr().err
     assert err.strip() == f"warning: {message}" and "warning: warning" not in err
+
+
+def test_the_distortion_term_gathers_the_surfels_a_ray_meets_into_one_layer():
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    start = _noisy(plane)  # surfels 0.03 off the plane: each ray meets several depths
+
+    def spread(g) -> float:
+        return float(render(g, cameras, SIZE, SIZE, distortion=True).distortion.mean())
+
+    plain, _ = optimize_on_views(start, cameras, photos, SIZE, SIZE, _from_network(steps=40, views_per_step=2))
+    config = _from_network(steps=40, views_per_step=2, distortion_weight=10.0, distortion_from=0.0)
+    gathered, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, config)
+    assert stats["kept"] == 1.0 and config.plan(1.0, 2).distortion_weight == 10.0
+    assert spread(gathered) < 0.7 * spread(plain), (spread(gathered), spread(plain), spread(start))

@@ -31,7 +31,7 @@ from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from .densify import Densify, DensifyConfig
-from .losses import colour_loss, depth_normal_error
+from .losses import colour_loss, depth_normal_error, distortion_error
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +58,8 @@ class FitPlan:
     ssim_weight: float = 0.2  # "l1_dssim": the D-SSIM share (3DGS's lambda_dssim)
     normal_weight: float = 0.0  # 2DGS's depth-normal consistency term (0: off)
     normal_from: float = 0.0  # the share of the steps after which that term joins
+    distortion_weight: float = 0.0  # 2DGS's depth-distortion term (0: off; the renders then skip its map)
+    distortion_from: float = 0.0  # the share of the fit after which that term joins
     means_final_rate: float | None = None  # the position rate decays exponentially to this (None: constant)
     sh_degree_share: float | None = None  # share of the fit between raisings of the SH degree from 0 (None: all)
     prune_every: int | None = None  # steps between prunings of faint surfels (None: never)
@@ -135,8 +137,8 @@ def fit_on_views(
     levels = [(until, at_scale(s)) for until, s in coarse] + [(None, at_scale(plan.scale))]
     fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
-    def draw(g: Gaussians, cams: Cameras, w: int, h: int):
-        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold)
+    def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
+        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, distortion=distortion)
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
@@ -197,8 +199,11 @@ def fit_on_views(
             free.schedule(optimizer, done)
             which = views_of(step)
             fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
-            out = draw(free.current(done), fit_cameras[which], fit_w, fit_h)
+            distorted = plan.distortion_weight > 0 and done >= plan.distortion_from
+            out = draw(free.current(done), fit_cameras[which], fit_w, fit_h, distorted)
             loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
+            if distorted:
+                loss = loss + plan.distortion_weight * distortion_error(out.distortion)
             if plan.normal_weight > 0 and done >= plan.normal_from:
                 loss = loss + plan.normal_weight * depth_normal_error(
                     out.depth, out.normal, out.alpha, fit_cameras[which]

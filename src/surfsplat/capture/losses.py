@@ -4,6 +4,8 @@
   w = 0.2, SSIM being the project's metric (scikit-image's Gaussian window), so the fit climbs the
   figure it is scored on.
 * `depth_normal_error`: 2DGS's depth-normal consistency (its Eq. 14).
+* `distortion_error`: 2DGS's depth distortion (its Eq. 13) as gsplat computes it, the mean over the
+  pixels of the map every backend accumulates front to back (`render(..., distortion=True)`).
 """
 
 from __future__ import annotations
@@ -60,3 +62,10 @@ def depth_normal_error(
     surface = F.normalize(torch.cross(down, right, dim=1), dim=1)
     agreement = (normal[..., 1:-1, 1:-1] * surface).sum(1, keepdim=True)
     return ((1 - agreement) * alpha[..., 1:-1, 1:-1]).mean()
+
+
+def distortion_error(distortion: Tensor) -> Tensor:  # [V, 1, H, W] RenderOutput.distortion
+    """2DGS's depth-distortion term: the mean over pixels of sum_{i != j} w_i w_j |z_i - z_j| (the
+    renderer's map; gsplat's `render_distort` and its trainer's mean). It pulls the surfels a ray
+    meets together in depth, so a surface is one thin layer rather than a cloud."""
+    return distortion.mean()

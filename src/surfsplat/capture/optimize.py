@@ -1,27 +1,29 @@
-"""Per-scene optimization: every surfel attribute fitted to the context photos, from the network's start.
+"""The per-scene optimizer: a scene fitted to its context photos from a start, grown and pruned, coarse to fine.
 
     optimized, stats = optimize_on_views(fused, context_cameras, context_images, width, height, OptimizeConfig())
 
-Why: the refinement (`refine.py`) keeps the network's positions and orientations, so a surface the
-network put a little off, or tilted, stays so, and views between the context views show it. This
-is the per-scene fit of 3DGS / 2DGS, started from the network's surfels instead of a sparse point
-cloud: Adam over positions, rotations (quaternions), tangent scales (logarithms), opacities
-(logits) and SH (DC and higher degrees apart), with the rates 3DGS and 2DGS use, their loss
-((1 - 0.2) L1 + 0.2 D-SSIM) and 2DGS's depth-normal consistency term, the SH degree raised during
-the fit, and the surfels whose opacity falls below 0.005 pruned a few times. The loop is the
-refinement's (`fit.fit_on_views`): only the plan differs.
+The 3DGS / 2DGS per-scene fit, as one plan of the loop the refinement also runs (`fit.fit_on_views`).
+Its parts are modules of their own beside that loop, each named for what it is:
 
-Rates (3DGS `arguments/__init__.py` OptimizationParams, the same in 2DGS): position 1.6e-4 times
-the scene extent, decayed exponentially to 1.6e-6 times it; SH DC 2.5e-3, higher degrees 2.5e-3 / 20;
-opacity 0.05; scaling 5e-3; rotation 1e-3. The scene extent is 3DGS's: 1.1 times the largest
-distance of a context camera from their mean centre. 3DGS runs 30,000 steps of one view; a CPU
-affords hundreds, so the schedules scale to the steps run: the SH degree is raised every 1/30 of
-them (3DGS: every 1,000 of 30,000), the depth-normal term joins after 7/30 (2DGS: step 7,000).
+* the start (`starts.py`): COLMAP's points triangulated from the context photos with the cameras held
+  fixed (3DGS's start), the network's fused surfels thinned to a budget, or both; "auto" takes the
+  points and falls back to the network's surfels where COLMAP finds too few;
+* densification (`densify.py`): 3DGS's clone / split by the screen-space gradient, pruning by opacity
+  and size, opacity resets, under a surfel budget;
+* the losses (`losses.py`): (1 - 0.2) L1 + 0.2 D-SSIM, 2DGS's depth-normal consistency and its depth
+  distortion;
+* the schedule (`fit.progress_of` and the plan's shares): every schedule follows the fit's progress,
+  the share of its steps or of a time budget (`seconds`): coarse to fine (a quarter, then half the
+  working size for the first tenths), the position rate's exponential decay, the SH degree's rise,
+  when densification runs and when the terms join. One view a step, as 3DGS.
 
-Not here: 2DGS's depth-distortion term (every backend renders it, `render(..., distortion=True)`,
-but the fit does not use it yet); densification (cloning and splitting) is left
-out, the network's one surfel per pixel being denser than 3DGS ends with; the cameras stay fixed
-(only the torch backend differentiates them, at several times the compiled backend's cost).
+Rates (3DGS `arguments/__init__.py` OptimizationParams, the same in 2DGS): position 1.6e-4 times the
+scene extent, decayed exponentially to 1.6e-6 times it over the fit; SH DC 2.5e-3, higher degrees
+2.5e-3 / 20; opacity 0.05; scaling 5e-3; rotation 1e-3. The scene extent is 3DGS's: 1.1 times the
+largest distance of a context camera from their mean centre.
+
+The cameras stay fixed (only the torch backend differentiates them, at several times the compiled
+backend's cost).
 """
 
 from __future__ import annotations
@@ -80,6 +82,9 @@ class OptimizeConfig:
     ssim_weight: float = 0.2  # loss (1 - w) L1 + w D-SSIM (3DGS's lambda_dssim)
     normal_weight: float = 0.0  # 2DGS's depth-normal consistency (0: off)
     normal_from: float = 7 / 30  # ... from this share of the fit on (2DGS: step 7,000 of 30,000)
+    # 2DGS's depth distortion as gsplat defines it (|z_i - z_j| of centre depths; its trainer's weight 0.01)
+    distortion_weight: float = 0.0  # (0: off)
+    distortion_from: float = 0.1  # ... from this share of the fit on (2DGS, gsplat: step 3,000 of 30,000)
     # the SH degree rises from 0 every this share of the fit (3DGS: 1,000 of 30,000 steps; OpenSplat: 1,000 of 2,000)
     sh_degree_share: float | None = 0.5
     sh_degree: int = 3  # the fitted surfels' SH degree (a start of another degree is padded or cut)
@@ -120,12 +125,14 @@ class OptimizeConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise SurfSplatInputError(f"optimize.{name}: expected a positive rate, got {value}")
-        for name in ("ssim_weight", "normal_from"):
+        for name in ("ssim_weight", "normal_from", "distortion_from"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 1):
                 raise SurfSplatInputError(f"optimize.{name}: expected a share in [0, 1], got {value}")
-        if not (math.isfinite(self.normal_weight) and self.normal_weight >= 0):
-            raise SurfSplatInputError(f"optimize.normal_weight: expected >= 0, got {self.normal_weight}")
+        for name in ("normal_weight", "distortion_weight"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise SurfSplatInputError(f"optimize.{name}: expected >= 0, got {value}")
         if self.sh_degree_share is not None and not (0 < self.sh_degree_share <= 1):
             raise SurfSplatInputError(
                 f"optimize.sh_degree_share: expected a share in (0, 1] or None, got {self.sh_degree_share}"
@@ -172,6 +179,8 @@ class OptimizeConfig:
             ssim_weight=self.ssim_weight,
             normal_weight=self.normal_weight,
             normal_from=self.normal_from,
+            distortion_weight=self.distortion_weight,
+            distortion_from=self.distortion_from,
             means_final_rate=self.means_lr_final * extent * self.lr_scale if "means" in fitted else None,
             sh_degree_share=self.sh_degree_share if "sh" in self.parameters else None,
             prune_every=steps // (self.prunings + 1) if self.prunings and "opacities" in self.parameters else None,
