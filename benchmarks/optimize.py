@@ -65,12 +65,17 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def held_out_scores(surfels, scene, cameras, images) -> dict:
-    """PSNR / SSIM (and LPIPS where its weights are) of surfels seen from held-out cameras, as `reconstruct` scores them."""
+_SCENE = object()  # held_out_scores: render with the scene's own forced-alpha threshold
+
+
+def held_out_scores(surfels, scene, cameras, images, alpha_threshold=_SCENE) -> dict:
+    """PSNR / SSIM (and LPIPS where its weights are) of surfels seen from held-out cameras, as `reconstruct`
+    scores them, rendered with the scene's forced-alpha threshold or `alpha_threshold`."""
     from surfsplat.reconstruction.scene import HeldOut
 
     h = HeldOut(["held"] * len(cameras), cameras, images)
-    h.score(dataclasses.replace(scene, gaussians=surfels, holdout=None).render(cameras))
+    threshold = scene.alpha_threshold if alpha_threshold is _SCENE else alpha_threshold
+    h.score(dataclasses.replace(scene, gaussians=surfels, holdout=None, alpha_threshold=threshold).render(cameras))
     s = h.scores()
     return {k: s[k] for k in ("mean_psnr", "mean_ssim", "mean_lpips", "psnr")}
 
@@ -132,10 +137,10 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.config.items()}
         fields["start"] = StartConfig(kind=start, **args.start)
         config = OptimizeConfig(**fields)
-        curve = Curve(f"{name}/{start}", fused, network_cpu)
+        curve = Curve(f"{name}/{start}", fused, network_cpu, config.alpha_threshold)
         fitted, stats = optimize_on_views(
             fused.gaussians, fused.cameras, context_images, fused.width, fused.height, config,
-            mode=fused.mode, alpha_threshold=fused.alpha_threshold, monitor=curve,
+            mode=fused.mode, monitor=curve,
         )  # fmt: skip
         add(
             {
@@ -148,7 +153,8 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
                 "start_surfels": stats["start_surfels"],
                 "points": stats.get("points"),
                 "surfels_after": stats["surfels_after"],
-                **held_out_scores(fitted, fused, h.cameras, h.images),
+                **held_out_scores(fitted, fused, h.cameras, h.images, config.alpha_threshold),
+                "start_reason": stats.get("start_reason"),
                 "reached_opensplat_at_cpu_seconds": first_reaching(curve.points, result),
                 "curve": curve.points,
             }
@@ -160,8 +166,8 @@ class Curve:
     """A fit's monitor: held-out PSNR against the CPU seconds of the process so far (network and fusion
     included, the scoring left out)."""
 
-    def __init__(self, label: str, fused, network_cpu: float) -> None:
-        self.label, self.fused, self.network_cpu = label, fused, network_cpu
+    def __init__(self, label: str, fused, network_cpu: float, alpha_threshold: float | None) -> None:
+        self.label, self.fused, self.network_cpu, self.alpha_threshold = label, fused, network_cpu, alpha_threshold
         self.points: list[dict] = []
         self.fit_cpu = cpu_seconds()  # made just before the fit starts
         self.scoring = 0.0
@@ -169,7 +175,7 @@ class Curve:
     def __call__(self, step: int, seconds: float, surfels) -> None:
         now = cpu_seconds()
         h = self.fused.holdout
-        scores = held_out_scores(surfels, self.fused, h.cameras, h.images)
+        scores = held_out_scores(surfels, self.fused, h.cameras, h.images, self.alpha_threshold)
         self.points.append(
             {
                 "step": step,
@@ -237,8 +243,8 @@ def rooms(args) -> dict:
     held = torch.tensor([i for i in range(n) if i % 4 == 0])
     ctx = torch.tensor([i for i in range(n) if i % 4])
 
-    def scores(g, fused, cams, truth) -> dict:
-        out = render(g, cams, size, size, mode=fused.mode, alpha_threshold=fused.alpha_threshold)
+    def scores(g, fused, cams, truth, alpha_threshold) -> dict:
+        out = render(g, cams, size, size, mode=fused.mode, alpha_threshold=alpha_threshold)
         covered = (out.alpha >= 0.5) & (truth.depth > 0)
         absrel = ((out.depth - truth.depth).abs() / truth.depth.clamp_min(1e-6))[covered].mean()
         angles = angular_error_deg(out.normal.permute(0, 2, 3, 1), truth.normal.permute(0, 2, 3, 1))[covered[:, 0]]
@@ -261,22 +267,21 @@ def rooms(args) -> dict:
         )
         held_truth = type(truth)(**{f.name: getattr(truth, f.name)[held] for f in dataclasses.fields(truth)})
         per_row.setdefault("network (fusion)", []).append(
-            {"seconds": 0.0, **scores(fused.gaussians, fused, cams[held], held_truth)}
+            {"seconds": 0.0, **scores(fused.gaussians, fused, cams[held], held_truth, fused.alpha_threshold)}
         )
         for start in args.starts:
             fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.room_config.items()}
             config = OptimizeConfig(**fields, start=StartConfig(kind=start, **args.start))
             try:
                 fitted, stats = optimize_on_views(
-                    fused.gaussians, fused.cameras, truth.image[ctx], size, size, config,
-                    mode=fused.mode, alpha_threshold=fused.alpha_threshold,
+                    fused.gaussians, fused.cameras, truth.image[ctx], size, size, config, mode=fused.mode,
                 )  # fmt: skip
             except surfsplat.SurfSplatInputError as error:  # 64x64 renders of flat colours: too few SIFT points
                 print(f"room {1000 + seed}, start {start}: {error}", flush=True)
                 per_row.setdefault(f"optimize from {start}", []).append({"failed": str(error)})
                 continue
             per_row.setdefault(f"optimize from {start}", []).append(
-                {"seconds": stats["seconds"], **scores(fitted, fused, cams[held], held_truth)}
+                {"seconds": stats["seconds"], **scores(fitted, fused, cams[held], held_truth, config.alpha_threshold)}
             )
         print(f"room {1000 + seed} measured", flush=True)
     rows = []

@@ -278,10 +278,10 @@ def test_a_saved_reconstruction_is_optimized_and_reads_back(five_views, tiny_che
     assert main([*argv, "--images", *map(str, paths[:3])]) == 0, capsys.readouterr().err
     capsys.readouterr()
     out = tmp_path / "first_optimized"
-    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "4", "--optimize-start", "network"]
+    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "30", "--optimize-start", "network"]
     assert main([*command, "--raw-3dgs", "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    assert "optimized on the context views from the network's surfels: 4 steps at 32x32" in printed, printed
+    assert "optimized on the context views from the network's surfels: 30 steps at 32x32" in printed, printed
     from surfsplat.reconstruction import load_reconstruction
 
     before, photos = load_reconstruction(tmp_path / "first")
@@ -289,7 +289,7 @@ def test_a_saved_reconstruction_is_optimized_and_reads_back(five_views, tiny_che
     assert photos.shape == (3, 3, 32, 32) and after.names == before.names
     assert not torch.equal(after.gaussians.means, before.gaussians.means[: len(after.gaussians)])
     summary = json.loads((out / "reconstruction.json").read_text())
-    assert summary["optimize"]["steps"] == 4 and summary["optimize"]["kept"] == 1.0
+    assert summary["optimize"]["steps"] == 30 and summary["optimize"]["kept"] == 1.0
     # read back, the optimized scene renders its photos as it did in memory
     again = after.render()
     assert float((again.color - photos).square().mean()) == pytest.approx(summary["optimize"]["mse_after"], rel=1e-3)
@@ -335,3 +335,24 @@ def test_the_distortion_term_gathers_the_surfels_a_ray_meets_into_one_layer():
     gathered, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, config)
     assert stats["kept"] == 1.0 and config.plan(1.0, 2).distortion_weight == 10.0
     assert spread(gathered) < 0.7 * spread(plain), (spread(gathered), spread(plain), spread(start))
+
+
+def test_optimizing_a_saved_reconstruction_scores_its_held_out_views_again(five_views, tiny_checkpoint, tmp_path):
+    paths, cameras = five_views
+    argv = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--cameras", str(cameras), "--views-per-pass", "2"]
+    argv += ["--holdout-every", "4", "--optimize-steps", "0", "--formats", "ply", "--raw-3dgs", "--no-progress"]
+    assert main([*argv, "--out", str(tmp_path / "first"), "--images", *map(str, paths)]) == 0
+    first = json.loads((tmp_path / "first" / "reconstruction.json").read_text())["capture"]["held_out"]
+    assert first["names"] == ["v0.png", "v4.png"] and len(first["sources"]) == 2
+    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "5", "--optimize-start", "network"]
+    assert main([*command, "--raw-3dgs", "--no-progress", "--formats", "ply"]) == 0
+    again = json.loads((tmp_path / "first_optimized" / "reconstruction.json").read_text())["capture"]["held_out"]
+    assert again["names"] == first["names"]
+    # scored before the fit as the first reconstruction scored them, and again after it
+    assert again["before_optimization"]["psnr"] == pytest.approx(first["psnr"], abs=1e-4)
+    assert again["psnr"] != again["before_optimization"]["psnr"]
+    from surfsplat.reconstruction import load_reconstruction
+
+    scene, photos = load_reconstruction(tmp_path / "first")
+    assert scene.holdout.names == ["v0.png", "v4.png"] and len(photos) == len(scene.names) == 3
+    assert not set(scene.names) & set(scene.holdout.names)  # the fit is given the context photos only

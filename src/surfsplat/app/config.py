@@ -6,9 +6,9 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..capture.optimize import OptimizeConfig
 from ..capture.refine import RefineConfig
 from ..utils.checks import SurfSplatInputError
+from .run import APP_OPTIMIZE_SECONDS
 
 
 @dataclass(frozen=True)
@@ -22,7 +22,7 @@ class AppConfig:
     max_queue: int | None = 20  # people waiting at most (None: no limit); more are told to come back
     working_size: int = 256  # the page's default working size (long side in pixels)
     refine_fits: float = RefineConfig.fits_per_view  # the page's default refinement: fits of each context view
-    optimize_steps: int = OptimizeConfig.steps  # the page's default per-scene optimization steps (0: none)
+    optimize_seconds: float = APP_OPTIMIZE_SECONDS  # the page's default per-scene optimization budget (0: none)
     device: str = "auto"  # torch device of the runs ("auto": CUDA when available)
     sessions_dir: str | None = None  # where session folders go (default: <temp>/surfsplat-app)
     # ExportOptions for the page's outputs (RunSettings fields: path_frames, turntable_frames, mesh_resolution, bake_steps)

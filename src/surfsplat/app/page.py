@@ -45,7 +45,7 @@ def build(config: AppConfig | None = None, **overrides):
     tracked = gr.Progress()  # gradio finds the bar by this default and hands each call its own
 
     def run(
-        files, camera_file, weights, working_size, refine_fits, optimize_steps, request: gr.Request, progress=tracked
+        files, camera_file, weights, working_size, refine_fits, optimize_seconds, request: gr.Request, progress=tracked
     ):
         key = _session_key(request)
         with lock:
@@ -60,7 +60,7 @@ def build(config: AppConfig | None = None, **overrides):
                 weights=weights,
                 working_size=int(working_size),
                 refine_fits=float(refine_fits),
-                optimize_steps=int(optimize_steps),
+                optimize_seconds=float(optimize_seconds),
                 device=config.device,
                 **config.export,
             )
@@ -120,13 +120,14 @@ def build(config: AppConfig | None = None, **overrides):
                     label="Refinement: fits of each photo (captures of more than one forward pass; 0: none)",
                     elem_id="refine-fits",
                 )
-                optimize_steps = gr.Slider(
+                optimize_seconds = gr.Slider(
                     0,
-                    1000,
-                    value=config.optimize_steps,
+                    600,
+                    value=config.optimize_seconds,
                     step=10,
-                    label="Per-scene optimization: steps moving every surfel (0: none; replaces the refinement)",
-                    elem_id="optimize-steps",
+                    label="Per-scene optimization: seconds fitting, growing and pruning the surfels on the photos "
+                    "(three photos or more; 0: none; replaces the refinement)",
+                    elem_id="optimize-seconds",
                 )
                 with gr.Row():
                     start = gr.Button("Start", variant="primary", elem_id="start")
@@ -160,7 +161,7 @@ def build(config: AppConfig | None = None, **overrides):
         weights.change(weights_note, inputs=weights, outputs=about, queue=False)
         started = start.click(
             run,
-            inputs=[photos, cameras, weights, working_size, refine_fits, optimize_steps],
+            inputs=[photos, cameras, weights, working_size, refine_fits, optimize_seconds],
             outputs=[status, view, grid, closure, plot, video, downloads],
             concurrency_limit=1,
             concurrency_id="reconstruct",

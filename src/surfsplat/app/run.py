@@ -55,6 +55,9 @@ class RunCancelled(Exception):
     """The person pressed Stop: the run ends at its next progress step."""
 
 
+APP_OPTIMIZE_SECONDS = 60.0  # the page's default optimization budget: a web visitor waits a minute, not ten
+
+
 @dataclass(frozen=True)
 class RunSettings:
     """What the page lets a person choose, and the export the app writes."""
@@ -62,7 +65,9 @@ class RunSettings:
     weights: str = DEMO_MODEL  # a registry name (`surfsplat weights list`)
     working_size: int = 256  # long side of the network's input in pixels (`max_working_size`)
     refine_fits: float = RefineConfig.fits_per_view  # refinement of a fused scene: fits of each context view (0: none)
-    optimize_steps: int = OptimizeConfig.steps  # per-scene optimization of every surfel (0: none)
+    # per-scene optimization of every surfel, a time budget in seconds (0: none; it runs where there are
+    # more than two context views, as reconstruct's default)
+    optimize_seconds: float = APP_OPTIMIZE_SECONDS
     device: str = "auto"
     path_frames: int = 48  # frames of the fly-through (the interpolated camera path)
     turntable_frames: int = 48
@@ -75,8 +80,8 @@ class RunSettings:
             raise SurfSplatInputError(f"working size: expected 16 to 2048 pixels, got {self.working_size}")
         if not 0 <= self.refine_fits <= 1_000:
             raise SurfSplatInputError(f"refinement fits per view: expected 0 to 1000, got {self.refine_fits}")
-        if isinstance(self.optimize_steps, bool) or not 0 <= self.optimize_steps <= 10_000:
-            raise SurfSplatInputError(f"optimization steps: expected 0 to 10000, got {self.optimize_steps}")
+        if isinstance(self.optimize_seconds, bool) or not 0 <= self.optimize_seconds <= 3_600:
+            raise SurfSplatInputError(f"optimization seconds: expected 0 to 3600, got {self.optimize_seconds}")
 
 
 @dataclass
@@ -191,7 +196,9 @@ def run_capture(
     tracker = StageTracker(report, cancelled)
     capture = CaptureOptions(
         refine=replace(RefineConfig(), fits_per_view=settings.refine_fits),
-        optimize=replace(OptimizeConfig(), steps=settings.optimize_steps),
+        optimize=replace(OptimizeConfig(), steps=0)
+        if settings.optimize_seconds == 0
+        else replace(OptimizeConfig(), seconds=settings.optimize_seconds),
     )
     with listen_progress(tracker):
         tracker.enter("cameras")

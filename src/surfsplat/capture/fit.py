@@ -41,7 +41,10 @@ logger = logging.getLogger(__name__)
 # them different rates).
 TENSORS = ("means", "quats", "log_scales", "logits", "sh_dc", "sh_rest")
 MIN_LEVEL_SIZE = 32  # px: a coarse level whose short side would be smaller is skipped
-_DRAW_BLOCK = 256  # steps whose views are drawn and moved to the device at once
+_DRAW_BLOCK = 256
+PSNR_EVERY = (
+    50  # steps between the progress bar's PSNR readings  # steps whose views are drawn and moved to the device at once
+)
 
 
 @dataclass(frozen=True)
@@ -188,7 +191,13 @@ def fit_on_views(
         watched += time.perf_counter() - tick
 
     watch(0, 0.0)
-    with progress_bar(total=total, desc=plan.name, unit="step", enabled=progress) as bar:
+    # the bar counts steps, or with a time budget seconds; it shows the fit's colour PSNR on the photos
+    # of the last PSNR_EVERY steps (read then, not every step: each read makes a GPU host wait)
+    timed = plan.seconds is not None
+    errors: list[Tensor] = []
+    shown = 0
+    bar_total, unit = (round(plan.seconds), "s") if timed else (total, "step")
+    with progress_bar(total=bar_total, desc=plan.name, unit=unit, enabled=progress) as bar:
         for step in range(total):
             done = progress_of(plan, step, time.perf_counter() - fit_start - watched)
             if done >= 1:
@@ -215,7 +224,18 @@ def fit_on_views(
                 densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
             optimizer.step()
             pending.append(loss.detach())
-            bar.update(1)
+            if progress:
+                errors.append((out.color.detach() - fit_images[which]).square().mean())
+                if len(errors) == PSNR_EVERY:
+                    mse = float(torch.stack(errors).mean())
+                    bar.set_postfix(psnr=f"{-10 * math.log10(max(mse, 1e-12)):.2f} dB", refresh=False)
+                    errors = []
+            if timed:
+                now = min(bar_total, int(time.perf_counter() - fit_start - watched))
+                bar.update(now - shown)
+                shown = now
+            else:
+                bar.update(1)
             if densify is not None:
                 densify.step(free, optimizer, step, done, split_generator)
             if plan.prune_every and (step + 1) % plan.prune_every == 0 and step + 1 < total:

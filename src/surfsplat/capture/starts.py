@@ -65,6 +65,9 @@ class StartConfig:
     max_features: int = 4096  # SIFT features per photo
     max_reprojection_error: float = 2.0  # px: triangulated points beyond it are dropped (COLMAP's filter: 4)
     min_track_length: int = 2  # views a kept point is seen in
+    two_view_tracks: bool = True  # keep points seen in two views only (COLMAP's mapper ignores them)
+    min_angle: float = 1.0  # degrees: the least triangulation angle of a new point (COLMAP: 1.5)
+    peak_threshold: float = 0.004  # SIFT's contrast threshold (COLMAP: 0.0067): more features on smooth photos
     seed: int = 0  # the network surfels' sample, the points' random rotations, COLMAP's RANSAC
 
     def __post_init__(self) -> None:
@@ -132,6 +135,7 @@ def _triangulate(pycolmap, images: Tensor, cameras: Cameras, config: StartConfig
         extraction.num_threads = 2
         extraction.sift.max_num_features = config.max_features
         extraction.sift.first_octave = -1  # twice the resolution: working-size photos are small
+        extraction.sift.peak_threshold = config.peak_threshold
         pycolmap.extract_features(
             database,
             folder,
@@ -182,6 +186,10 @@ def _triangulate(pycolmap, images: Tensor, cameras: Cameras, config: StartConfig
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads = 2
         options.random_seed = config.seed
+        # points seen in two views only are kept (COLMAP drops them while mapping, where they do not help
+        # the poses; here the poses are given and they are half of what a forward-facing capture sees)
+        options.triangulation.ignore_two_view_tracks = config.two_view_tracks is False
+        options.triangulation.min_angle = config.min_angle
         recon = pycolmap.triangulate_points(recon, database, folder, root / "sparse", options=options)
         recon.extract_colors_for_all_images(folder)
         points = list(recon.points3D.values())

@@ -30,8 +30,9 @@ def optimize_scene(
     backend: str = "auto",
 ) -> Scene:
     """`scene` with its surfels optimized on its context views (changed in place and returned):
-    `optimize_stats`, `seconds["optimize"]`, and, with held-out views, their figures and renders
-    before the fit in `holdout.before` / `holdout.before_renders` and after it in `holdout`."""
+    `optimize_stats`, `seconds["optimize"]`, the forced-alpha threshold the fit rendered with, and, with
+    held-out views, their figures and renders before the fit in `holdout.before` /
+    `holdout.before_renders`, after it in `holdout`, and along it in `optimize_stats["held_out_curve"]`."""
     held = scene.holdout
     curve: list[dict] = []
     monitor = None
@@ -46,7 +47,12 @@ def optimize_scene(
             from ..render import render
 
             colour = render(
-                surfels, held.cameras, scene.width, scene.height, mode=scene.mode, alpha_threshold=scene.alpha_threshold
+                surfels,
+                held.cameras,
+                scene.width,
+                scene.height,
+                mode=scene.mode,
+                alpha_threshold=config.alpha_threshold,
             ).color
             value = psnr(colour.clamp(0, 1), held.images.to(colour)).mean()
             curve.append({"step": step, "seconds": seconds, "surfels": len(surfels), "psnr": float(value)})
@@ -60,11 +66,12 @@ def optimize_scene(
         scene.height,
         config,
         mode=scene.mode,
-        alpha_threshold=scene.alpha_threshold,
         backend=backend,
         progress=progress,
         monitor=monitor,
     )
+    if scene.optimize_stats["kept"]:
+        scene.alpha_threshold = config.alpha_threshold  # the optimized surfels render as they were fitted
     if curve:
         scene.optimize_stats["held_out_curve"] = curve
     scene.seconds["optimize"] = time.perf_counter() - tick
