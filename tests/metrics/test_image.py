@@ -88,6 +88,17 @@ def test_ssim_matches_skimage_on_random_images_float64():
     )
 
 
+def test_ssim_matches_skimage_on_a_long_side_float64():
+    # a side beyond the banded-matrix limit takes the shifted-sum filter
+    g = torch.Generator().manual_seed(4)
+    target = torch.rand(1, 3, 13, 700, generator=g, dtype=torch.float64)
+    prediction = degrade(target, g)
+    ours = ssim(prediction, target)
+    torch.testing.assert_close(
+        ours, torch.tensor(skimage_ssim(target, prediction), dtype=torch.float64), rtol=0, atol=1e-12
+    )
+
+
 def test_ssim_float32_matches_skimage_within_1e5():
     g = torch.Generator().manual_seed(2)
     target = torch.rand(2, 3, 64, 48, generator=g)
