@@ -88,6 +88,12 @@ def render(
         from .cpu import render_cpu
 
         color, alpha, depth, normal = render_cpu(gaussians, cameras, width, height, mode, settings)
+        if not bg.requires_grad:
+            # one compiled pass forward and one backward instead of some ten whole-image torch ops each way
+            from .cpu.backend import normalize_cpu
+
+            color, depth, normal = normalize_cpu(color, alpha, depth, normal, alpha_threshold, bg)
+            return RenderOutput(color=color, alpha=alpha, depth=depth, normal=normal)
     else:
         color, alpha, depth, normal = _render_torch_all(gaussians, cameras, width, height, mode, settings)
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)

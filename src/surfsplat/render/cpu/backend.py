@@ -446,3 +446,40 @@ def contributing_pairs(
             )
         )
     return counts
+
+
+class _Normalize(torch.autograd.Function):
+    """Forced-alpha normalization and background of the raw maps (`kernels.normalize_forward`)."""
+
+    @staticmethod
+    def forward(ctx, color, alpha, depth, normal, threshold: float | None, background: Tensor):
+        ft = _NP_DTYPES[color.dtype] if color.dtype in _DIRECT_GRAD else np.float64
+        maps = [_np(t, ft) for t in (color, alpha, depth, normal)]
+        # torch compares a tensor with a Python float in the tensor's dtype: so does the kernel
+        limit = ft(math.inf if threshold is None else threshold)
+        bg = _np(background, ft)
+        out = [np.empty_like(maps[0]), np.empty_like(maps[2]), np.empty_like(maps[3])]
+        kernels.normalize_forward(*maps, limit, bg, *out)
+        ctx.maps, ctx.limit, ctx.bg = maps, limit, bg
+        return tuple(_tensor(o, color.dtype) for o in out)
+
+    @staticmethod
+    def backward(ctx, g_color, g_depth, g_normal):
+        color, alpha, depth, normal = ctx.maps
+        upstream = [
+            np.zeros_like(like) if g is None else _np(g, like.dtype.type)
+            for g, like in ((g_color, color), (g_depth, depth), (g_normal, normal))
+        ]
+        grads = [np.empty_like(color), np.zeros_like(alpha), np.empty_like(depth), np.empty_like(normal)]
+        kernels.normalize_backward(color, alpha, depth, normal, ctx.limit, ctx.bg, *upstream, *grads)
+        dtype = g_color.dtype if g_color is not None else (g_depth if g_depth is not None else g_normal).dtype
+        return (*(_tensor(g, dtype) for g in grads), None, None)
+
+
+def normalize_cpu(
+    color: Tensor, alpha: Tensor, depth: Tensor, normal: Tensor, threshold: float | None, background: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """`render.normalize_by_alpha` followed by the background, in one compiled pass each way:
+    (colour over the background, depth, normal). The background gets no gradient."""
+    color_out, depth_out, normal_out = _Normalize.apply(color, alpha, depth, normal, threshold, background.detach())
+    return color_out, depth_out, normal_out

@@ -1496,3 +1496,78 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
                             count += work[b, W_ALPHA * LANES + j] > zero
         per_tile[t] = count
     return per_tile.sum()
+
+
+# ---------------------------------------------------------------------------------------------
+# Forced-alpha normalization and background
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
+def normalize_forward(color, alpha, depth, normal, threshold, background, out_color, out_depth, out_normal):
+    """`render.normalize_by_alpha` and the background in one pass (rows of all cameras in parallel).
+
+    color, normal [C, 3, H, W], alpha, depth [C, 1, H, W] un-normalized; threshold (inf: none) and
+    background [3] in their dtype. Where alpha >= threshold colour, depth and normal are divided by
+    alpha and the pixel counts as covered, elsewhere they stay and the coverage is alpha; the colour
+    gets (1 - coverage) background. The same operations in the same order as the torch code, so the
+    same bits; as torch ops they were some ten passes over the image forward and more backward.
+    """
+    ft = color.dtype.type
+    one = ft(1.0)
+    cams, height, width = color.shape[0], color.shape[2], color.shape[3]
+    for row in prange(cams * height):
+        c, r = row // height, row % height
+        for x in range(width):
+            a = alpha[c, 0, r, x]
+            mask = a >= threshold
+            safe = a if mask else one
+            rest = one - (one if mask else a)
+            for k in range(3):
+                out_color[c, k, r, x] = color[c, k, r, x] / safe + rest * background[k]
+                out_normal[c, k, r, x] = normal[c, k, r, x] / safe
+            out_depth[c, 0, r, x] = depth[c, 0, r, x] / safe
+
+
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
+def normalize_backward(
+    color,
+    alpha,
+    depth,
+    normal,
+    threshold,
+    background,
+    g_out_color,
+    g_out_depth,
+    g_out_normal,
+    g_color,
+    g_alpha,
+    g_depth,
+    g_normal,
+):
+    """Chain rule of `normalize_forward`: dL/d(colour, depth, normal) and the alpha gradient they add.
+
+    g_alpha [C, 1, H, W] holds dL/dalpha from alpha's own use on entry and gets the normalization's
+    share added: -sum g_o o / alpha^2 over the divided maps where alpha >= threshold, else
+    -g_colour . background.
+    """
+    ft = color.dtype.type
+    zero, one = ft(0.0), ft(1.0)
+    cams, height, width = color.shape[0], color.shape[2], color.shape[3]
+    for row in prange(cams * height):
+        c, r = row // height, row % height
+        for x in range(width):
+            a = alpha[c, 0, r, x]
+            mask = a >= threshold
+            safe = a if mask else one
+            divided, behind = zero, zero
+            for k in range(3):
+                go_c, go_n = g_out_color[c, k, r, x], g_out_normal[c, k, r, x]
+                g_color[c, k, r, x] = go_c / safe
+                g_normal[c, k, r, x] = go_n / safe
+                divided += go_c * color[c, k, r, x] + go_n * normal[c, k, r, x]
+                behind += go_c * background[k]
+            go_d = g_out_depth[c, 0, r, x]
+            g_depth[c, 0, r, x] = go_d / safe
+            divided += go_d * depth[c, 0, r, x]
+            g_alpha[c, 0, r, x] += -divided / (safe * safe) if mask else -behind
