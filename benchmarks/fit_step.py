@@ -130,7 +130,13 @@ class Step:
         }
         for t in self.tensors.values():
             t.requires_grad_(True)
-        self.optimizer = torch.optim.Adam([{"params": [t], "lr": 1e-3} for t in self.tensors.values()])
+        groups = [{"params": [t], "lr": 1e-3} for t in self.tensors.values()]
+        try:  # the fit loop's own Adam, where the revision has one
+            from surfsplat.capture.fit import adam
+
+            self.optimizer = adam(groups, torch.device("cpu"))
+        except ImportError:
+            self.optimizer = torch.optim.Adam(groups)
         self.times = dict.fromkeys(PHASES, 0.0)
         self._wrap(backend.kernels, render_module)
 
