@@ -113,12 +113,15 @@ def make_scene(n: int, width: int, height: int, overlap: float, seed: int = 0):
 class Step:
     """One configuration's fit state (fitted tensors, Adam) and its timed step."""
 
-    def __init__(self, n: int, width: int, height: int, overlap: float, ssim_weight: float) -> None:
+    def __init__(
+        self, n: int, width: int, height: int, overlap: float, ssim_weight: float, torch_threads: int = 0
+    ) -> None:
         import surfsplat.render as render_module
         from surfsplat.render.cpu import backend
 
         self.g0, self.cameras, self.target = make_scene(n, width, height, overlap)
         self.width, self.height, self.ssim_weight = width, height, ssim_weight
+        self.torch_threads = torch_threads
         g = self.g0
         self.tensors = {
             "means": g.means.clone(),
@@ -157,7 +160,23 @@ class Step:
         render_module.normalize_by_alpha = self._timed(render_module.normalize_by_alpha, "normalize")
 
     def run(self) -> dict[str, float]:
-        """One step; returns its phases' seconds (and "step", the whole)."""
+        """One step, under the fit loop's thread setting where the revision has one; returns its
+        phases' seconds (and "step", the whole)."""
+        try:
+            from surfsplat.capture.fit import step_threads
+        except ImportError:
+            return self._run()
+        if self.torch_threads:  # an explicit count replaces the fit loop's
+            before = torch.get_num_threads()
+            torch.set_num_threads(self.torch_threads)
+            try:
+                return self._run()
+            finally:
+                torch.set_num_threads(before)
+        with step_threads(torch.device("cpu")):
+            return self._run()
+
+    def _run(self) -> dict[str, float]:
         import torch.nn.functional as F
 
         from surfsplat import Gaussians
@@ -203,7 +222,7 @@ def serve(threads: int) -> None:
         print(json.dumps({"ready": True, "source": surfsplat.__file__}), flush=True)
         for line in sys.stdin:
             req = json.loads(line)
-            key = (req["n"], req["width"], req["height"], req["overlap"], req["ssim"])
+            key = (req["n"], req["width"], req["height"], req["overlap"], req["ssim"], req.get("torch_threads", 0))
             if key not in steps:
                 steps.clear()  # one configuration's buffers at a time
                 steps[key] = Step(*key)
@@ -282,6 +301,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3, help="steps per turn")
     parser.add_argument("--turns", type=int, default=3, help="turns per worker (interleaved with --ref)")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--torch-threads", type=int, default=0, help="torch's threads during the step (0: as the fit loop sets them)"
+    )
     parser.add_argument("--ref", default=None, metavar="REV", help="also run git revision REV, side by side")
     parser.add_argument("--beside-job", action="store_true", help="also measure beside a busy process")
     parser.add_argument("--out", default="fit_step")
@@ -306,6 +328,7 @@ def main() -> None:
                 "overlap": args.overlap,
                 "ssim": args.ssim_weight,
                 "steps": args.steps,
+                "torch_threads": args.torch_threads,
             }
             settings = [False, True] if args.beside_job else [False]
             for beside in settings:

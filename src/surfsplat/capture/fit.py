@@ -19,6 +19,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -139,7 +141,7 @@ def fit_on_views(
     # one): reading it every step would make the host wait for the device every step.
     losses: list[float] = []
     pending: list[Tensor] = []
-    with progress_bar(total=total, desc=plan.name, unit="step", enabled=progress) as bar:
+    with step_threads(g0.means.device), progress_bar(total=total, desc=plan.name, unit="step", enabled=progress) as bar:
         for step in range(total):
             free.schedule(optimizer, step)
             which = draws[step]
@@ -177,6 +179,28 @@ def fit_on_views(
         )
         return g0, stats
     return fitted, stats
+
+
+@contextmanager
+def step_threads(device: torch.device) -> Iterator[None]:
+    """Torch's own ops on one thread while the fit's steps run on the CPU (the compiled renderer keeps
+    its threads).
+
+    A step is some hundred torch ops on a few hundred thousand values (activations, loss, their
+    backward, Adam), each a parallel region that has to wake torch's other threads. Beside another
+    busy process a woken thread waits for a core for up to the scheduler's latency, so at two threads
+    the step's torch ops took several times the rest of the step; on one thread they cannot wait
+    for each other, and the renderer's kernels, where the work is, still use every core.
+    """
+    if device.type != "cpu":
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def adam(groups: list[dict], device: torch.device) -> torch.optim.Adam:

@@ -40,6 +40,9 @@ _NP_DTYPES = {
     torch.bfloat16: np.float32,
 }
 _DIRECT_GRAD = (torch.float32, torch.float64)  # gradient dtypes the kernels may write directly
+# Gaussians a thread takes at a time in the per-Gaussian kernels: handed out as threads come free,
+# so a thread that waits for a core (beside another busy process) does not hold back a fixed half.
+_GAUSSIAN_CHUNK = 1024
 
 
 @dataclass
@@ -166,32 +169,33 @@ def _prepare(
     depth = np.empty(n)
     features = np.empty((n, kernels.FEATURES), dtype=dtype)
     flip = np.empty(n)
-    kernels.project(
-        surfel,
-        x,
-        rot,
-        sc,
-        op,
-        shc,
-        cov,
-        camera.R_cw,
-        camera.t_cw,
-        camera.center,
-        camera.K,
-        camera.width,
-        camera.height,
-        settings.near_plane,
-        settings.far_plane,
-        *_convention_args(settings),
-        geom,
-        box,
-        keep,
-        depth,
-        features,
-        flip,
-        np.empty((threads, _SCRATCH)),
-        np.empty((threads, 2, 3, 3)),
-    )
+    with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+        kernels.project(
+            surfel,
+            x,
+            rot,
+            sc,
+            op,
+            shc,
+            cov,
+            camera.R_cw,
+            camera.t_cw,
+            camera.center,
+            camera.K,
+            camera.width,
+            camera.height,
+            settings.near_plane,
+            settings.far_plane,
+            *_convention_args(settings),
+            geom,
+            box,
+            keep,
+            depth,
+            features,
+            flip,
+            np.empty((threads, _SCRATCH)),
+            np.empty((threads, 2, 3, 3)),
+        )
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
     order = kernels.depth_order(keep, depth)
@@ -322,38 +326,39 @@ class _Rasterize(torch.autograd.Function):
                     upstream[3][c, 0],
                     pair_grads,
                 )
-            kernels.project_backward(
-                ctx.surfel,
-                geometry,
-                shape,
-                plan.rank,
-                plan.pair_start,
-                plan.pair_of,
-                pair_grads,
-                x,
-                ctx.rot,
-                sc,
-                op,
-                shc,
-                cov,
-                camera.R_cw,
-                camera.t_cw,
-                camera.center,
-                camera.K,
-                camera.width,
-                camera.height,
-                *_convention_args(settings)[:2],
-                plan.geom,
-                plan.flip,
-                g_means,
-                g_rot,
-                g_scales,
-                g_opac,
-                g_sh,
-                g_cov,
-                scratch,
-                cov_scratch,
-            )
+            with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+                kernels.project_backward(
+                    ctx.surfel,
+                    geometry,
+                    shape,
+                    plan.rank,
+                    plan.pair_start,
+                    plan.pair_of,
+                    pair_grads,
+                    x,
+                    ctx.rot,
+                    sc,
+                    op,
+                    shc,
+                    cov,
+                    camera.R_cw,
+                    camera.t_cw,
+                    camera.center,
+                    camera.K,
+                    camera.width,
+                    camera.height,
+                    *_convention_args(settings)[:2],
+                    plan.geom,
+                    plan.flip,
+                    g_means,
+                    g_rot,
+                    g_scales,
+                    g_opac,
+                    g_sh,
+                    g_cov,
+                    scratch,
+                    cov_scratch,
+                )
         g_quats = np.empty((n, 4))
         if wanted[1]:
             kernels.quats_backward(q, g_rot, g_quats)

@@ -6,7 +6,7 @@ intermediate stored. The kernels compute the function of the torch reference
 (`render/torch_backend.py`) pair by pair, the way the CUDA rasterizers of 3DGS/2DGS do, but
 shaped for a CPU core:
 
-* `quats_to_rotations`, `project`: one pass over the Gaussians (parallel) giving each one's
+* `quats_to_rotations`, `project`: one pass over the Gaussians (`project` parallel) giving each one's
   camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
   and camera-facing normal.
 * `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
@@ -162,10 +162,14 @@ def _release_tile_range(p, radius, size):
     return int(t0) * EWA_TILE, min(int(t1) * EWA_TILE, size) - 1
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+# The light per-Gaussian and per-pixel passes (rotations, gathers, normalization) run on one thread:
+# a parallel region has to wake the other threads, and beside another busy process a woken thread
+# waits for a core for up to the scheduler's latency (12 ms measured on 2 cores, against 1.6 ms for
+# a whole serial gather of 84k rows); alone they take a millisecond or two either way.
+@njit(cache=True, error_model="numpy")
 def quats_to_rotations(quats, out):
     """out [N, 3, 3] = rotation of the normalized quaternion (w, x, y, z) (geometry/rotations.py)."""
-    for i in prange(quats.shape[0]):
+    for i in range(quats.shape[0]):
         q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
         w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
@@ -175,10 +179,10 @@ def quats_to_rotations(quats, out):
         R[2, 0], R[2, 1], R[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def quats_backward(quats, g_rotations, g_quats):
     """g_quats [N, 4] = dL/dquats from dL/drotations [N, 3, 3] through `quats_to_rotations`."""
-    for i in prange(quats.shape[0]):
+    for i in range(quats.shape[0]):
         q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         raw = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
         norm = max(raw, _QUAT_NORM_MIN)
@@ -572,11 +576,11 @@ def bin_tiles(box, tile, tiles_x, tiles_y):
     return tile_start, tile_ids, pair_start, pair_of
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def gather_rows(src, index):
-    """src[index] for a 2D array (parallel)."""
+    """src[index] for a 2D array (one thread: see `quats_to_rotations`)."""
     out = np.empty((index.shape[0], src.shape[1]), dtype=src.dtype)
-    for m in prange(index.shape[0]):
+    for m in range(index.shape[0]):
         for j in range(src.shape[1]):
             out[m, j] = src[index[m], j]
     return out
@@ -1503,9 +1507,9 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy")
 def normalize_forward(color, alpha, depth, normal, threshold, background, out_color, out_depth, out_normal):
-    """`render.normalize_by_alpha` and the background in one pass (rows of all cameras in parallel).
+    """`render.normalize_by_alpha` and the background in one pass (one thread: see `quats_to_rotations`).
 
     color, normal [C, 3, H, W], alpha, depth [C, 1, H, W] un-normalized; threshold (inf: none) and
     background [3] in their dtype. Where alpha >= threshold colour, depth and normal are divided by
@@ -1516,7 +1520,7 @@ def normalize_forward(color, alpha, depth, normal, threshold, background, out_co
     ft = color.dtype.type
     one = ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
-    for row in prange(cams * height):
+    for row in range(cams * height):
         c, r = row // height, row % height
         for x in range(width):
             a = alpha[c, 0, r, x]
@@ -1529,7 +1533,7 @@ def normalize_forward(color, alpha, depth, normal, threshold, background, out_co
             out_depth[c, 0, r, x] = depth[c, 0, r, x] / safe
 
 
-@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy")
 def normalize_backward(
     color,
     alpha,
@@ -1554,7 +1558,7 @@ def normalize_backward(
     ft = color.dtype.type
     zero, one = ft(0.0), ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
-    for row in prange(cams * height):
+    for row in range(cams * height):
         c, r = row // height, row % height
         for x in range(width):
             a = alpha[c, 0, r, x]
