@@ -66,6 +66,7 @@ class _Plan:
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
     features: np.ndarray  # [M, 6] survivors' colour and oriented normal (the compositing dtype)
     flip: np.ndarray  # [N] +-1: the sign given to each normal
+    lit: np.ndarray  # [N] bit ch: colour channel ch not clamped at 0
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] survivors m touching each tile, front to back
     pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are
@@ -169,6 +170,7 @@ def _prepare(
     depth = np.empty(n)
     features = np.empty((n, kernels.FEATURES), dtype=dtype)
     flip = np.empty(n)
+    lit = np.empty(n, dtype=np.uint8)
     with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
         kernels.project(
             surfel,
@@ -193,6 +195,7 @@ def _prepare(
             depth,
             features,
             flip,
+            lit,
             np.empty((threads, _SCRATCH)),
             np.empty((threads, 2, 3, 3)),
         )
@@ -208,6 +211,7 @@ def _prepare(
         box,
         kernels.gather_rows(features, order),
         flip,
+        lit,
         tile_start,
         tile_ids,
         pair_start,
@@ -350,6 +354,7 @@ class _Rasterize(torch.autograd.Function):
                     *_convention_args(settings)[:2],
                     plan.geom,
                     plan.flip,
+                    plan.lit,
                     g_means,
                     g_rot,
                     g_scales,

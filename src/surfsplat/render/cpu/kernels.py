@@ -390,6 +390,7 @@ def project(
     depth,
     features,
     flip,
+    lit,
     scratch,
     cov_scratch,
 ):
@@ -401,8 +402,9 @@ def project(
     means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
     covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
     Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N], depth [N] (camera
-    z, the sort key), features [N, 6] (colour, normal facing the camera) and flip [N] (+-1, the
-    normal's sign). scratch [threads, >= 16], cov_scratch [threads, 2, 3, 3] are per-thread work space.
+    z, the sort key), features [N, 6] (colour, normal facing the camera), flip [N] (+-1, the
+    normal's sign) and lit [N] (bit ch set where colour channel ch is not clamped at 0, so the
+    backward pass need not evaluate the SH again). scratch [threads, >= 16], cov_scratch [threads, 2, 3, 3] are per-thread work space.
     """
     n_bases = sh.shape[2]
     explicit = covariances.shape[0] > 0
@@ -427,6 +429,7 @@ def project(
         if culled:
             keep[i] = False
             flip[i] = 1.0
+            lit[i] = 0
             continue
         g = geom[i]
         g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
@@ -505,11 +508,14 @@ def project(
         dx, dy, dz, _ = _view_direction(means[i], cam_center)
         Y = scratch[tid]
         _sh_basis(dx, dy, dz, n_bases, Y)
+        bits = 0
         for ch in range(3):
             v = 0.5
             for k in range(n_bases):
                 v += sh[i, ch, k] * Y[k]
             features[i, ch] = max(v, 0.0)
+            bits |= (1 << ch) if v >= 0.0 else 0
+        lit[i] = bits
         # Normal: the rotated z axis, flipped to face the camera (n_cam . mu <= 0).
         R = rotations[i]
         n_dot = (
@@ -1337,6 +1343,7 @@ def project_backward(
     jacobian_clamp,
     geom,
     flip,
+    lit,
     g_means,
     g_rotations,
     g_scales,
@@ -1441,18 +1448,21 @@ def project_backward(
         direction = geometry and n_bases > 1
         if direction:
             _sh_basis_grad(dx, dy, dz, n_bases, GX, GY, GZ)
-        for ch in range(3):
-            v = 0.5
-            for k in range(n_bases):
-                v += sh[i, ch, k] * Y[k]
-            g_col = gr[GRAD_FEAT + ch] if v >= 0.0 else 0.0
-            for k in range(n_bases):
-                g_sh[i, ch, k] += g_col * Y[k]
-            if direction:
-                for k in range(1, n_bases):
-                    gd0 += g_col * sh[i, ch, k] * GX[k]
-                    gd1 += g_col * sh[i, ch, k] * GY[k]
-                    gd2 += g_col * sh[i, ch, k] * GZ[k]
+        # the clamp as the forward pass found it (`project`'s lit bits), not the SH summed again
+        g_c0 = gr[GRAD_FEAT] if lit[i] & 1 else 0.0
+        g_c1 = gr[GRAD_FEAT + 1] if lit[i] & 2 else 0.0
+        g_c2 = gr[GRAD_FEAT + 2] if lit[i] & 4 else 0.0
+        for k in range(n_bases):
+            g_sh[i, 0, k] += g_c0 * Y[k]
+            g_sh[i, 1, k] += g_c1 * Y[k]
+            g_sh[i, 2, k] += g_c2 * Y[k]
+        if direction:
+            # the channels' weights of each basis function first: 3 products a basis, not 9
+            for k in range(1, n_bases):
+                w = g_c0 * sh[i, 0, k] + g_c1 * sh[i, 1, k] + g_c2 * sh[i, 2, k]
+                gd0 += w * GX[k]
+                gd1 += w * GY[k]
+                gd2 += w * GZ[k]
         if direction and norm > 1e-12:
             # d = v / |v|: dL/dv = (dL/dd - d (d . dL/dd)) / |v|
             proj = dx * gd0 + dy * gd1 + dz * gd2
