@@ -63,6 +63,8 @@ KERNEL_PHASES = {
     "composite_backward": "composite_bwd",
     "project_backward": "projection_bwd",
     "quats_backward": "projection_bwd",
+    "normalize_forward": "normalize",
+    "normalize_backward": "normalize",
 }
 
 
