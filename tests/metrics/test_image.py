@@ -171,3 +171,21 @@ def test_ssim_and_psnr_match_the_lpips_fixture(golden_subset_dir):
     ours_ssim = ssim(cases["b64"], cases["a64"])
     assert (ours_ssim - cases["ssim64"]).abs().max().item() <= 1e-5
     assert (psnr(cases["b64"], cases["a64"]) - cases["psnr64"]).abs().max().item() <= 1e-4
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_compiled_filter_matches_the_banded_products_with_gradients(dtype):
+    pytest.importorskip("numba")
+    from surfsplat.metrics import image
+
+    g = torch.Generator().manual_seed(6)
+    maps = torch.rand(4, 1, 23, 31, generator=g, dtype=dtype, requires_grad=True)
+    weights = torch.rand(4, 1, 13, 21, generator=g, dtype=dtype)
+    taps = gaussian_taps(dtype=dtype)
+    compiled = image._compiled_filter().apply(maps, taps)
+    (g_compiled,) = torch.autograd.grad((compiled * weights).sum(), maps)
+    banded = image._filter_axis(image._filter_axis(maps, taps, -2), taps, -1)
+    (g_banded,) = torch.autograd.grad((banded * weights).sum(), maps)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(compiled, banded, rtol=0, atol=tol)
+    torch.testing.assert_close(g_compiled, g_banded, rtol=0, atol=tol)

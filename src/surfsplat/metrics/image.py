@@ -11,7 +11,10 @@ torch, so it runs on the GPU and inside a loss.
 
 from __future__ import annotations
 
+import functools
+
 import torch
+import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
@@ -83,11 +86,28 @@ def _gaussian_filter_valid(maps: Tensor, taps: Tensor) -> Tensor:
 
     scikit-image filters with padding and then crops r = (win_size - 1) / 2 pixels off the SSIM
     map; with win_size 11 and sigma 1.5 the filter radius is also 5, so no kept pixel ever sees
-    the padding and an unpadded ("valid") filter gives the same numbers for less work. Each axis is
-    a product with a banded matrix: on the CPU a one-channel 11-tap conv2d (and its backward) took
-    20x longer, and was most of a fit step's loss at 368x496.
+    the padding and an unpadded ("valid") filter gives the same numbers for less work. On the CPU
+    the compiled loops of `_filter_cpu` (where numba imports), else products with banded matrices:
+    a one-channel 11-tap conv2d and its backward took 20x longer there, most of a fit step at
+    368x496. Other devices keep the convolution.
     """
+    if maps.device.type != "cpu":
+        vertical = F.conv2d(maps, taps.view(1, 1, -1, 1))
+        return F.conv2d(vertical, taps.view(1, 1, 1, -1))
+    compiled = _compiled_filter()
+    if compiled is not None and maps.dtype in (torch.float32, torch.float64):
+        return compiled.apply(maps, taps)
     return _filter_axis(_filter_axis(maps, taps, -2), taps, -1)
+
+
+@functools.cache
+def _compiled_filter():
+    """`_filter_cpu.GaussianFilterValid`, or None without numba."""
+    try:
+        from ._filter_cpu import GaussianFilterValid
+    except ImportError:
+        return None
+    return GaussianFilterValid
 
 
 def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tensor:
