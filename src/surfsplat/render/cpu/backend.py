@@ -32,7 +32,10 @@ from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
-_SCRATCH = 64 + kernels.GRAD_SIZE  # per-thread work space of the projection kernels (SH basis, gradient row)
+# Per-thread work space of the projection kernels (SH basis, gradient row), each row followed by 8
+# unused floats (a cache line): the rows are written for every Gaussian, and two threads writing one
+# line would pass it back and forth between their cores.
+_SCRATCH = 64 + kernels.GRAD_SIZE + 8
 _NP_DTYPES = {
     torch.float64: np.float64,
     torch.float32: np.float32,
