@@ -2,8 +2,11 @@
 
 No torch op runs per Gaussian: quaternion to rotation, camera transform, SH colour, normal
 orientation, projection, culling, sorting, binning, compositing and all their gradients run in the
-kernels of `kernels.py`, on every core. Torch only hands tensors over (a NumPy view or one cast) -
-which also keeps torch's own thread pool out of the way of the kernels'. The inputs are converted
+kernels of `kernels.py`, the heavy ones on every core (the light passes on one: a parallel region
+costs a thread wake-up, which beside another busy process can take longer than the pass). Torch only
+hands tensors over (a NumPy view or one cast) - which also keeps torch's own thread pool out of the
+way of the kernels'. `normalize_cpu` does the dispatcher's forced-alpha normalization and background
+the same way, so a render's whole-image work is compiled too. The inputs are converted
 and the rotations built once per call, whatever the number of cameras; the backward sums every
 camera's gradients into one set of buffers, camera after camera, so the result is the same for any
 number of threads and no per-camera gradient is ever materialised.
