@@ -21,7 +21,8 @@ fan of views around the target) against V calls of one camera each, in the same 
 resolution and precision: seconds of both and their ratio, and each against V float64 one-camera
 calls of today's float64 path. `--baseline REV` also times V one-camera calls of the renderer at
 git revision REV (its `src` exported to a temporary folder, run in a subprocess in the same run, on
-the same surfels and cameras), and gives every row's ratio against it:
+the same surfels and cameras), and gives every row's ratio against it. Without `--multiview`,
+`--baseline REV` runs every configuration on REV's source too, just before this tree's:
 
     python benchmarks/render.py --multiview 16 --resolutions 128 256 --precisions float32 float64 \
         --baseline a533a7b       # the renderer when fast captures were asked for
@@ -249,8 +250,8 @@ def baseline_worker(path: Path, repeats: int) -> dict:
     return {"seconds_separate_calls": _median_seconds(one_by_one, params, repeats), "source": surfsplat.__file__}
 
 
-def run_baseline(revision: str, views: int, res: int, repeats: int, threads: int, folder: Path) -> dict:
-    """`baseline_worker` on the revision's source tree (exported once into `folder`)."""
+def export_source(revision: str, folder: Path) -> Path:
+    """The `src` of git revision `revision`, exported into `folder` unless already there."""
     src = folder / "src"
     if not src.is_dir():
         root = Path(__file__).resolve().parents[1]
@@ -258,6 +259,12 @@ def run_baseline(revision: str, views: int, res: int, repeats: int, threads: int
             ["git", "-C", str(root), "archive", "--format=tar", revision, "src"], capture_output=True, check=True
         )
         subprocess.run(["tar", "-x", "-C", str(folder)], input=archive.stdout, check=True)
+    return src
+
+
+def run_baseline(revision: str, views: int, res: int, repeats: int, threads: int, folder: Path) -> dict:
+    """`baseline_worker` on the revision's source tree (exported once into `folder`)."""
+    src = export_source(revision, folder)
     case = folder / f"case_{views}_{res}.pt"
     baseline_case(views, res, case)
     env = {**os.environ, "PYTHONPATH": str(src)}
@@ -286,7 +293,9 @@ def main() -> None:
         "--worker", nargs=5, metavar=("BACKEND", "MODE", "RES", "PASSES", "PRECISION"), help=argparse.SUPPRESS
     )
     parser.add_argument("--multiview", type=int, default=None, metavar="V", help="one V-camera call vs V calls")
-    parser.add_argument("--baseline", default=None, metavar="REV", help="--multiview: also V calls of revision REV")
+    parser.add_argument(
+        "--baseline", default=None, metavar="REV", help="also revision REV, side by side (--multiview: V calls of it)"
+    )
     parser.add_argument("--baseline-worker", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
 
@@ -354,13 +363,23 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     args.backends = args.backends or available_backends()
+    baseline_src = None
+    if args.baseline:
+        import tempfile
+
+        folder = Path(tempfile.gettempdir()) / f"surfsplat_baseline_{args.baseline}"
+        folder.mkdir(exist_ok=True)
+        baseline_src = export_source(args.baseline, folder)
     scene = _scene()
     rows = []
     for mode in args.modes:
         for res in args.resolutions:
             pairs = contributing_pairs(scene.gaussians, scene.target.scaled(res / 256), res, res, mode)
             configurations = [(b, p, d) for b in args.backends for p in args.passes for d in args.precisions]
-            for backend, passes, precision in configurations:
+            # With --baseline, each configuration also runs on the revision's source, right before this one's.
+            sources = [(args.baseline, baseline_src)] if baseline_src is not None else []
+            sources.append((None, None))
+            for (backend, passes, precision), (revision, src) in ((c, s) for c in configurations for s in sources):
                 # A fresh process per measurement, so peak memory belongs to this configuration.
                 cmd = [
                     sys.executable,
@@ -376,7 +395,8 @@ def main() -> None:
                     "--threads",
                     str(args.threads),
                 ]
-                proc = subprocess.run(cmd, capture_output=True, text=True)
+                env = {**os.environ, "PYTHONPATH": str(src)} if src is not None else None
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
                 if proc.returncode != 0:
                     row = {
                         "backend": backend,
@@ -392,6 +412,8 @@ def main() -> None:
                     row = json.loads(proc.stdout.strip().splitlines()[-1])
                     row["pairs_per_second"] = pairs / row["seconds"]
                 row["contributing_pairs"] = pairs
+                if revision is not None:
+                    row["revision"] = revision
                 rows.append(row)
                 print(_format_row(row), flush=True)
 
@@ -422,7 +444,7 @@ def _precision_ratios(rows: list[dict]) -> list[dict]:
     timed = {
         (r["backend"], r["mode"], r["resolution"], r["passes"], r["precision"]): r["seconds"]
         for r in rows
-        if "error" not in r
+        if "error" not in r and "revision" not in r
     }
     return [
         {
@@ -438,7 +460,7 @@ def _precision_ratios(rows: list[dict]) -> list[dict]:
 
 
 def _format_row(r: dict) -> str:
-    head = f"{r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16} {r['precision']:>7}"
+    head = f"{r.get('revision', 'this'):>8} {r['backend']:>7} {r['mode']:>6} {r['resolution']:>5}^2 {r['passes']:>16} {r['precision']:>7}"
     if "error" in r:
         return f"{head}  ERROR {r['error']}"
     return (

@@ -88,6 +88,17 @@ def test_ssim_matches_skimage_on_random_images_float64():
     )
 
 
+def test_ssim_matches_skimage_on_a_long_side_float64():
+    # a side beyond the banded-matrix limit takes the shifted-sum filter
+    g = torch.Generator().manual_seed(4)
+    target = torch.rand(1, 3, 13, 700, generator=g, dtype=torch.float64)
+    prediction = degrade(target, g)
+    ours = ssim(prediction, target)
+    torch.testing.assert_close(
+        ours, torch.tensor(skimage_ssim(target, prediction), dtype=torch.float64), rtol=0, atol=1e-12
+    )
+
+
 def test_ssim_float32_matches_skimage_within_1e5():
     g = torch.Generator().manual_seed(2)
     target = torch.rand(2, 3, 64, 48, generator=g)
@@ -160,3 +171,21 @@ def test_ssim_and_psnr_match_the_lpips_fixture(golden_subset_dir):
     ours_ssim = ssim(cases["b64"], cases["a64"])
     assert (ours_ssim - cases["ssim64"]).abs().max().item() <= 1e-5
     assert (psnr(cases["b64"], cases["a64"]) - cases["psnr64"]).abs().max().item() <= 1e-4
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_compiled_filter_matches_the_banded_products_with_gradients(dtype):
+    pytest.importorskip("numba")
+    from surfsplat.metrics import image
+
+    g = torch.Generator().manual_seed(6)
+    maps = torch.rand(4, 1, 23, 31, generator=g, dtype=dtype, requires_grad=True)
+    weights = torch.rand(4, 1, 13, 21, generator=g, dtype=dtype)
+    taps = gaussian_taps(dtype=dtype)
+    compiled = image._compiled_filter().apply(maps, taps)
+    (g_compiled,) = torch.autograd.grad((compiled * weights).sum(), maps)
+    banded = image._filter_axis(image._filter_axis(maps, taps, -2), taps, -1)
+    (g_banded,) = torch.autograd.grad((banded * weights).sum(), maps)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(compiled, banded, rtol=0, atol=tol)
+    torch.testing.assert_close(g_compiled, g_banded, rtol=0, atol=tol)

@@ -657,3 +657,14 @@ def _with_backend_settings(g, cams, W, H, mode, weights, settings):
     maps = (out.color, out.alpha, out.depth, out.normal)
     sum((m * w).sum() for m, w in zip(maps, weights)).backward()
     return maps, {k: p.grad for k, p in params.items()}
+
+
+def test_depth_order_is_the_stable_sort_of_the_survivors():
+    # many exact ties (depths on a coarse grid, -0.0 beside 0.0) and culled entries between them
+    rng = np.random.default_rng(3)
+    depth = rng.integers(0, 40, 5000).astype(np.float64) / 8
+    depth[rng.random(5000) < 0.05] = -0.0
+    keep = rng.random(5000) < 0.8
+    index = np.flatnonzero(keep)
+    expected = index[np.argsort(depth[index], kind="stable")]
+    np.testing.assert_array_equal(kernels.depth_order(keep, depth), expected)

@@ -19,7 +19,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -158,7 +159,7 @@ def fit_on_views(
         return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
 
     free = _Free(g0, plan)
-    optimizer = torch.optim.Adam(free.groups())
+    optimizer = adam(free.groups(), g0.means.device)
     densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
@@ -197,7 +198,10 @@ def fit_on_views(
     errors: list[Tensor] = []
     shown = 0
     bar_total, unit = (round(plan.seconds), "s") if timed else (total, "step")
-    with progress_bar(total=bar_total, desc=plan.name, unit=unit, enabled=progress) as bar:
+    with (
+        step_threads(g0.means.device),
+        progress_bar(total=bar_total, desc=plan.name, unit=unit, enabled=progress) as bar,
+    ):
         for step in range(total):
             done = progress_of(plan, step, time.perf_counter() - fit_start - watched)
             if done >= 1:
@@ -264,6 +268,35 @@ def fit_on_views(
         )
         return g0, stats
     return fitted, stats
+
+
+@contextmanager
+def step_threads(device: torch.device) -> Iterator[None]:
+    """Torch's own ops on one thread while the fit's steps run on the CPU (the compiled renderer keeps
+    its threads).
+
+    A step is some hundred torch ops on a few hundred thousand values (activations, loss, their
+    backward, Adam), each a parallel region that has to wake torch's other threads. Beside another
+    busy process a woken thread waits for a core for up to the scheduler's latency, so at two threads
+    the step's torch ops took several times the rest of the step; on one thread they cannot wait
+    for each other, and the renderer's kernels, where the work is, still use every core.
+    """
+    if device.type != "cpu":
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def adam(groups: list[dict], device: torch.device) -> torch.optim.Adam:
+    """The fit's Adam: on the CPU torch's fused step, one pass over each tensor (the default
+    for-each step makes some ten whole-tensor passes, each a parallel region; it took 7x longer at
+    100k surfels beside another busy process)."""
+    return torch.optim.Adam(groups, fused=True if device.type == "cpu" else None)
 
 
 class _Free:

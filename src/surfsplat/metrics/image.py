@@ -11,7 +11,10 @@ torch, so it runs on the GPU and inside a loss.
 
 from __future__ import annotations
 
+import functools
+
 import torch
+import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor
 
@@ -51,32 +54,60 @@ def gaussian_taps(sigma: float = SSIM_SIGMA, truncate: float = SSIM_TRUNCATE, *,
     return (taps / taps.sum()).to(dtype)
 
 
+# Sides up to this many pixels are filtered as one product with a banded matrix; longer ones as a
+# sum of shifted copies (the product's work grows with the side, the sum's does not).
+_BANDED_MAX_SIDE = 640
+
+
+def _band(n: int, taps: Tensor) -> Tensor:
+    """[n - 2r, n] matrix whose row i holds the taps at columns i..i+2r: the valid filter of a length-n axis."""
+    k = taps.shape[0]
+    band = torch.zeros(n - k + 1, n, dtype=taps.dtype, device=taps.device)
+    rows = torch.arange(n - k + 1, device=taps.device)
+    for i in range(k):
+        band[rows, rows + i] = taps[i]
+    return band
+
+
+def _filter_axis(maps: Tensor, taps: Tensor, dim: int) -> Tensor:
+    """The valid 1-D filter of `maps` along `dim` (-2 or -1)."""
+    n, k = maps.shape[dim], taps.shape[0]
+    if n <= _BANDED_MAX_SIDE:
+        band = _band(n, taps)
+        return band @ maps if dim == -2 else maps @ band.T
+    out = taps[0] * maps.narrow(dim, 0, n - k + 1)
+    for i in range(1, k):
+        out = out + taps[i] * maps.narrow(dim, i, n - k + 1)
+    return out
+
+
 def _gaussian_filter_valid(maps: Tensor, taps: Tensor) -> Tensor:
     """Separable Gaussian filter of [N, 1, H, W] maps where the window fits: [N, 1, H-2r, W-2r].
 
     scikit-image filters with padding and then crops r = (win_size - 1) / 2 pixels off the SSIM
     map; with win_size 11 and sigma 1.5 the filter radius is also 5, so no kept pixel ever sees
-    the padding and an unpadded ("valid") convolution gives the same numbers for less work.
-
-    Each pass is one product with a banded matrix (the taps on its diagonals) rather than a
-    convolution: one-channel 11-tap convolutions run far below the machine's speed on a CPU (a
-    fit's D-SSIM term at 368x496 took 0.86 s forward and backward as conv2d, 0.10 s as matrix
-    products, measured side by side), and a matrix product's backward is two more of them.
+    the padding and an unpadded ("valid") filter gives the same numbers for less work. On the CPU
+    the compiled loops of `_filter_cpu` (where numba imports), else products with banded matrices:
+    a one-channel 11-tap conv2d and its backward took 20x longer there, most of a fit step at
+    368x496. Other devices keep the convolution.
     """
-    height, width = maps.shape[-2:]
-    rows = _band(height, taps)  # [H - 2r, H]
-    cols = _band(width, taps)  # [W - 2r, W]
-    return rows @ maps @ cols.T
+    if maps.device.type != "cpu":
+        vertical = F.conv2d(maps, taps.view(1, 1, -1, 1))
+        return F.conv2d(vertical, taps.view(1, 1, 1, -1))
+    compiled = _compiled_filter()
+    if compiled is not None and maps.dtype in (torch.float32, torch.float64):
+        return compiled.apply(maps, taps)
+    return _filter_axis(_filter_axis(maps, taps, -2), taps, -1)
 
 
-def _band(size: int, taps: Tensor) -> Tensor:
-    """[size - len(taps) + 1, size]: row i holds the taps at columns i .. i + len(taps) - 1."""
-    n = len(taps)
-    out = torch.zeros(size - n + 1, size, dtype=taps.dtype, device=taps.device)
-    index = torch.arange(size - n + 1, device=taps.device)
-    for k in range(n):
-        out[index, index + k] = taps[k]
-    return out
+@functools.cache
+def _compiled_filter():
+    """`_filter_cpu.GaussianFilterValid`, or None without numba."""
+    try:
+        from ._filter_cpu import GaussianFilterValid
+    except ImportError:
+        return None
+    return GaussianFilterValid
 
 
 def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tensor:

@@ -107,6 +107,15 @@ def render(
         from .cpu import render_cpu
 
         maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
+        if not bg.requires_grad:
+            # one compiled pass forward and one backward instead of some ten whole-image torch ops each way
+            from .cpu.backend import normalize_cpu
+
+            color, alpha, depth, normal = maps[:4]
+            color, depth, normal = normalize_cpu(color, alpha, depth, normal, alpha_threshold, bg)
+            return RenderOutput(
+                color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+            )
     else:
         maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion)
     color, alpha, depth, normal = maps[:4]

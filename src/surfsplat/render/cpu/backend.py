@@ -2,8 +2,11 @@
 
 No torch op runs per Gaussian: quaternion to rotation, camera transform, SH colour, normal
 orientation, projection, culling, sorting, binning, compositing and all their gradients run in the
-kernels of `kernels.py`, on every core. Torch only hands tensors over (a NumPy view or one cast) -
-which also keeps torch's own thread pool out of the way of the kernels'. The inputs are converted
+kernels of `kernels.py`, the heavy ones on every core (the light passes on one: a parallel region
+costs a thread wake-up, which beside another busy process can take longer than the pass). Torch only
+hands tensors over (a NumPy view or one cast) - which also keeps torch's own thread pool out of the
+way of the kernels'. `normalize_cpu` does the dispatcher's forced-alpha normalization and background
+the same way, so a render's whole-image work is compiled too. The inputs are converted
 and the rotations built once per call, whatever the number of cameras; the backward sums every
 camera's gradients into one set of buffers, camera after camera, so the result is the same for any
 number of threads and no per-camera gradient is ever materialised.
@@ -32,7 +35,10 @@ from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
-_SCRATCH = 64 + kernels.GRAD_SIZE  # per-thread work space of the projection kernels (SH basis, gradient row)
+# Per-thread work space of the projection kernels (SH basis, gradient row), each row followed by 8
+# unused floats (a cache line): the rows are written for every Gaussian, and two threads writing one
+# line would pass it back and forth between their cores.
+_SCRATCH = 64 + kernels.GRAD_SIZE + 8
 _NP_DTYPES = {
     torch.float64: np.float64,
     torch.float32: np.float32,
@@ -40,6 +46,9 @@ _NP_DTYPES = {
     torch.bfloat16: np.float32,
 }
 _DIRECT_GRAD = (torch.float32, torch.float64)  # gradient dtypes the kernels may write directly
+# Gaussians a thread takes at a time in the per-Gaussian kernels: handed out as threads come free,
+# so a thread that waits for a core (beside another busy process) does not hold back a fixed half.
+_GAUSSIAN_CHUNK = 1024
 
 
 @dataclass
@@ -63,6 +72,7 @@ class _Plan:
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
     features: np.ndarray  # [M, 6] survivors' colour and oriented normal (the compositing dtype)
     flip: np.ndarray  # [N] +-1: the sign given to each normal
+    lit: np.ndarray  # [N] bit ch: colour channel ch not clamped at 0
     tile_start: np.ndarray  # [tiles + 1]
     tile_ids: np.ndarray  # [pairs] survivors m touching each tile, front to back
     pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are
@@ -166,32 +176,35 @@ def _prepare(
     depth = np.empty(n)
     features = np.empty((n, kernels.FEATURES), dtype=dtype)
     flip = np.empty(n)
-    kernels.project(
-        surfel,
-        x,
-        rot,
-        sc,
-        op,
-        shc,
-        cov,
-        camera.R_cw,
-        camera.t_cw,
-        camera.center,
-        camera.K,
-        camera.width,
-        camera.height,
-        settings.near_plane,
-        settings.far_plane,
-        *_convention_args(settings),
-        geom,
-        box,
-        keep,
-        depth,
-        features,
-        flip,
-        np.empty((threads, _SCRATCH)),
-        np.empty((threads, 2, 3, 3)),
-    )
+    lit = np.empty(n, dtype=np.uint8)
+    with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+        kernels.project(
+            surfel,
+            x,
+            rot,
+            sc,
+            op,
+            shc,
+            cov,
+            camera.R_cw,
+            camera.t_cw,
+            camera.center,
+            camera.K,
+            camera.width,
+            camera.height,
+            settings.near_plane,
+            settings.far_plane,
+            *_convention_args(settings),
+            geom,
+            box,
+            keep,
+            depth,
+            features,
+            flip,
+            lit,
+            np.empty((threads, _SCRATCH)),
+            np.empty((threads, 2, 3, 3)),
+        )
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
     order = kernels.depth_order(keep, depth)
@@ -204,6 +217,7 @@ def _prepare(
         box,
         kernels.gather_rows(features, order),
         flip,
+        lit,
         tile_start,
         tile_ids,
         pair_start,
@@ -335,38 +349,40 @@ class _Rasterize(torch.autograd.Function):
                     pair_grads,
                     None if distortion is None else distortion[c],
                 )
-            kernels.project_backward(
-                ctx.surfel,
-                geometry,
-                shape,
-                plan.rank,
-                plan.pair_start,
-                plan.pair_of,
-                pair_grads,
-                x,
-                ctx.rot,
-                sc,
-                op,
-                shc,
-                cov,
-                camera.R_cw,
-                camera.t_cw,
-                camera.center,
-                camera.K,
-                camera.width,
-                camera.height,
-                *_convention_args(settings)[:2],
-                plan.geom,
-                plan.flip,
-                g_means,
-                g_rot,
-                g_scales,
-                g_opac,
-                g_sh,
-                g_cov,
-                scratch,
-                cov_scratch,
-            )
+            with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+                kernels.project_backward(
+                    ctx.surfel,
+                    geometry,
+                    shape,
+                    plan.rank,
+                    plan.pair_start,
+                    plan.pair_of,
+                    pair_grads,
+                    x,
+                    ctx.rot,
+                    sc,
+                    op,
+                    shc,
+                    cov,
+                    camera.R_cw,
+                    camera.t_cw,
+                    camera.center,
+                    camera.K,
+                    camera.width,
+                    camera.height,
+                    *_convention_args(settings)[:2],
+                    plan.geom,
+                    plan.flip,
+                    plan.lit,
+                    g_means,
+                    g_rot,
+                    g_scales,
+                    g_opac,
+                    g_sh,
+                    g_cov,
+                    scratch,
+                    cov_scratch,
+                )
         g_quats = np.empty((n, 4))
         if wanted[1]:
             kernels.quats_backward(q, g_rot, g_quats)
@@ -463,3 +479,40 @@ def contributing_pairs(
             )
         )
     return counts
+
+
+class _Normalize(torch.autograd.Function):
+    """Forced-alpha normalization and background of the raw maps (`kernels.normalize_forward`)."""
+
+    @staticmethod
+    def forward(ctx, color, alpha, depth, normal, threshold: float | None, background: Tensor):
+        ft = _NP_DTYPES[color.dtype] if color.dtype in _DIRECT_GRAD else np.float64
+        maps = [_np(t, ft) for t in (color, alpha, depth, normal)]
+        # torch compares a tensor with a Python float in the tensor's dtype: so does the kernel
+        limit = ft(math.inf if threshold is None else threshold)
+        bg = _np(background, ft)
+        out = [np.empty_like(maps[0]), np.empty_like(maps[2]), np.empty_like(maps[3])]
+        kernels.normalize_forward(*maps, limit, bg, *out)
+        ctx.maps, ctx.limit, ctx.bg = maps, limit, bg
+        return tuple(_tensor(o, color.dtype) for o in out)
+
+    @staticmethod
+    def backward(ctx, g_color, g_depth, g_normal):
+        color, alpha, depth, normal = ctx.maps
+        upstream = [
+            np.zeros_like(like) if g is None else _np(g, like.dtype.type)
+            for g, like in ((g_color, color), (g_depth, depth), (g_normal, normal))
+        ]
+        grads = [np.empty_like(color), np.zeros_like(alpha), np.empty_like(depth), np.empty_like(normal)]
+        kernels.normalize_backward(color, alpha, depth, normal, ctx.limit, ctx.bg, *upstream, *grads)
+        dtype = g_color.dtype if g_color is not None else (g_depth if g_depth is not None else g_normal).dtype
+        return (*(_tensor(g, dtype) for g in grads), None, None)
+
+
+def normalize_cpu(
+    color: Tensor, alpha: Tensor, depth: Tensor, normal: Tensor, threshold: float | None, background: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """`render.normalize_by_alpha` followed by the background, in one compiled pass each way:
+    (colour over the background, depth, normal). The background gets no gradient."""
+    color_out, depth_out, normal_out = _Normalize.apply(color, alpha, depth, normal, threshold, background.detach())
+    return color_out, depth_out, normal_out
