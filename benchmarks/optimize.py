@@ -44,7 +44,7 @@ import torch
 
 from common import ROOT, machine, sample_data, text_table, write_results
 
-STARTS = ("points", "network", "both")
+STARTS = ("points", "network", "both", "auto")
 ANCHORS = ROOT.parent / "shared" / "anchors" / "opensplat_fern"
 
 
@@ -137,10 +137,10 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.config.items()}
         fields["start"] = StartConfig(kind=start, **args.start)
         config = OptimizeConfig(**fields)
-        curve = Curve(f"{name}/{start}", fused, network_cpu, config.alpha_threshold)
+        curve = Curve(f"{name}/{start}", fused, network_cpu)
         fitted, stats = optimize_on_views(
             fused.gaussians, fused.cameras, context_images, fused.width, fused.height, config,
-            mode=fused.mode, monitor=curve,
+            mode=fused.mode, alpha_threshold=fused.alpha_threshold, monitor=curve,
         )  # fmt: skip
         add(
             {
@@ -153,7 +153,7 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
                 "start_surfels": stats["start_surfels"],
                 "points": stats.get("points"),
                 "surfels_after": stats["surfels_after"],
-                **held_out_scores(fitted, fused, h.cameras, h.images, config.alpha_threshold),
+                **held_out_scores(fitted, fused, h.cameras, h.images, stats["alpha_threshold"]),
                 "start_reason": stats.get("start_reason"),
                 "reached_opensplat_at_cpu_seconds": first_reaching(curve.points, result),
                 "curve": curve.points,
@@ -166,16 +166,16 @@ class Curve:
     """A fit's monitor: held-out PSNR against the CPU seconds of the process so far (network and fusion
     included, the scoring left out)."""
 
-    def __init__(self, label: str, fused, network_cpu: float, alpha_threshold: float | None) -> None:
-        self.label, self.fused, self.network_cpu, self.alpha_threshold = label, fused, network_cpu, alpha_threshold
+    def __init__(self, label: str, fused, network_cpu: float) -> None:
+        self.label, self.fused, self.network_cpu = label, fused, network_cpu
         self.points: list[dict] = []
         self.fit_cpu = cpu_seconds()  # made just before the fit starts
         self.scoring = 0.0
 
-    def __call__(self, step: int, seconds: float, surfels) -> None:
+    def __call__(self, step: int, seconds: float, surfels, alpha_threshold: float | None) -> None:
         now = cpu_seconds()
         h = self.fused.holdout
-        scores = held_out_scores(surfels, self.fused, h.cameras, h.images, self.alpha_threshold)
+        scores = held_out_scores(surfels, self.fused, h.cameras, h.images, alpha_threshold)
         self.points.append(
             {
                 "step": step,
@@ -275,13 +275,14 @@ def rooms(args) -> dict:
             try:
                 fitted, stats = optimize_on_views(
                     fused.gaussians, fused.cameras, truth.image[ctx], size, size, config, mode=fused.mode,
+                    alpha_threshold=fused.alpha_threshold,
                 )  # fmt: skip
             except surfsplat.SurfSplatInputError as error:  # 64x64 renders of flat colours: too few SIFT points
                 print(f"room {1000 + seed}, start {start}: {error}", flush=True)
                 per_row.setdefault(f"optimize from {start}", []).append({"failed": str(error)})
                 continue
             per_row.setdefault(f"optimize from {start}", []).append(
-                {"seconds": stats["seconds"], **scores(fitted, fused, cams[held], held_truth, config.alpha_threshold)}
+                {"seconds": stats["seconds"], **scores(fitted, fused, cams[held], held_truth, stats["alpha_threshold"])}
             )
         print(f"room {1000 + seed} measured", flush=True)
     rows = []
@@ -431,7 +432,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parts = ["fern", "dtu", "rooms", "fern-cli", "dtu-cli"]
     parser.add_argument("--parts", nargs="+", default=["fern", "dtu", "rooms"], choices=parts)
-    parser.add_argument("--starts", nargs="+", default=list(STARTS), choices=STARTS)
+    parser.add_argument("--starts", nargs="+", default=list(STARTS[:3]), choices=STARTS)
     parser.add_argument("--config", type=json.loads, default={"steps": 2000}, help="OptimizeConfig fields (JSON)")
     parser.add_argument("--start", type=json.loads, default={}, help="StartConfig fields besides kind (JSON)")
     parser.add_argument("--room-config", type=json.loads, default={"steps": 300})

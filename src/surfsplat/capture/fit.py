@@ -104,7 +104,7 @@ def fit_on_views(
     "mse_after", "kept", "scale", "width", "height", "seconds"} (colour errors over every view at the
     full size; a fit that raised it is not kept and the given surfels come back).
 
-    `monitor(step, seconds, surfels)` is called before the first step, each time the fit's progress
+    `monitor(step, seconds, surfels, alpha_threshold)` is called before the first step, each time the fit's progress
     passes another `monitor_every`, and after the last step, with the surfels as they then are and
     the seconds the fit has run; its own time is not counted in them (held-out scores along the way)."""
     from ..render import render
@@ -188,7 +188,7 @@ def fit_on_views(
             return
         tick = time.perf_counter()
         with torch.no_grad():
-            monitor(step, tick - fit_start - watched, free.current(done).detach())
+            monitor(step, tick - fit_start - watched, free.current(done).detach(), alpha_threshold)
         watched += time.perf_counter() - tick
 
     watch(0, 0.0)

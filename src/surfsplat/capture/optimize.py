@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 from torch import Tensor
 
@@ -91,11 +92,12 @@ class OptimizeConfig:
     prunings: int = 0  # times faint surfels are pruned, evenly over the fit, besides the densification's (0: never)
     prune_opacity: float = 0.005  # ... those below this opacity (3DGS's min_opacity)
     seed: int = 0  # which views each step renders, the splits' samples
-    # forced alpha blending of the fitted scene (SurfSplat's tau_alpha, which the network's surfels are
-    # rendered with), or None: plain 2DGS compositing, as the per-scene methods fit. The fit renders with
-    # it and the optimized scene keeps it. None: fern at 184x248, 1,000 steps from COLMAP's points, held
-    # out 23.69 dB plain, 22.86 dB with tau_alpha 0.001
-    alpha_threshold: float | None = None
+    # forced alpha blending of the fitted scene (SurfSplat's tau_alpha), None for plain 2DGS compositing,
+    # or "auto": plain from COLMAP's points, as the per-scene methods fit (fern at 184x248, 1,000 steps:
+    # held out 23.69 dB plain, 22.86 dB with tau_alpha 0.001), and the network's own from its surfels,
+    # whose opacities it made for it (a room: 27.2 dB before, 26.1 dB after 30 steps fitted plain).
+    # The fit renders with it and the optimized scene keeps it.
+    alpha_threshold: float | None | Literal["auto"] = "auto"
 
     def __post_init__(self) -> None:
         if self.steps is not None and (
@@ -144,7 +146,7 @@ class OptimizeConfig:
             )
         if self.sh_degree not in (0, 1, 2, 3):
             raise SurfSplatInputError(f"optimize.sh_degree: expected 0 to 3, got {self.sh_degree}")
-        if self.alpha_threshold is not None and not 0 < self.alpha_threshold <= 1:
+        if self.alpha_threshold not in (None, "auto") and not 0 < self.alpha_threshold <= 1:
             raise SurfSplatInputError(
                 f"optimize.alpha_threshold: expected a threshold in (0, 1] or None, got {self.alpha_threshold}"
             )
@@ -218,6 +220,7 @@ def optimize_on_views(
     config: OptimizeConfig | None = None,
     *,
     mode: str = "surfel",
+    alpha_threshold: float | None = 0.001,
     backend: str = "auto",
     progress: bool = False,
     monitor=None,
@@ -225,12 +228,17 @@ def optimize_on_views(
     """The surfels optimized on the photos and the fit's figures: those of the loop
     (`fit.fit_on_views`), the start's (`starts.make_start`: "start", "start_surfels", "points") and
     "surfels_before" (the network's), "surfels_after", "extent".
-    The fit renders with `config.alpha_threshold`, and so should whatever renders its result.
+    `alpha_threshold`: the given surfels' forced-alpha threshold. The fit renders with the one
+    `config.alpha_threshold` names, returned as stats["alpha_threshold"]: whatever renders the result
+    should use it.
     `backend`: the renderer ("auto": the one `render` picks for the surfels' device); `monitor`: see
     `fit.fit_on_views` (held-out scores along the fit)."""
     config = config or OptimizeConfig()
     extent = scene_extent(cameras)
     start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree)
+    threshold = config.alpha_threshold
+    if threshold == "auto":
+        threshold = alpha_threshold if start_figures["start"] == "network" else None
     fitted, stats = fit_on_views(
         start,
         cameras,
@@ -239,13 +247,14 @@ def optimize_on_views(
         height,
         config.plan(extent, len(cameras)),
         mode=mode,
-        alpha_threshold=config.alpha_threshold,
+        alpha_threshold=threshold,
         backend=backend,
         progress=progress,
         monitor=monitor,
     )
+    stats["alpha_threshold"] = threshold
     if not stats["kept"] and gaussians is not None:  # the fit raised its error: the network's surfels stay
-        fitted = gaussians
+        fitted, stats["alpha_threshold"] = gaussians, alpha_threshold
     stats.update(start_figures)
     stats.update(
         {

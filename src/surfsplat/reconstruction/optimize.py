@@ -41,7 +41,7 @@ def optimize_scene(
         held.before = held.scores()
         held.before_renders = out.color.clamp(0, 1)
 
-        def monitor(step: int, seconds: float, surfels) -> None:
+        def monitor(step: int, seconds: float, surfels, alpha_threshold: float | None) -> None:
             """The held-out PSNR along the fit (its time is not the fit's), for the report's curve."""
             from ..metrics import psnr
             from ..render import render
@@ -52,7 +52,7 @@ def optimize_scene(
                 scene.width,
                 scene.height,
                 mode=scene.mode,
-                alpha_threshold=config.alpha_threshold,
+                alpha_threshold=alpha_threshold,
             ).color
             value = psnr(colour.clamp(0, 1), held.images.to(colour)).mean()
             curve.append({"step": step, "seconds": seconds, "surfels": len(surfels), "psnr": float(value)})
@@ -66,12 +66,12 @@ def optimize_scene(
         scene.height,
         config,
         mode=scene.mode,
+        alpha_threshold=scene.alpha_threshold,
         backend=backend,
         progress=progress,
         monitor=monitor,
     )
-    if scene.optimize_stats["kept"]:
-        scene.alpha_threshold = config.alpha_threshold  # the optimized surfels render as they were fitted
+    scene.alpha_threshold = scene.optimize_stats["alpha_threshold"]  # the surfels render as they were fitted
     if curve:
         scene.optimize_stats["held_out_curve"] = curve
     scene.seconds["optimize"] = time.perf_counter() - tick
