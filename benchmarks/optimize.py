@@ -90,7 +90,10 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
 
     photos = [list_images(folder / images)[i] for i in indices]
     cameras = load_cameras(folder, images=images)
-    options = surfsplat.CaptureOptions(holdout_every=every, refine=RefineConfig(steps=0))
+    # the network's pass alone: the refinement and each optimization run below, timed apart
+    options = surfsplat.CaptureOptions(
+        holdout_every=every, refine=RefineConfig(steps=0), optimize=OptimizeConfig(steps=0)
+    )
     cpu0 = cpu_seconds()
     fused = surfsplat.reconstruct(photos, "tiny-synthetic", cameras=cameras, capture=options, progress=False)
     network_cpu = cpu_seconds() - cpu0
@@ -261,7 +264,9 @@ def rooms(args) -> dict:
         cams = path.cameras(torch.linspace(0, 1, n), size, size)
         truth = render_synthetic(room, cams, size, size)
         every = CameraSet(cams, size, size, [frame_name(i) for i in range(n)], 0.5, 15.0)
-        options = surfsplat.CaptureOptions(holdout_every=4, refine=RefineConfig(steps=0))
+        options = surfsplat.CaptureOptions(
+            holdout_every=4, refine=RefineConfig(steps=0), optimize=OptimizeConfig(steps=0)
+        )
         fused = surfsplat.reconstruct(
             list(truth.image), "tiny-synthetic", cameras=every, capture=options, progress=False
         )
@@ -433,7 +438,9 @@ def main() -> None:
     parts = ["fern", "dtu", "rooms", "fern-cli", "dtu-cli"]
     parser.add_argument("--parts", nargs="+", default=["fern", "dtu", "rooms"], choices=parts)
     parser.add_argument("--starts", nargs="+", default=list(STARTS[:3]), choices=STARTS)
-    parser.add_argument("--config", type=json.loads, default={"steps": 2000}, help="OptimizeConfig fields (JSON)")
+    parser.add_argument(
+        "--config", type=json.loads, default={}, help="OptimizeConfig fields (JSON; default: the shipped ones)"
+    )
     parser.add_argument("--start", type=json.loads, default={}, help="StartConfig fields besides kind (JSON)")
     parser.add_argument("--room-config", type=json.loads, default={"steps": 300})
     parser.add_argument("--rooms", type=int, default=2)

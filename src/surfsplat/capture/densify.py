@@ -61,7 +61,7 @@ class DensifyConfig:
     max_world_size: float = 0.1  # after the first reset, surfels larger than this share of the extent go (3DGS)
     reset_opacity: float = 0.01  # opacities capped at this by a reset (3DGS)
     split_factor: float = 1.6  # a split's two surfels have the scales / this (3DGS: 0.8 * N with N = 2)
-    budget: int = 300_000  # surfels at most: growth past it keeps the highest gradients
+    budget: int = 50_000  # surfels at most: growth past it keeps the highest gradients (a bound on a step's cost)
 
     def __post_init__(self) -> None:
         if not 0 <= self.start <= self.stop <= 1:

@@ -314,6 +314,10 @@ class _Free:
         }
         self.tensors = {k: start[k]().clone().requires_grad_(True) for k in TENSORS if k in plan.rates}
         self.max_degree = g0.sh_degree
+        # the schedule raises the degree from the start's own: a start that already has view-dependent
+        # colour (the network's surfels) keeps it, one without (points) begins at the DC term
+        used = [d for d in range(1, self.max_degree + 1) if bool(g0.sh[..., d * d : (d + 1) ** 2].any())]
+        self.start_degree = max(used, default=0)
 
     def groups(self) -> list[dict]:
         return [{"params": [t], "lr": self.plan.rates[k], "name": k} for k, t in self.tensors.items()]
@@ -332,9 +336,11 @@ class _Free:
 
     def degree(self, done: float) -> int:
         """The SH degree rendered at progress `done`: raised by one every `sh_degree_share` of the fit
-        from 0, as 3DGS raises it every 1,000 of its 30,000 steps."""
+        from 0, as 3DGS raises it every 1,000 of its 30,000 steps, and never below the start's own."""
         share = self.plan.sh_degree_share
-        return self.max_degree if share is None else min(self.max_degree, int(done / share + 1e-9))
+        if share is None:
+            return self.max_degree
+        return max(self.start_degree, min(self.max_degree, int(done / share + 1e-9)))
 
     def current(self, done: float) -> Gaussians:
         t, g0 = self.tensors, self.g0

@@ -41,7 +41,7 @@ from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
 from .starts import StartConfig, make_start
 
-DEFAULT_STEPS = 2000  # the fit's length where none is given (benchmarks/optimize.py)
+DEFAULT_STEPS = 3000  # the fit's length where none is given (benchmarks/optimize.py, docs/optimize.md)
 
 # OptimizeConfig.parameters names -> the fit's tensors (`fit.TENSORS`)
 PARAMETERS = {
