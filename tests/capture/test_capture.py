@@ -17,6 +17,7 @@ import surfsplat
 from surfsplat.capture import (
     FrameConfig,
     FusionConfig,
+    OptimizeConfig,
     RefineConfig,
     SurfelFusion,
     context_sets,
@@ -334,7 +335,7 @@ def test_video_frames_chosen_by_motion_and_sharpness(room_video):
 
 def test_reconstruct_a_video_with_known_cameras(room_video, tiny_checkpoint, tmp_path):
     path, expected, every, _ = room_video
-    options = surfsplat.CaptureOptions(views_per_pass=2)
+    options = surfsplat.CaptureOptions(views_per_pass=2, optimize=OptimizeConfig(steps=0))
     scene = surfsplat.reconstruct(path, tiny_checkpoint, cameras=every, size=(32, 32), capture=options, progress=False)
     assert scene.names == [frame_name(i) for i in expected]
     assert scene.passes == [[frame_name(a), frame_name(b)] for a, b in zip(expected, expected[1:])]
@@ -358,7 +359,7 @@ def test_a_short_clip_of_seven_views_registers_all_seven(data_dir, tiny_checkpoi
     # each view held for 4 frames at 10 fps, as a phone held still
     frames = torch.stack([read_image(p)[0] for p in photos]).repeat_interleave(4, dim=0)
     path = write_video(tmp_path / "clip.mp4", frames, fps=10, quality=8)
-    no_refinement = surfsplat.CaptureOptions(refine=RefineConfig(steps=0))
+    no_refinement = surfsplat.CaptureOptions(refine=RefineConfig(steps=0), optimize=OptimizeConfig(steps=0))
     scene = surfsplat.reconstruct(path, tiny_checkpoint, size=(32, 32), capture=no_refinement, progress=False)
     assert scene.names == [frame_name(4 * k) for k in range(7)]
     scene.save(tmp_path / "out", formats=("ply",))
@@ -400,7 +401,7 @@ def test_the_default_working_size_is_capped_and_can_be_lifted(five_views, tiny_c
 def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path, capsys):
     paths, cameras = five_views
     argv = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--cameras", str(cameras), "--holdout-every", "4"]
-    argv += ["--views-per-pass", "2"]
+    argv += ["--views-per-pass", "2", "--optimize-steps", "0"]  # the refinement's line is checked below
     argv += [
         "--formats",
         "ply",
@@ -427,7 +428,7 @@ def test_api_and_cli_write_the_same_files(five_views, tiny_checkpoint, tmp_path,
         paths,
         tiny_checkpoint,
         cameras=cameras,
-        capture=surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4),
+        capture=surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, optimize=OptimizeConfig(steps=0)),
         progress=False,
     )
     assert scene.names == ["v1.png", "v2.png", "v3.png"] and scene.holdout.names == ["v0.png", "v4.png"]
@@ -539,7 +540,7 @@ def _room_camera() -> surfsplat.Cameras:
 
 def test_each_pass_is_compacted_before_fusion(five_views, tiny_checkpoint):
     paths, cameras = five_views
-    options = surfsplat.CaptureOptions(views_per_pass=2)
+    options = surfsplat.CaptureOptions(views_per_pass=2, optimize=OptimizeConfig(steps=0))
     plain = surfsplat.reconstruct(paths[:3], tiny_checkpoint, cameras=cameras, capture=options, progress=False)
     scene = surfsplat.reconstruct(
         paths[:3], tiny_checkpoint, cameras=cameras, capture=options, compact=1, progress=False

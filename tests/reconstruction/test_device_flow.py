@@ -29,7 +29,7 @@ import torch
 from torch.utils._pytree import tree_flatten
 
 import surfsplat
-from surfsplat.capture import FusionConfig, RefineConfig, SurfelFusion, refine_on_views
+from surfsplat.capture import FusionConfig, OptimizeConfig, RefineConfig, SurfelFusion, refine_on_views
 from surfsplat.cli import main
 from surfsplat.compaction import compact_surfels
 from surfsplat.data.cameras import save_cameras
@@ -258,7 +258,7 @@ def test_tsdf_fusion_runs_on_the_device_without_a_host_wait_per_view():
 STAGES = {
     ("capture/fusion.py", None): "fusion",
     ("capture/refine.py", "refine_on_views"): "refine",
-    ("reconstruction/optimize.py", "optimize_scene"): "optimize",
+    ("reconstruction/scene_fit.py", "optimize_scene"): "optimize",
     ("compaction/", None): "compaction",
     ("reconstruction/scene.py", "score_holdout"): "held-out scores",
     ("metrics/closure.py", "closure_metrics"): "closure",
@@ -321,7 +321,9 @@ def five_views(tmp_path_factory):
     return paths, root / "cameras.json"
 
 
-CAPTURE = surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, refine=RefineConfig(steps=2))
+CAPTURE = surfsplat.CaptureOptions(
+    views_per_pass=2, holdout_every=4, refine=RefineConfig(steps=2), optimize=OptimizeConfig(steps=0)
+)
 
 
 def test_reconstruct_runs_fusion_refinement_and_held_out_scores_on_its_device(five_views, model):
@@ -363,7 +365,9 @@ def test_reconstruct_optimizes_every_surfel_on_its_device(five_views, model):
 
 def test_reconstruct_compacts_each_pass_on_its_device(five_views, model):
     paths, cameras = five_views
-    no_refine = surfsplat.CaptureOptions(views_per_pass=2, refine=RefineConfig(steps=0))
+    no_refine = surfsplat.CaptureOptions(
+        views_per_pass=2, refine=RefineConfig(steps=0), optimize=OptimizeConfig(steps=0)
+    )
     with StageOps() as dev:
         scene = surfsplat.reconstruct(
             paths[:3], copy.deepcopy(model), cameras=cameras, device=dev.device, size=(SIZE, SIZE), compact=1,
@@ -399,10 +403,11 @@ def test_a_scene_moved_to_the_device_saves_every_output_from_there(five_views, m
 
 
 def test_a_saved_scene_is_optimized_on_the_device(five_views, model, tmp_path):
-    from surfsplat.reconstruction.optimize import optimize_saved
+    from surfsplat.reconstruction.scene_fit import optimize_saved
 
     paths, cameras = five_views
-    scene = surfsplat.reconstruct(paths[:3], model, cameras=cameras, size=(SIZE, SIZE), progress=False)
+    no_fit = surfsplat.CaptureOptions(optimize=OptimizeConfig(steps=0))
+    scene = surfsplat.reconstruct(paths[:3], model, cameras=cameras, size=(SIZE, SIZE), capture=no_fit, progress=False)
     scene.save(tmp_path / "scene", options=ExportOptions(formats=("ply",), bake=None, progress=False))
     config = surfsplat.OptimizeConfig(steps=2)
     with StageOps() as dev:

@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..capture import optimize_summary
-    from ..reconstruction.optimize import optimize_saved
+    from ..reconstruction.scene_fit import optimize_saved
 
     if not args.folder.is_dir():
         raise FileNotFoundError(f"{args.folder}: no such reconstruction folder")

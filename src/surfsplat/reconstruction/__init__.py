@@ -9,7 +9,7 @@
 """
 
 from .inputs import CaptureInput, read_capture
-from .optimize import load_reconstruction, optimize_saved, optimize_scene
+from .scene_fit import load_reconstruction, optimize_saved, optimize_scene
 from .pipeline import CaptureOptions, reconstruct
 from .scene import HeldOut, Scene
 

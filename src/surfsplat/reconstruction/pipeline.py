@@ -302,7 +302,7 @@ def reconstruct(
         multiplier_range=model.cfg.adapter.scale_multiplier_range if multipliers is not None else None,
     )
     if optimizing:  # scores the held-out views before and after it
-        from .optimize import optimize_scene
+        from .scene_fit import optimize_scene
 
         optimize_scene(scene, network_views(context)[0], capture.optimize, progress=progress)
     elif holdout is not None:
