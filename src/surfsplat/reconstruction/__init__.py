@@ -9,9 +9,9 @@
 """
 
 from .inputs import CaptureInput, read_capture
-from .scene_fit import load_reconstruction, optimize_saved, optimize_scene
 from .pipeline import CaptureOptions, reconstruct
 from .scene import HeldOut, Scene
+from .scene_fit import load_reconstruction, optimize_saved, optimize_scene
 
 __all__ = [
     "CaptureInput",
