@@ -14,7 +14,11 @@ Parts (each recorded in the JSON as soon as it ends, with its seconds or the err
   512x512 (median of `--repeats`), with the ratios to gsplat's.
 - reconstruct: `surfsplat reconstruct` of DTU scan 24's views 14, 16, ..., 26 (cameras given, 288x400,
   every default output) and of a 10-second 1080p video, each in a fresh process on DEVICE: wall
-  seconds and the stage times of `reconstruction.json`. Needs the sample data (`--data`).
+  seconds and the stage times of `reconstruction.json`. Needs the sample data (`--data`). With the
+  optimizer on by default, the DTU run includes its 3,000 steps.
+- optimize: the per-scene optimizer on the card: `surfsplat reconstruct` of LLFF fern (17 context views
+  at 368x496, 3 held out), the shipped defaults: held-out PSNR before and after, the optimizer's start,
+  steps, surfels and seconds (the CPU figures are benchmarks/optimize.py's fern-cli).
 - throughput: bf16 autocast training steps of the small preset (2 context + 4 target views, 256x256
   procedural rooms) at batch 1 and at the paper's batch 16 on one batch made once: median step time,
   samples per second, peak memory (the train part measures the loop's wait for data).
@@ -256,6 +260,36 @@ def reconstruct_part(args, device: torch.device, build, report: dict) -> dict:
     return results
 
 
+# ----------------------------------------------------------------------------------------- optimizer
+def optimize_part(args, device: torch.device, build, report: dict) -> dict:
+    """The per-scene optimizer on the card (gsplat backend): `surfsplat reconstruct` of LLFF fern with its
+    held-out views, the shipped defaults (3,000 steps from COLMAP's points, densification, distortion
+    off), as benchmarks/optimize.py's fern-cli runs it on the CPU: held-out PSNR before and after, the
+    stages' seconds, the start, the surfels."""
+    from capture import run_cli
+
+    wait_for_build(build, report)
+    fern = sample_data(args.data) / "llff_fern"
+    extra = ["--size", "96", "128", "--optimize-steps", "20"] if args.quick else []
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "fern"
+        record = run_cli(
+            ["--images", str(fern / "images_8"), "--cameras", str(fern), "--images-folder", "images_8"]
+            + ["--holdout-every", "8", "--formats", "ply", "--raw-3dgs", "--device", device.type, *extra],
+            out,
+        )
+        summary = out / "reconstruction.json"
+        if summary.is_file():
+            document = json.loads(summary.read_text())
+            held = document.get("capture", {}).get("held_out") or {}
+            optimize = document.get("optimize", {})
+            record["held_out_psnr"] = held.get("mean_psnr")
+            record["held_out_psnr_before"] = (held.get("before_optimization") or {}).get("mean_psnr")
+            record["optimize"] = {k: optimize.get(k) for k in ("start", "points", "steps", "surfels_after", "seconds")}
+    print(f"optimize fern: {json.dumps(record)}", flush=True)
+    return {"fern": record}
+
+
 # ----------------------------------------------------------------------------------------- throughput
 def throughput_run(preset: str, size: int, batch: int, steps: int, device: torch.device) -> dict:
     """The training step's own speed: one batch of procedural rooms made once (its making timed apart;
@@ -335,7 +369,13 @@ def throughput_part(args, device: torch.device, build, report: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- main
-PARTS = {"train": train_part, "render": render_part, "reconstruct": reconstruct_part, "throughput": throughput_part}
+PARTS = {
+    "train": train_part,
+    "render": render_part,
+    "reconstruct": reconstruct_part,
+    "optimize": optimize_part,
+    "throughput": throughput_part,
+}
 
 
 def print_table(results: dict) -> None:
@@ -360,6 +400,12 @@ def print_table(results: dict) -> None:
     for name, run in parts.get("reconstruct", {}).items():
         if isinstance(run, dict) and "seconds" in run:
             print(f"reconstruct {name}: {run['seconds']:.1f} s, stages {run.get('stages', run.get('error'))}")
+    for name, run in parts.get("optimize", {}).items():
+        if isinstance(run, dict):
+            print(
+                f"optimize {name}: {run['seconds']:.1f} s, held-out PSNR {run.get('held_out_psnr_before')} -> "
+                f"{run.get('held_out_psnr')}, {run.get('optimize', run.get('error'))}"
+            )
     for name, run in parts.get("throughput", {}).items():
         if isinstance(run, dict) and "samples_per_s" in run:
             print(
@@ -394,7 +440,9 @@ def main() -> int:
         "parts": {},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    order = [p for p in ("train", "render", "reconstruct", "throughput") if p in args.parts]  # gsplat-free first
+    order = [
+        p for p in ("train", "render", "reconstruct", "optimize", "throughput") if p in args.parts
+    ]  # gsplat-free first
     for part in order:
         tick = time.perf_counter()
         try:
