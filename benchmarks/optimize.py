@@ -122,18 +122,19 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
             **held_out_scores(fused.gaussians, fused, h.cameras, h.images),
         }
     )
-    tick = cpu_seconds()
-    refined, stats = refine_on_views(
-        fused.gaussians, fused.cameras, context_images, fused.width, fused.height, RefineConfig(),
-        mode=fused.mode, alpha_threshold=fused.alpha_threshold,
-    )  # fmt: skip
-    add(
-        {
-            "what": "refinement (--optimize-steps 0)",
-            "cpu_seconds": network_cpu + cpu_seconds() - tick,
-            **held_out_scores(refined, fused, h.cameras, h.images),
-        }
-    )
+    if args.refinement:  # the --optimize-steps 0 default: on 531k fern surfels it costs minutes
+        tick = cpu_seconds()
+        refined, _ = refine_on_views(
+            fused.gaussians, fused.cameras, context_images, fused.width, fused.height, RefineConfig(),
+            mode=fused.mode, alpha_threshold=fused.alpha_threshold,
+        )  # fmt: skip
+        add(
+            {
+                "what": "refinement (--optimize-steps 0)",
+                "cpu_seconds": network_cpu + cpu_seconds() - tick,
+                **held_out_scores(refined, fused, h.cameras, h.images),
+            }
+        )
     if name == "fern" and ANCHORS.is_dir():
         add(opensplat_row(fused, h))
     for start in args.starts:
@@ -444,6 +445,7 @@ def main() -> None:
     parser.add_argument("--start", type=json.loads, default={}, help="StartConfig fields besides kind (JSON)")
     parser.add_argument("--room-config", type=json.loads, default={"steps": 300})
     parser.add_argument("--rooms", type=int, default=2)
+    parser.add_argument("--no-refinement", dest="refinement", action="store_false", help="skip the refinement row")
     parser.add_argument("--cli-args", nargs=argparse.REMAINDER, default=[], help="more reconstruct flags (last)")
     parser.add_argument("--out", default="optimize", help="results file (a name under benchmarks/results or a path)")
     parser.add_argument("--plot", default=str(ROOT / "docs" / "optimize_curve.png"), help="the PNG ('' for none)")

@@ -159,7 +159,16 @@ def test_compaction_on_the_device_matches_the_cpu(passes):
     assert out.stats == cpu.stats
 
 
-def test_refinement_on_the_device_matches_the_cpu_and_reads_no_loss_per_step(fused):
+@pytest.fixture
+def foreach_adam(monkeypatch):
+    """The CPU reference steps with the for-each Adam a device runs: the CPU's fused Adam (`fit.adam`) rounds
+    differently, and the device flow is checked bit for bit against the same algorithm."""
+    from surfsplat.capture import fit
+
+    monkeypatch.setattr(fit, "adam", lambda groups, device: torch.optim.Adam(groups))
+
+
+def test_refinement_on_the_device_matches_the_cpu_and_reads_no_loss_per_step(fused, foreach_adam):
     g, cams, images = fused
     config = RefineConfig(steps=3, views_per_step=2)
     cpu, cpu_stats = refine_on_views(g, cams, images, SIZE, SIZE, config, backend="torch")
@@ -178,7 +187,7 @@ def test_refinement_on_the_device_matches_the_cpu_and_reads_no_loss_per_step(fus
     assert waits[1] == waits[3] and sum(waits[3].values()) == 4, waits
 
 
-def test_refinement_reads_its_losses_once_a_window_with_the_early_stop(fused):
+def test_refinement_reads_its_losses_once_a_window_with_the_early_stop(fused, foreach_adam):
     g, cams, images = fused
     config = RefineConfig(steps=4, views_per_step=2, patience=2, min_improvement=0.0)
     cpu, cpu_stats = refine_on_views(g, cams, images, SIZE, SIZE, config, backend="torch")
@@ -347,10 +356,18 @@ def test_reconstruct_runs_fusion_refinement_and_held_out_scores_on_its_device(fi
     assert all(0 < p < 60 for p in scene.holdout.psnr) and all(0 <= c <= 1 for c in scene.holdout.coverage)
 
 
+def _from_the_network(**fields) -> OptimizeConfig:
+    """The optimizer from the network's surfels: COLMAP's start reads the photos on the host (it writes
+    them for SIFT), which the stage checks below would count."""
+    from surfsplat.capture.starts import StartConfig
+
+    return OptimizeConfig(start=StartConfig(kind="network"), **fields)
+
+
 def test_reconstruct_optimizes_every_surfel_on_its_device(five_views, model):
     paths, cameras = five_views
     options = surfsplat.CaptureOptions(
-        views_per_pass=2, holdout_every=4, optimize=surfsplat.OptimizeConfig(steps=3, prunings=1)
+        views_per_pass=2, holdout_every=4, optimize=_from_the_network(steps=3, prunings=1)
     )
     with StageOps() as dev:
         scene = surfsplat.reconstruct(
@@ -409,7 +426,7 @@ def test_a_saved_scene_is_optimized_on_the_device(five_views, model, tmp_path):
     no_fit = surfsplat.CaptureOptions(optimize=OptimizeConfig(steps=0))
     scene = surfsplat.reconstruct(paths[:3], model, cameras=cameras, size=(SIZE, SIZE), capture=no_fit, progress=False)
     scene.save(tmp_path / "scene", options=ExportOptions(formats=("ply",), bake=None, progress=False))
-    config = surfsplat.OptimizeConfig(steps=2)
+    config = _from_the_network(steps=2)
     with StageOps() as dev:
         optimized, _ = optimize_saved(
             tmp_path / "scene", tmp_path / "out", config, formats=("ply",), bake=False, device=dev.device
@@ -437,3 +454,23 @@ def test_export_and_render_commands_take_a_device(five_views, model, tmp_path, c
         for argv in (export, render, optimize):
             assert main([*argv, "--device", "cuda", "--out", str(tmp_path / "x")]) != 0
             assert "no CUDA device" in capsys.readouterr().err
+
+
+def test_the_optimizer_grows_and_prunes_on_its_device(five_views, model):
+    """Densification (the screen-space gradient, clones, splits, Adam's rows) runs where the surfels are
+    (the splits' seeded samples are drawn on the host, a few values a surfel every hundred steps)."""
+    from surfsplat.capture.densify import DensifyConfig
+    from surfsplat.capture.starts import StartConfig
+
+    paths, cameras = five_views
+    grow = DensifyConfig(start=0.0, stop=1.0, every=2, grad_threshold=1e-12, budget=10**6)
+    config = OptimizeConfig(steps=4, start=StartConfig(kind="network"), densify=grow, levels=())
+    options = surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, optimize=config)
+    with StageOps() as dev:
+        scene = surfsplat.reconstruct(
+            paths, copy.deepcopy(model), cameras=cameras, device=dev.device, size=(SIZE, SIZE), capture=options,
+            progress=False,
+        )  # fmt: skip
+        _assert_on_device(*_gaussian_tensors(scene.gaussians).values())
+    grown = sum(h.get("cloned", 0) + h.get("split", 0) for h in scene.optimize_stats["densify"])
+    assert grown > 0 and scene.optimize_stats["surfels_after"] > scene.optimize_stats["start_surfels"] - 1

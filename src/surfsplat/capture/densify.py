@@ -36,6 +36,7 @@ optional dependency, while the optimizer is not.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -169,14 +170,14 @@ class Densify:
                 if name == "means":
                     rows.append(second)
                 elif name == "log_scales":
-                    rows.append(tensor.detach()[index_split] - torch.log(torch.tensor(cfg.split_factor)))
+                    rows.append(tensor.detach()[index_split] - math.log(cfg.split_factor))
                 else:
                     rows.append(tensor.detach()[index_split])
             new[name] = torch.cat(rows)
         if len(index_split):
             with torch.no_grad():
                 t["means"][index_split] = first
-                t["log_scales"][index_split] -= torch.log(torch.tensor(cfg.split_factor))
+                t["log_scales"][index_split] -= math.log(cfg.split_factor)
             for name in t:  # the split surfels' moments restart, as their replacements' do in 3DGS
                 _zero_state(optimizer, t[name], index_split)
         free.append(optimizer, new)

@@ -316,8 +316,11 @@ class _Free:
         self.max_degree = g0.sh_degree
         # the schedule raises the degree from the start's own: a start that already has view-dependent
         # colour (the network's surfels) keeps it, one without (points) begins at the DC term
-        used = [d for d in range(1, self.max_degree + 1) if bool(g0.sh[..., d * d : (d + 1) ** 2].any())]
-        self.start_degree = max(used, default=0)
+        # (read once, where a schedule runs: each read is a host wait on a GPU)
+        self.start_degree = 0
+        if plan.sh_degree_share is not None and self.max_degree > 0:
+            used = (g0.sh[..., 1:] != 0).flatten(0, 1).any(0).tolist()  # per coefficient past the DC term
+            self.start_degree = max((math.isqrt(k + 1) for k, u in enumerate(used) if u), default=0)
 
     def groups(self) -> list[dict]:
         return [{"params": [t], "lr": self.plan.rates[k], "name": k} for k, t in self.tensors.items()]
