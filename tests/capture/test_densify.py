@@ -166,3 +166,12 @@ def test_a_fit_with_densification_grows_where_the_photos_need_it_and_repeats_bit
     assert stats["mse_after"] < stats["mse_before"]
     again, _ = fit_on_views(sparse, cameras, photos, SIZE, SIZE, plan, alpha_threshold=None)
     assert torch.equal(again.means, fitted.means) and torch.equal(again.sh, fitted.sh)
+
+
+def test_a_fit_with_its_progress_bar_shows_the_psnr_and_gives_the_same_surfels(caplog):
+    plane, cameras, photos = _two_views_of_a_textured_plane()
+    rates = {"sh_dc": 0.01, "logits": 0.05}
+    plan = FitPlan(name="optimize", steps=60, rates=rates, views_per_step=1, loss="l1_dssim")
+    quiet, _ = fit_on_views(plane, cameras, photos, SIZE, SIZE, plan)
+    shown, stats = fit_on_views(plane, cameras, photos, SIZE, SIZE, plan, progress=True)
+    assert torch.equal(shown.sh, quiet.sh) and stats["steps"] == 60

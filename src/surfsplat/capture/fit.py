@@ -231,8 +231,8 @@ def fit_on_views(
             if progress:
                 errors.append((out.color.detach() - fit_images[which]).square().mean())
                 if len(errors) == PSNR_EVERY:
-                    mse = float(torch.stack(errors).mean())
-                    bar.set_postfix(psnr=f"{-10 * math.log10(max(mse, 1e-12)):.2f} dB", refresh=False)
+                    error = float(torch.stack(errors).mean())
+                    bar.set_postfix(psnr=f"{-10 * math.log10(max(error, 1e-12)):.2f} dB", refresh=False)
                     errors = []
             if timed:
                 now = min(bar_total, int(time.perf_counter() - fit_start - watched))
