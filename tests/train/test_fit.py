@@ -272,6 +272,13 @@ def _first_step(sample, amp_dtype, scaler=None, backend: str = "auto"):
     torch.manual_seed(0)
     model = build_model(config).train()
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    # the dtypes the encoder's convolutions and linear layers computed in
+    computed = set()
+    hooks = [
+        m.register_forward_hook(lambda _m, _i, o: computed.add(o.dtype))
+        for m in model.encoder.modules()
+        if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))
+    ]
     out = training_step(
         model,
         model,
@@ -283,6 +290,9 @@ def _first_step(sample, amp_dtype, scaler=None, backend: str = "auto"):
         amp_dtype=amp_dtype,
         scaler=scaler,
     )
+    for hook in hooks:
+        hook.remove()
+    out.encoder_dtypes = computed
     moved = sum(not torch.equal(before[k], v) for k, v in model.state_dict().items())
     return out, moved
 
@@ -299,7 +309,9 @@ def test_mixed_precision_step_on_cpu_autocast(dtype) -> None:
     assert torch.isfinite(out.grad_norm) and float(out.grad_norm) > 0
     assert moved > 10  # parameters took the step (a scaler skipping it on inf would leave them)
     assert float(out.loss.detach()) == pytest.approx(float(reference.loss.detach()), rel=0.01)
-    assert float(out.loss.detach()) != float(reference.loss.detach())  # the encoder really ran in low precision
+    # the encoder really ran in low precision (its loss can round to the float32 one on some CPUs' fp16
+    # kernels: an AVX512-FP16 Xeon gave the same loss to the last bit, so the layers' outputs are checked)
+    assert dtype in out.encoder_dtypes and reference.encoder_dtypes == {torch.float32}
     if scaler is not None:
         assert scaler.get_scale() == 2.0**10  # no overflow: the step was not skipped
 
