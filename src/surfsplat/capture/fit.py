@@ -361,9 +361,9 @@ class _Free:
         return replace(g0, means=means, quats=quats, scales=scales, opacities=opacities, sh=sh, validate=False)
 
     def append(self, optimizer: torch.optim.Optimizer, new: dict[str, Tensor]) -> None:
-        """Add rows to every fitted tensor (and to the given surfels the plan does not fit, copied from
-        the row each new one came from is not known here, so every tensor must be fitted); Adam's
-        moments of the new rows start at zero (3DGS's `cat_tensors_to_optimizer`)."""
+        """Add rows to every fitted tensor, all of TENSORS (the rows a new surfel came from are not known
+        here, so an unfitted attribute could not follow); Adam's moments of the new rows start at zero
+        (3DGS's `cat_tensors_to_optimizer`)."""
         if set(new) != set(self.tensors) or set(self.tensors) != set(TENSORS):
             raise SurfSplatInputError(f"{self.plan.name}: densification needs every surfel attribute fitted")
         count = len(next(iter(new.values())))
