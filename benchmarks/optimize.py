@@ -317,7 +317,7 @@ def cli_run(args, name: str, folder: Path, images_folder: str, holdout_every: in
         images = [str(p) for p in list_images(folder / images_folder)]
         if views is not None:
             images = [images[i] for i in views]
-        out = Path(tmp) / "out"
+        out = Path(args.keep) / name if args.keep else Path(tmp) / "out"
         command = [
             sys.executable, "-m", "surfsplat", "reconstruct", "--images", *images, "--cameras", str(folder),
             "--images-folder", images_folder, "--holdout-every", str(holdout_every), "--formats", "ply",
@@ -446,6 +446,7 @@ def main() -> None:
     parser.add_argument("--room-config", type=json.loads, default={"steps": 300})
     parser.add_argument("--rooms", type=int, default=2)
     parser.add_argument("--no-refinement", dest="refinement", action="store_false", help="skip the refinement row")
+    parser.add_argument("--keep", default="", help="keep each -cli run's output folder under this folder")
     parser.add_argument("--cli-args", nargs=argparse.REMAINDER, default=[], help="more reconstruct flags (last)")
     parser.add_argument("--out", default="optimize", help="results file (a name under benchmarks/results or a path)")
     parser.add_argument("--plot", default=str(ROOT / "docs" / "optimize_curve.png"), help="the PNG ('' for none)")

@@ -189,3 +189,42 @@ def test_ssim_compiled_filter_matches_the_banded_products_with_gradients(dtype):
     tol = 1e-12 if dtype == torch.float64 else 1e-5
     torch.testing.assert_close(compiled, banded, rtol=0, atol=tol)
     torch.testing.assert_close(g_compiled, g_banded, rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("target_grad", [False, True])
+def test_ssim_fused_cpu_kernels_match_the_tensor_ops_with_gradients(dtype, target_grad):
+    pytest.importorskip("numba")
+    from surfsplat.metrics import image
+
+    g = torch.Generator().manual_seed(7)
+    target = torch.rand(2, 3, 19, 27, generator=g, dtype=dtype)
+    prediction = degrade(target, g).to(dtype).requires_grad_(True)
+    target.requires_grad_(target_grad)
+    upstream = torch.tensor([0.7, -1.3], dtype=dtype)
+    n = image.SSIM_WIN_SIZE**2
+    constants = ((image.SSIM_K1 * 2.0) ** 2, (image.SSIM_K2 * 2.0) ** 2, n / (n - 1))  # data_range 2
+    fused = image._compiled_ssim().apply(prediction, target, image.gaussian_taps(dtype=dtype), *constants)
+    reference = image._ssim_tensor_ops(prediction, target, *constants)
+    inputs = (prediction, target) if target_grad else (prediction,)
+    g_fused = torch.autograd.grad((fused * upstream).sum(), inputs)
+    g_reference = torch.autograd.grad((reference * upstream).sum(), inputs)
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    torch.testing.assert_close(fused, reference, rtol=0, atol=tol)
+    for a, b in zip(g_fused, g_reference, strict=True):
+        assert a.abs().max() > 0
+        torch.testing.assert_close(a, b, rtol=0, atol=tol * 1e-2 if dtype == torch.float64 else 1e-7)
+    # what `ssim` itself runs on the CPU is the fused pass
+    assert torch.equal(ssim(prediction.detach(), target.detach(), data_range=2.0), fused.detach())
+
+
+def test_ssim_tensor_ops_match_skimage_float64():
+    from surfsplat.metrics import image
+
+    g = torch.Generator().manual_seed(8)
+    target = torch.rand(2, 3, 24, 30, generator=g, dtype=torch.float64)
+    prediction = degrade(target, g)
+    n = image.SSIM_WIN_SIZE**2
+    constants = (image.SSIM_K1**2, image.SSIM_K2**2, n / (n - 1))
+    ours = image._ssim_tensor_ops(prediction, target, *constants)
+    assert ours.tolist() == pytest.approx(skimage_ssim(target, prediction), abs=1e-12)

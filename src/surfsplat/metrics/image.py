@@ -128,22 +128,40 @@ def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tens
         raise SurfSplatInputError(f"data_range: expected a positive number, got {data_range}")
     dtype = torch.promote_types(prediction.dtype, torch.float32)
     x, y = prediction.to(dtype), target.to(dtype)
+    n = SSIM_WIN_SIZE**2
+    cov_norm = n / (n - 1)  # scikit-image's use_sample_covariance=True
+    c1 = (SSIM_K1 * data_range) ** 2
+    c2 = (SSIM_K2 * data_range) ** 2
+    fused = _compiled_ssim() if x.device.type == "cpu" else None
+    if fused is not None:
+        return fused.apply(x, y, gaussian_taps(dtype=dtype), c1, c2, cov_norm)
+    return _ssim_tensor_ops(x, y, c1, c2, cov_norm)
+
+
+@functools.cache
+def _compiled_ssim():
+    """`_filter_cpu.SsimCpu` (the formula below fused into two compiled passes), or None without numba."""
+    try:
+        from ._filter_cpu import SsimCpu
+    except ImportError:
+        return None
+    return SsimCpu
+
+
+def _ssim_tensor_ops(x: Tensor, y: Tensor, c1: float, c2: float, cov_norm: float) -> Tensor:
+    """`ssim` as tensor ops (any device; the reference `SsimCpu` is checked against)."""
     batch = x.shape[0]
 
     # All five local moments in one depthwise pass: E[x], E[y], E[x^2], E[y^2], E[xy].
     moments = torch.stack([x, y, x * x, y * y, x * y], dim=1)  # [B, 5, C, H, W]
     flat = rearrange(moments, "b m c h w -> (b m c) 1 h w")
-    taps = gaussian_taps(dtype=dtype).to(x.device)
+    taps = gaussian_taps(dtype=x.dtype).to(x.device)
     filtered = rearrange(_gaussian_filter_valid(flat, taps), "(b m c) 1 h w -> m b c h w", b=batch, m=5)
     mu_x, mu_y, mu_xx, mu_yy, mu_xy = filtered.unbind(0)
 
-    n = SSIM_WIN_SIZE**2
-    cov_norm = n / (n - 1)  # scikit-image's use_sample_covariance=True
     var_x = cov_norm * (mu_xx - mu_x * mu_x)
     var_y = cov_norm * (mu_yy - mu_y * mu_y)
     cov_xy = cov_norm * (mu_xy - mu_x * mu_y)
-    c1 = (SSIM_K1 * data_range) ** 2
-    c2 = (SSIM_K2 * data_range) ** 2
     numerator = (2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)
     denominator = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
     ssim_map = numerator / denominator  # [B, C, H - 10, W - 10]: scikit-image's cropped map
