@@ -25,6 +25,7 @@ products on as many threads as the step uses), and reports the slowdown.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import platform
@@ -178,6 +179,16 @@ class Step:
         with step_threads(torch.device("cpu")):
             return self._run()
 
+    @staticmethod
+    def _quats(F, quats):
+        """As the fit loop hands them to a render: unnormalized where its revision does so (the
+        backends normalize), else normalized."""
+        try:
+            from surfsplat.capture.fit import _Free
+        except ImportError:
+            return F.normalize(quats, dim=-1)
+        return quats if "unit_quats" in inspect.signature(_Free.current).parameters else F.normalize(quats, dim=-1)
+
     def _run(self) -> dict[str, float]:
         import torch.nn.functional as F
 
@@ -190,7 +201,7 @@ class Step:
         t = self.tensors
         g = Gaussians(
             means=t["means"],
-            quats=F.normalize(t["quats"], dim=-1),
+            quats=self._quats(F, t["quats"]),
             scales=t["log_scales"].exp(),
             opacities=torch.sigmoid(t["logits"]),
             sh=torch.cat((t["sh_dc"], t["sh_rest"]), -1),

@@ -228,3 +228,12 @@ def test_ssim_tensor_ops_match_skimage_float64():
     constants = (image.SSIM_K1**2, image.SSIM_K2**2, n / (n - 1))
     ours = image._ssim_tensor_ops(prediction, target, *constants)
     assert ours.tolist() == pytest.approx(skimage_ssim(target, prediction), abs=1e-12)
+
+
+def test_ssim_checks_finite_values_unless_told_not_to():
+    target = torch.rand(1, 3, 16, 16, dtype=torch.float64)
+    prediction = target.clone()
+    prediction[0, 1, 3, 4] = float("nan")
+    with pytest.raises(SurfSplatInputError, match="NaN or inf"):
+        ssim(prediction, target)
+    assert torch.isnan(ssim(prediction, target, check_finite=False)).all()  # a NaN render still shows in a loss

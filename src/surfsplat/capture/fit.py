@@ -213,7 +213,7 @@ def fit_on_views(
             which = views_of(step)
             fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
             distorted = plan.distortion_weight > 0 and done >= plan.distortion_from
-            out = draw(free.current(done), fit_cameras[which], fit_w, fit_h, distorted)
+            out = draw(free.current(done, unit_quats=False), fit_cameras[which], fit_w, fit_h, distorted)
             loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
             if distorted:
                 loss = loss + plan.distortion_weight * distortion_error(out.distortion)
@@ -345,10 +345,16 @@ class _Free:
             return self.max_degree
         return max(self.start_degree, min(self.max_degree, int(done / share + 1e-9)))
 
-    def current(self, done: float) -> Gaussians:
+    def current(self, done: float, unit_quats: bool = True) -> Gaussians:
+        """The surfels at progress `done`. `unit_quats=False` hands the fitted quaternions over
+        unnormalized, for a render: every backend normalizes them itself (`quat_to_matrix`, the CPU
+        kernels, gsplat), so a normalization here would only cost a pass forward and two backward."""
         t, g0 = self.tensors, self.g0
         means = t.get("means", g0.means)
-        quats = F.normalize(t["quats"], dim=-1) if "quats" in t else g0.quats
+        if "quats" not in t:
+            quats = g0.quats
+        else:
+            quats = F.normalize(t["quats"], dim=-1) if unit_quats else t["quats"]
         scales = torch.cat((t["log_scales"].exp(), g0.scales[:, 2:]), -1) if "log_scales" in t else g0.scales
         opacities = torch.sigmoid(t["logits"]) if "logits" in t else g0.opacities
         if "sh_dc" in t or "sh_rest" in t:

@@ -29,7 +29,7 @@ def colour_loss(prediction: Tensor, target: Tensor, kind: str, ssim_weight: floa
     l1 = (prediction - target).abs().mean()
     if ssim_weight == 0:
         return l1
-    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(prediction, target).mean())
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(prediction, target, check_finite=False).mean())
 
 
 def depth_normal_error(

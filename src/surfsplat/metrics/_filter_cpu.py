@@ -136,6 +136,20 @@ def _horizontal(src, t, out):
             )  # fmt: skip
 
 
+@njit(cache=True, inline="always", boundscheck=False, error_model="numpy")
+def _ssim_terms(moments, r, c, c1, c2, cov_norm):
+    """At window (r, c) of one plane's moments [5, H-10, W-10]: mx, my and the four factors of
+    S = A1 B1 / (A2 B2), A1 = 2 mx my + c1, B1 = 2 cov + c2, A2 = mx^2 + my^2 + c1, B2 = vx + vy + c2
+    (the sample covariances: cov_norm times the moments' differences). A pure scalar function,
+    inlined, so the loops calling it still vectorize."""
+    two = moments.dtype.type(2.0)
+    mx, my = moments[0, r, c], moments[1, r, c]
+    vx = cov_norm * (moments[2, r, c] - mx * mx)
+    vy = cov_norm * (moments[3, r, c] - my * my)
+    cxy = cov_norm * (moments[4, r, c] - mx * my)
+    return mx, my, two * mx * my + c1, two * cxy + c2, mx * mx + my * my + c1, vx + vy + c2
+
+
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _ssim_forward(x, y, taps, c1, c2, cov_norm, moments, products, tmp, values, total):
     """Per plane p of x, y [P, H, W]: the five local moments E[x], E[y], E[x^2], E[y^2], E[xy] of
@@ -143,7 +157,7 @@ def _ssim_forward(x, y, taps, c1, c2, cov_norm, moments, products, tmp, values, 
     SSIM map into total [P] (float64). Work space: products [3, H, W] (x^2, y^2, xy), tmp [H-10, W],
     values [W-10 rounded up to a multiple of LANES]."""
     ft = x.dtype.type
-    zero, two = ft(0.0), ft(2.0)
+    zero = ft(0.0)
     rows, cols = moments.shape[2], moments.shape[3]
     lanes = np.empty(LANES, dtype=np.float64)
     for p in range(x.shape[0]):
@@ -163,13 +177,8 @@ def _ssim_forward(x, y, taps, c1, c2, cov_norm, moments, products, tmp, values, 
             lanes[j] = 0.0
         for r in range(rows):
             for c in range(cols):
-                mx, my = moments[p, 0, r, c], moments[p, 1, r, c]
-                vx = cov_norm * (moments[p, 2, r, c] - mx * mx)
-                vy = cov_norm * (moments[p, 3, r, c] - my * my)
-                cxy = cov_norm * (moments[p, 4, r, c] - mx * my)
-                num = (two * mx * my + c1) * (two * cxy + c2)
-                den = (mx * mx + my * my + c1) * (vx + vy + c2)
-                values[c] = num / den
+                mx, my, a1, b1, a2, b2 = _ssim_terms(moments[p], r, c, c1, c2, cov_norm)
+                values[c] = (a1 * b1) / (a2 * b2)
             for c in range(cols, values.shape[0]):
                 values[c] = zero
             for c0 in range(0, cols, LANES):
@@ -205,12 +214,7 @@ def _ssim_backward(x, y, taps, c1, c2, cov_norm, moments, scale, grad_x, grad_y,
         s = ft(scale[p])
         for r in range(rows):
             for c in range(cols):
-                mx, my = moments[p, 0, r, c], moments[p, 1, r, c]
-                vx = cov_norm * (moments[p, 2, r, c] - mx * mx)
-                vy = cov_norm * (moments[p, 3, r, c] - my * my)
-                cxy = cov_norm * (moments[p, 4, r, c] - mx * my)
-                a1, b1 = two * mx * my + c1, two * cxy + c2
-                a2, b2 = mx * mx + my * my + c1, vx + vy + c2
+                mx, my, a1, b1, a2, b2 = _ssim_terms(moments[p], r, c, c1, c2, cov_norm)
                 inv = s / (a2 * b2)
                 ssim = a1 * b1 / (a2 * b2)
                 d_a1, d_b1 = b1 * inv, a1 * inv  # dS/dA1, dS/dB1 (times the scale)

@@ -27,9 +27,9 @@ SSIM_K1 = 0.01  # stabilisers of Wang et al., C1 = (K1 L)^2, C2 = (K2 L)^2
 SSIM_K2 = 0.03
 
 
-def _check_pair(prediction: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
-    check_tensor("prediction", prediction, ("B", "C", "H", "W"))
-    check_tensor("target", target, tuple(prediction.shape))
+def _check_pair(prediction: Tensor, target: Tensor, finite: bool = True) -> tuple[Tensor, Tensor]:
+    check_tensor("prediction", prediction, ("B", "C", "H", "W"), finite=finite)
+    check_tensor("target", target, tuple(prediction.shape), finite=finite)
     return prediction, target
 
 
@@ -110,15 +110,17 @@ def _compiled_filter():
     return GaussianFilterValid
 
 
-def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0) -> Tensor:
+def ssim(prediction: Tensor, target: Tensor, *, data_range: float = 1.0, check_finite: bool = True) -> Tensor:
     """Mean SSIM per image, identical to scikit-image's Gaussian-window call (module docstring).
 
     prediction, target: [B, C, H, W] with H, W >= 11; no clipping (the published call has none).
     Computed in the inputs' dtype (at least float32); pass float64 for bit-level agreement with
     scikit-image on float64 arrays. Returns [B]: per channel the mean of the SSIM map without a
-    5-pixel border, then the mean over channels. Differentiable.
+    5-pixel border, then the mean over channels. Differentiable. `check_finite=False` skips the
+    check that every value is finite: a fit's loss, called every step on its own renders, saves two
+    passes over the images (and on a GPU two waits for the device).
     """
-    prediction, target = _check_pair(prediction, target)
+    prediction, target = _check_pair(prediction, target, check_finite)
     height, width = prediction.shape[-2:]
     if min(height, width) < SSIM_WIN_SIZE:
         raise SurfSplatInputError(

@@ -79,7 +79,8 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
         written["held-out cameras"] = save_cameras(
             out / "capture" / "held_out_cameras.json", h.cameras, scene.width, scene.height, list(h.names)
         )
-        report.heading("Held-out views: never a context view, rendered from the fused scene")
+        fitted = "the optimized scene" if scene.optimize_stats else "the fused scene"
+        report.heading(f"Held-out views: never a context view, rendered from {fitted}")
         out_h = scene.render(h.cameras)
         for i, name in enumerate(h.names):  # one row a view: photo, [before the optimization,] render
             stem = Path(name).stem  # IMG_4026.JPG -> capture/IMG_4026_photo.png
