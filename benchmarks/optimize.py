@@ -358,18 +358,25 @@ def plot(results: dict, path: Path) -> None:
     if not keys:
         return
     figure, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 4.5), squeeze=False)
+    # one colour a start, and single points in colours no curve uses (so no two entries look alike)
+    curve_colours = {"points": "tab:blue", "network": "tab:orange", "both": "tab:green", "auto": "tab:purple"}
+    point_styles = {"OpenSplat": ("*", "tab:red"), "network": ("o", "tab:gray"), "refinement": ("s", "tab:brown")}
     for ax, key in zip(axes[0], keys):
         for row in results[key]["rows"]:
             if "curve" in row:
                 xs = [p["cpu_seconds"] for p in row["curve"]]
                 ys = [p["psnr"] for p in row["curve"]]
-                ax.plot(xs, ys, marker=".", label=row["what"])
+                ax.plot(xs, ys, marker=".", color=curve_colours.get(row.get("start")), label=row["what"])
             else:
+                marker, colour = next(
+                    (style for name, style in point_styles.items() if row["what"].startswith(name)), ("o", "black")
+                )
                 ax.scatter(
                     [row["cpu_seconds"]],
                     [row["mean_psnr"]],
-                    marker="*" if "OpenSplat" in row["what"] else "o",
+                    marker=marker,
                     s=90,
+                    color=colour,
                     label=row["what"],
                     zorder=3,
                 )
