@@ -460,11 +460,10 @@ def test_the_optimizer_grows_and_prunes_on_its_device(five_views, model):
     """Densification (the screen-space gradient, clones, splits, Adam's rows) runs where the surfels are
     (the splits' seeded samples are drawn on the host, a few values a surfel every hundred steps)."""
     from surfsplat.capture.densify import DensifyConfig
-    from surfsplat.capture.starts import StartConfig
 
     paths, cameras = five_views
     grow = DensifyConfig(start=0.0, stop=1.0, every=2, grad_threshold=1e-12, budget=10**6)
-    config = OptimizeConfig(steps=4, start=StartConfig(kind="network"), densify=grow, levels=())
+    config = _from_the_network(steps=4, densify=grow, levels=())
     options = surfsplat.CaptureOptions(views_per_pass=2, holdout_every=4, optimize=config)
     with StageOps() as dev:
         scene = surfsplat.reconstruct(
