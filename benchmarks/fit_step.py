@@ -25,6 +25,7 @@ products on as many threads as the step uses), and reports the slowdown.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import json
 import os
@@ -230,8 +231,14 @@ def serve(threads: int) -> None:
     import surfsplat
     from surfsplat.train.loop import cpu_threads
 
+    try:  # held around all the steps, as the fit loop holds it (its heap setting lasts the whole fit)
+        from surfsplat.capture.fit import step_threads
+
+        held = step_threads(torch.device("cpu"))
+    except ImportError:
+        held = contextlib.nullcontext()
     steps: dict[tuple, Step] = {}
-    with cpu_threads(threads):
+    with cpu_threads(threads), held:
         print(json.dumps({"ready": True, "source": surfsplat.__file__}), flush=True)
         for line in sys.stdin:
             req = json.loads(line)

@@ -31,6 +31,7 @@ from torch import Tensor
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
+from ..utils.heap import reuse_freed_memory
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
 
@@ -273,13 +274,15 @@ def fit_on_views(
 @contextmanager
 def step_threads(device: torch.device) -> Iterator[None]:
     """Torch's own ops on one thread while the fit's steps run on the CPU (the compiled renderer keeps
-    its threads).
+    its threads), and freed memory kept for the next step (`utils.heap.reuse_freed_memory`).
 
     A step is some hundred torch ops on a few hundred thousand values (activations, loss, their
     backward, Adam), each a parallel region that has to wake torch's other threads. Beside another
     busy process a woken thread waits for a core for up to the scheduler's latency, so at two threads
     the step's torch ops took several times the rest of the step; on one thread they cannot wait
-    for each other, and the renderer's kernels, where the work is, still use every core.
+    for each other, and the renderer's kernels, where the work is, still use every core. Every step
+    also allocates and frees the same large buffers, which would otherwise come as fresh pages each
+    time.
     """
     if device.type != "cpu":
         yield
@@ -287,7 +290,8 @@ def step_threads(device: torch.device) -> Iterator[None]:
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield
+        with reuse_freed_memory():
+            yield
     finally:
         torch.set_num_threads(before)
 

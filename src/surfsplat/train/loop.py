@@ -33,7 +33,7 @@ import math
 import random
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,7 @@ from ..model.surfsplat import PRESETS, SurfSplat, SurfSplatConfig
 from ..render.types import Backend, RenderMode
 from ..utils.atomic import write_text
 from ..utils.checks import SurfSplatInputError, read_json
+from ..utils.heap import reuse_freed_memory
 from ..utils.log import progress
 from ..utils.precision import autocast_dtype
 from ..utils.precision import resolve_precision as resolve_device_precision
@@ -432,7 +433,9 @@ def fit(config: TrainConfig, *, resume: bool | str | Path = False) -> TrainResul
     ctx = init_distributed(config.device)
     try:
         resume_from = _resume_path(config, resume)
-        with cpu_threads(config.cpu_threads or _recorded_cpu_threads(resume_from, ctx)):
+        # on the CPU each step's large buffers reuse the last step's freed pages (utils.heap)
+        heap = reuse_freed_memory() if ctx.device.type == "cpu" else nullcontext()
+        with cpu_threads(config.cpu_threads or _recorded_cpu_threads(resume_from, ctx)), heap:
             return _fit(config, ctx, resume_from)
     finally:
         shutdown(ctx)
