@@ -63,6 +63,7 @@ KERNEL_PHASES = {
     "bin_tiles": "binning",
     "composite_forward": "composite_fwd",
     "composite_backward": "composite_bwd",
+    "sum_pair_rows": "projection_bwd",
     "project_backward": "projection_bwd",
     "quats_backward": "projection_bwd",
     "normalize_forward": "normalize",

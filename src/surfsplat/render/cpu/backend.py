@@ -35,10 +35,10 @@ from ..types import RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
-# Per-thread work space of the projection kernels (SH basis, gradient row), each row followed by 8
-# unused floats (a cache line): the rows are written for every Gaussian, and two threads writing one
-# line would pass it back and forth between their cores.
-_SCRATCH = 64 + kernels.GRAD_SIZE + 8
+# Per-thread work space of the projection kernels (SH basis and its derivatives), each row followed
+# by 8 unused floats (a cache line): the rows are written for every Gaussian, and two threads writing
+# one line would pass it back and forth between their cores.
+_SCRATCH = 64 + 8
 _NP_DTYPES = {
     torch.float64: np.float64,
     torch.float32: np.float32,
@@ -69,6 +69,7 @@ class _Plan:
     the work of one camera."""
 
     geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients (the compositing dtype)
+    geom_input: np.ndarray  # [N, GEOM_SIZE] the same for every Gaussian in input order (the backward's)
     box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
     features: np.ndarray  # [M, 6] survivors' colour and oriented normal (the compositing dtype)
     flip: np.ndarray  # [N] +-1: the sign given to each normal
@@ -78,6 +79,7 @@ class _Plan:
     pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are
     pair_of: np.ndarray  # [pairs]   pair_of[pair_start[m]:pair_start[m + 1]]
     rank: np.ndarray  # [N] each Gaussian's survivor index m (-1: culled)
+    order: np.ndarray  # [M] each survivor's input index (the inverse of rank)
     tiles_x: int
 
 
@@ -214,6 +216,7 @@ def _prepare(
     rank[order] = np.arange(order.shape[0])
     return _Plan(
         kernels.gather_rows(geom, order),
+        geom,
         box,
         kernels.gather_rows(features, order),
         flip,
@@ -223,6 +226,7 @@ def _prepare(
         pair_start,
         pair_of,
         rank,
+        order,
         tiles_x,
     )
 
@@ -323,6 +327,7 @@ class _Rasterize(torch.autograd.Function):
             distortion = np.stack((_np(g_distortion, ft)[:, 0], ctx.moments[:, 1]), axis=1)
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
+        rows = np.empty((n, kernels.GRAD_SIZE))  # each survivor's compositing gradient, per camera
         wanted = ctx.needs_input_grad
         geometry = wanted[0] or wanted[1]  # means or rotations
         shape = wanted[2] or wanted[5]  # scales or explicit covariances
@@ -350,14 +355,13 @@ class _Rasterize(torch.autograd.Function):
                     None if distortion is None else distortion[c],
                 )
             with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+                kernels.sum_pair_rows(plan.order, plan.pair_start, plan.pair_of, pair_grads, rows)
                 kernels.project_backward(
                     ctx.surfel,
                     geometry,
                     shape,
                     plan.rank,
-                    plan.pair_start,
-                    plan.pair_of,
-                    pair_grads,
+                    rows,
                     x,
                     ctx.rot,
                     sc,
@@ -371,7 +375,7 @@ class _Rasterize(torch.autograd.Function):
                     camera.width,
                     camera.height,
                     *_convention_args(settings)[:2],
-                    plan.geom,
+                    plan.geom_input,
                     plan.flip,
                     plan.lit,
                     g_means,
