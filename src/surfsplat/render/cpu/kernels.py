@@ -651,6 +651,11 @@ def gather_rows(src, index):
 # Compositing
 # ---------------------------------------------------------------------------------------------
 
+# The per-pixel kernels let LLVM fuse a multiply and an add into one instruction (and one rounding):
+# no other fast-math liberty. Forward and backward call the same compiled alpha (`_box_alpha`), so
+# they still agree on every alpha bit.
+_CONTRACT = {"contract"}
+
 _EXP_MIN = LOG_ALPHA_MIN - 2.0  # exponents below this give alpha < ALPHA_MIN anyway
 _TAYLOR = (
     1.0,
@@ -670,7 +675,7 @@ _TAYLOR = (
 
 # Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loops
 # of `_box_alpha` vectorize; it miscompiled larger array-writing helpers inside prange bodies.
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=_CONTRACT)
 def _exp_nonpositive(x, ft):
     """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (relative
     error < 1e-14 in float64, a few float32 roundings times 32 in float32).
@@ -734,7 +739,7 @@ def _lane_table(ft):
     return lane
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, work):
     """alpha, depth and 1 / hz of Gaussian g at the pixels of its box, columns c0..c1 and rows
     r0..r1 of the tile at (x0, y0), into the work runs W_ALPHA, W_DEPTH, W_INV of each chunk;
@@ -802,7 +807,7 @@ def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, wor
     return hit
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5, z, distortion):
     """Front-to-back blending of one Gaussian (features f0-f5, alpha and depth in the work rows) into
     the chunks of its box: state [chunks, FORWARD_RUNS * LANES], last [chunks, LANES] (1 + the
@@ -955,7 +960,7 @@ def composite_forward(
                     out_distortion[1, r, c] = state[b, S_MOMENT * LANES + j]
 
 
-@njit(cache=True, inline="always", boundscheck=False, error_model="numpy")
+@njit(cache=True, inline="always", boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, z, distortion):
     """The compositing's chain rule at lane j of chunk b (`_unblend`'s per-pixel step, which
     `_unblend_surfel` shares): updates the transmittance and the sum behind in state, adds the
@@ -1004,7 +1009,7 @@ def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5
     return on, passes, w, d, g_d, g_log_alpha
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
     """The compositing's chain rule for one Gaussian over the chunks of its box, back to front.
 
@@ -1033,7 +1038,7 @@ def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, posit
                 work[b, W_ON * LANES + j] = one if on else zero
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _unblend_surfel(
     state, last, work, acc, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, f0, f1, f2, f3, f4, f5, distortion
 ):
@@ -1094,7 +1099,7 @@ def _unblend_surfel(
                 acc[GRAD_DEPTH * LANES + j] += g_dpair if lowpass else zero
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
 def _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc):
     """EWA geometry gradients (rho = d^T conic d, d = p - c; centre depth) over the chunks of the
     box, added to the per-lane runs of acc."""
