@@ -68,14 +68,14 @@ class _Plan:
     """Survivors of culling, front to back (survivor m is the m-th nearest), and their tile lists:
     the work of one camera."""
 
-    geom: np.ndarray  # [M, GEOM_SIZE] survivors' per-pixel coefficients (the compositing dtype)
-    geom_input: np.ndarray  # [N, GEOM_SIZE] the same for every Gaussian in input order (the backward's)
-    box: np.ndarray  # [M, 4] survivors' inclusive pixel boxes (col0, col1, row0, row1)
-    features: np.ndarray  # [M, 6] survivors' colour and oriented normal (the compositing dtype)
+    # Per Gaussian in input order, as the projection wrote them (culled Gaussians' rows are unused):
+    geom: np.ndarray  # [N, GEOM_SIZE] per-pixel coefficients (the compositing dtype)
+    box: np.ndarray  # [N, 4] inclusive pixel boxes (col0, col1, row0, row1)
+    features: np.ndarray  # [N, 6] colour and oriented normal (the compositing dtype)
     flip: np.ndarray  # [N] +-1: the sign given to each normal
     lit: np.ndarray  # [N] bit ch: colour channel ch not clamped at 0
     tile_start: np.ndarray  # [tiles + 1]
-    tile_ids: np.ndarray  # [pairs] survivors m touching each tile, front to back
+    tile_ids: np.ndarray  # [pairs] the survivors touching each tile (input indices), front to back
     pair_start: np.ndarray  # [M + 1] survivor m's entries of tile_ids are
     pair_of: np.ndarray  # [pairs]   pair_of[pair_start[m]:pair_start[m + 1]]
     rank: np.ndarray  # [N] each Gaussian's survivor index m (-1: culled)
@@ -168,7 +168,7 @@ def _prepare(
     dtype: type[np.floating],
 ) -> _Plan:
     """Projection, culling, depth sort and tile lists of one camera (the kernels' first half),
-    with the survivors' coefficients and features in `dtype` (the depth sort key stays float64)."""
+    with the coefficients and features in `dtype` (the depth sort key stays float64)."""
     x, q, sc, op, shc, cov = inputs
     n = x.shape[0]
     threads = numba.get_num_threads()
@@ -210,15 +210,13 @@ def _prepare(
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
     order = kernels.depth_order(keep, depth)
-    box = kernels.gather_rows(box, order)
-    tile_start, tile_ids, pair_start, pair_of = kernels.bin_tiles(box, tile, tiles_x, tiles_y)
+    tile_start, tile_ids, pair_start, pair_of = kernels.bin_tiles(box, order, tile, tiles_x, tiles_y)
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(
-        kernels.gather_rows(geom, order),
         geom,
         box,
-        kernels.gather_rows(features, order),
+        features,
         flip,
         lit,
         tile_start,
@@ -375,7 +373,7 @@ class _Rasterize(torch.autograd.Function):
                     camera.width,
                     camera.height,
                     *_convention_args(settings)[:2],
-                    plan.geom_input,
+                    plan.geom,
                     plan.flip,
                     plan.lit,
                     g_means,

@@ -10,7 +10,8 @@ shaped for a CPU core:
   camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
   and camera-facing normal.
 * `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
-  tiles, so every tile lists its Gaussians front to back (no global key sort).
+  tiles, so every tile lists its Gaussians front to back (no global key sort). The lists hold
+  input indices: nothing per Gaussian is copied into sorted order.
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
   each, only over the pixels of its box, LANES pixels of a row at a time: alpha for the box
   (`_box_alpha`), then front-to-back blending into tile-local pixel state (`_blend`), both as
@@ -202,7 +203,7 @@ def _release_tile_range(p, radius, size):
     return int(t0) * EWA_TILE, min(int(t1) * EWA_TILE, size) - 1
 
 
-# The light per-Gaussian and per-pixel passes (rotations, gathers, normalization) run on one thread:
+# The light per-Gaussian and per-pixel passes (rotations, binning, normalization) run on one thread:
 # a parallel region has to wake the other threads, and beside another busy process a woken thread
 # waits for a core for up to the scheduler's latency (12 ms measured on 2 cores, against 1.6 ms for
 # a whole serial gather of 84k rows); alone they take a millisecond or two either way.
@@ -602,22 +603,27 @@ def _order_ties(sorted_key, order):
 
 
 @njit(cache=True, error_model="numpy")
-def bin_tiles(box, tile, tiles_x, tiles_y):
-    """The depth-sorted survivors (their pixel boxes box [M, 4], front to back) listed per tile.
+def bin_tiles(box, order, tile, tiles_x, tiles_y):
+    """The survivors, front to back (input indices order [M]; box [N, 4] the pixel boxes of every
+    Gaussian in input order), listed per tile.
 
-    Returns tile_start [tiles + 1] and tile_ids [pairs]: the survivors (as positions m in the
-    sorted order) touching each tile, front to back; and the same lists seen from the survivors:
-    the entries of tile_ids that belong to survivor m are pair_of[pair_start[m]:pair_start[m + 1]]
-    (its tiles in row-major order). The backward pass sums per-tile gradients through them in
-    that fixed order, whatever thread handled which tile.
+    Returns tile_start [tiles + 1] and tile_ids [pairs]: the survivors (as input indices) touching
+    each tile, front to back; and the same lists seen from the survivors: the entries of tile_ids
+    that belong to survivor m (the m-th nearest) are pair_of[pair_start[m]:pair_start[m + 1]] (its
+    tiles in row-major order). The backward pass sums per-tile gradients through them in that fixed
+    order, whatever thread handled which tile. The tile lists name Gaussians by input index, so the
+    compositing reads every per-Gaussian array as the projection wrote it, with no sorted copy.
     """
-    n = box.shape[0]
+    n = order.shape[0]
     n_tiles = tiles_x * tiles_y
-    tiles = np.empty((n, 4), dtype=np.int64)  # tile range of each box: tx0, tx1, ty0, ty1
+    tiles = np.empty((n, 4), dtype=np.int64)  # tile range of each survivor's box: tx0, tx1, ty0, ty1
     tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
     pair_start = np.zeros(n + 1, dtype=np.int64)
     for m in range(n):
-        tx0, tx1, ty0, ty1 = box[m, 0] // tile, box[m, 1] // tile, box[m, 2] // tile, box[m, 3] // tile
+        if m + _AHEAD < n:
+            _prefetch(box, order[m + _AHEAD])
+        i = order[m]
+        tx0, tx1, ty0, ty1 = box[i, 0] // tile, box[i, 1] // tile, box[i, 2] // tile, box[i, 3] // tile
         tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
@@ -631,20 +637,15 @@ def bin_tiles(box, tile, tiles_x, tiles_y):
     # Visiting survivors in depth order fills every tile's list already front to back.
     q = 0
     for m in range(n):
+        i = order[m]
         for ty in range(tiles[m, 2], tiles[m, 3] + 1):
             for tx in range(tiles[m, 0], tiles[m, 1] + 1):
                 t = ty * tiles_x + tx
-                tile_ids[cursor[t]] = m
+                tile_ids[cursor[t]] = i
                 pair_of[q] = cursor[t]
                 q += 1
                 cursor[t] += 1
     return tile_start, tile_ids, pair_start, pair_of
-
-
-def gather_rows(src, index):
-    """src[index] for a 2D array: NumPy's take, which copies whole rows (a third of the time of a
-    compiled element-by-element loop on 445k rows of 16 floats, one thread either way)."""
-    return np.take(src, index, axis=0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -883,7 +884,8 @@ def composite_forward(
 ):
     """Front-to-back alpha compositing of every tile (tiles in parallel).
 
-    geom [M, GEOM_SIZE] and features [M, 6] of the sorted survivors; box [M, 4].
+    geom [N, GEOM_SIZE], features [N, 6] and box [N, 4] of every Gaussian (input order); tile_ids
+    lists each tile's survivors by input index, front to back.
     Writes the blended out_color [3, H, W], out_normal [3, H, W], out_depth [H, W], the final
     transmittance out_trans [H, W] and out_last [H, W] (1 + position in the tile list of the last
     blended Gaussian). Computes in the dtype of geom, which features and the float outputs share.
@@ -1505,7 +1507,7 @@ def project_backward(
     [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
     [threads, 2, 3, 3] are per-thread work space (the first 64 floats of a scratch row). geom [N, GEOM_SIZE]
     holds the projection's coefficients
-    in input order (`project`'s output before the survivors are sorted), read row by row with the rest.
+    in input order (as `project` wrote them), read row by row with the rest.
 
     `geometry` False: the means and rotations get no gradient (their buffers are neither read nor
     written; the SH's view direction and the normal feature are not differentiated); `shape` False (with
