@@ -1,5 +1,6 @@
 """`reuse_freed_memory`: inside it glibc serves a large block from the heap and keeps it when freed;
-outside it (and after it) a large block is a fresh mapping again."""
+outside it (and after it) a large block is a fresh mapping again. The blocks are larger than all the
+free memory in the heaps, so that no earlier test's freed memory can serve them."""
 
 from __future__ import annotations
 
@@ -33,31 +34,39 @@ def _mapped_and_heap(mallinfo) -> tuple[int, int]:
     return info.hblkhd, info.uordblks  # bytes in mmapped blocks, bytes in use from the heaps
 
 
+def _beyond_the_free_heap(mallinfo) -> int:
+    """A size no free chunk of the heaps can serve: glibc must map it or grow a heap for it."""
+    return mallinfo().fordblks + BLOCK
+
+
 def test_large_blocks_come_from_the_heap_inside_and_are_mapped_outside():
     mallinfo = _mallinfo()
     mapped, _ = _mapped_and_heap(mallinfo)
-    outside = np.ones(BLOCK, dtype=np.uint8)
-    assert _mapped_and_heap(mallinfo)[0] >= mapped + BLOCK  # a fresh mapping
+    size = _beyond_the_free_heap(mallinfo)
+    outside = np.empty(size, dtype=np.uint8)
+    assert _mapped_and_heap(mallinfo)[0] >= mapped + size  # a fresh mapping
     del outside
 
     with heap.reuse_freed_memory() as took:
         assert took
-        mapped, arena = _mapped_and_heap(mallinfo)
-        first = np.ones(BLOCK, dtype=np.uint8)
+        mapped, in_use = _mapped_and_heap(mallinfo)
+        size = _beyond_the_free_heap(mallinfo)
+        first = np.empty(size, dtype=np.uint8)
         address = first.ctypes.data
-        assert _mapped_and_heap(mallinfo)[0] == mapped  # no new mapping: served from the heap
-        assert _mapped_and_heap(mallinfo)[1] >= arena + BLOCK
-        size = mallinfo().arena
+        assert _mapped_and_heap(mallinfo)[0] == mapped  # no new mapping: the heap grew instead
+        assert _mapped_and_heap(mallinfo)[1] >= in_use + size
+        arena = mallinfo().arena
         del first
-        assert mallinfo().arena == size  # freed, but not trimmed back to the system
-        second = np.ones(BLOCK, dtype=np.uint8)
+        assert mallinfo().arena == arena  # freed, but not trimmed back to the system
+        second = np.empty(size, dtype=np.uint8)
         assert second.ctypes.data == address  # the same pages again
-        assert mallinfo().arena == size
+        assert mallinfo().arena == arena
         del second
 
     mapped, _ = _mapped_and_heap(mallinfo)
-    after = np.ones(BLOCK, dtype=np.uint8)
-    assert _mapped_and_heap(mallinfo)[0] >= mapped + BLOCK  # glibc's defaults are back
+    size = _beyond_the_free_heap(mallinfo)
+    after = np.empty(size, dtype=np.uint8)
+    assert _mapped_and_heap(mallinfo)[0] >= mapped + size  # glibc's defaults are back
     del after
 
 
@@ -67,7 +76,7 @@ def test_nested_contexts_restore_only_at_the_outermost_exit():
         with heap.reuse_freed_memory() as inner:
             assert inner
         mapped = _mapped_and_heap(mallinfo)[0]
-        still = np.ones(BLOCK, dtype=np.uint8)
+        still = np.empty(_beyond_the_free_heap(mallinfo), dtype=np.uint8)
         assert _mapped_and_heap(mallinfo)[0] == mapped  # the inner exit restored nothing
         del still
 
