@@ -21,7 +21,7 @@ shaped for a CPU core:
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
   what lies behind, so no per-pixel-pair state is stored. Each (tile, Gaussian) entry gets its own
   gradient row, summed per SIMD lane and then over the lanes in a fixed order (no atomics, no
-  per-thread buffers), and the next kernel sums a Gaussian's rows in a fixed order: gradients are
+  per-thread buffers), and `sum_pair_rows` sums a Gaussian's rows in a fixed order: gradients are
   bit-identical for any number of threads and any scheduling.
 * Depth distortion (2DGS Eq. 13, surfels, when asked): `_blend` also carries two runs per pixel, the
   running moment sum w z and the distortion, and `_unblend_lane` adds its dL/dw to each weight's
@@ -30,6 +30,9 @@ shaped for a CPU core:
   from the None one, so rendering without it runs the kernels it ran before.
 * `project_backward`, `quats_backward`: the chain rule from those per-Gaussian gradients back to
   means, quaternions, scales, opacities, SH coefficients (and explicit covariances).
+* Memory order: rows a loop reads out of order (a tile list's Gaussians, a Gaussian's per-tile
+  gradient rows) are fetched `_AHEAD` entries early (`_prefetch`); everything else is read in input
+  order.
 
 Per-Gaussian coefficients (rows of `geom`, GEOM_* columns):
   surfel: projected centre c, log opacity, centre depth mu_z, det T, the cross product
