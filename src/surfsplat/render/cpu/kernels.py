@@ -921,13 +921,13 @@ def composite_forward(
                 _prefetch(geom, ahead)
                 _prefetch(box, ahead)
                 _prefetch(features, ahead)
-            m = tile_ids[k]
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            i = tile_ids[k]
+            c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
+            r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
             if c0 > c1 or r0 > r1:
                 continue
-            if _box_alpha(surfel, geom[m], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work):
-                f = features[m]
+            if _box_alpha(surfel, geom[i], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work):
+                f = features[i]
                 position = np.int32(k - start + 1)
                 active -= _blend(
                     state,
@@ -948,7 +948,7 @@ def composite_forward(
                     f[3],
                     f[4],
                     f[5],
-                    geom[m, GEOM_DEPTH],
+                    geom[i, GEOM_DEPTH],
                     out_distortion,
                 )
         for r in range(y0, y1):
@@ -1224,11 +1224,11 @@ def composite_backward(
                 _prefetch(geom, ahead)
                 _prefetch(box, ahead)
                 _prefetch(features, ahead)
-            m = tile_ids[k]
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            i = tile_ids[k]
+            c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
+            r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
             position = np.int32(k - start)
-            g = geom[m]
+            g = geom[i]
             if (
                 c0 > c1
                 or r0 > r1
@@ -1237,7 +1237,7 @@ def composite_backward(
                 pair_grads[k, :] = zero
                 continue
             acc[:] = zero
-            f = features[m]
+            f = features[i]
             if surfel:
                 _unblend_surfel(
                     state,
@@ -1503,14 +1503,14 @@ def project_backward(
     """Chain rule from the survivors' compositing gradients to the Gaussian parameters.
 
     rank [N] is each Gaussian's position m among the sorted survivors (-1: culled); rows [N, GRAD_SIZE]
-    holds each survivor's compositing gradient, in input order (`sum_pair_rows`). The loop runs in
-    input order, so parameters, their gradient rows and outputs are read and written sequentially. Outputs, to which this camera's gradients are added (culled Gaussians get nothing),
-    so that one set of buffers, zeroed once, sums the cameras of a call in their order: g_means [N, 3],
-    g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B], g_covariances
-    [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, 64 + GRAD_SIZE], cov_scratch
-    [threads, 2, 3, 3] are per-thread work space (the first 64 floats of a scratch row). geom [N, GEOM_SIZE]
-    holds the projection's coefficients
-    in input order (as `project` wrote them), read row by row with the rest.
+    holds each survivor's compositing gradient in input order (`sum_pair_rows`), and geom
+    [N, GEOM_SIZE] the projection's coefficients in input order (as `project` wrote them). The loop
+    runs in input order, so parameters, gradient rows, coefficients and outputs are all read and
+    written sequentially. Outputs, to which this camera's gradients are added (culled Gaussians get
+    nothing), so that one set of buffers, zeroed once, sums the cameras of a call in their order:
+    g_means [N, 3], g_rotations [N, 3, 3], g_scales [N, 2], g_opacities [N], g_sh [N, 3, B],
+    g_covariances [N, 3, 3] (explicit covariances only, else [0, 3, 3]). scratch [threads, >= 64]
+    (SH basis and its derivatives) and cov_scratch [threads, 2, 3, 3] are per-thread work space.
 
     `geometry` False: the means and rotations get no gradient (their buffers are neither read nor
     written; the SH's view direction and the normal feature are not differentiated); `shape` False (with
@@ -1637,13 +1637,13 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
         rows = np.ones(tile, dtype=np.int64)  # every row
         count = 0
         for k in range(tile_start[t], tile_start[t + 1]):
-            m = tile_ids[k]
-            c0, c1 = max(box[m, 0], x0), min(box[m, 1], x1 - 1)
-            r0, r1 = max(box[m, 2], y0), min(box[m, 3], y1 - 1)
+            i = tile_ids[k]
+            c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
+            r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
             if (
                 c0 <= c1
                 and r0 <= r1
-                and _box_alpha(surfel, geom[m], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work)
+                and _box_alpha(surfel, geom[i], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work)
             ):
                 for r in range(r0, r1 + 1):
                     for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
