@@ -256,45 +256,38 @@ def test_float32_kernels_compute_in_float32():
     # loop compiled for float32 coefficients has no float64 arithmetic (a float64 literal would
     # have widened every lane). Checked on a fresh, uncached compile: cached code has no IR.
     g = scene(20, 13, sh_degree=0, dtype=torch.float32)
-    render(g, camera(20.0, 16, 16, dtype=torch.float32), 16, 16, backend="cpu")
+    params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
+    render(Gaussians(**params), camera(20.0, 16, 16, dtype=torch.float32), 16, 16, backend="cpu").color.sum().backward()
     for kernel in (kernels.composite_forward, kernels.composite_backward):
         assert any(sig[1] == numba.float32[:, ::1] for sig in kernel.signatures), kernel
     f32 = np.float32
     lanes = kernels.LANES
-    work, rows = np.zeros((16, kernels.WORK_RUNS * lanes), f32), np.ones(16, dtype=np.int64)
-    g, lane, acc = (
-        np.zeros(kernels.GEOM_SIZE, f32),
-        np.arange(lanes, dtype=f32),
-        np.zeros(kernels.GRAD_SIZE * lanes, f32),
-    )
-    last, one = np.zeros((16, lanes), dtype=np.int32), (f32(1.0),) * 6
-    box = (0, 0, 1, 0, 3, 0, 3, rows)
+    rows, g, f = np.ones(16, dtype=np.int64), np.zeros(kernels.GEOM_SIZE, f32), np.ones(kernels.FEATURES, f32)
+    g[kernels.GEOM_LOGO] = -0.5
+    last = np.zeros((16, lanes), dtype=np.int32)
+    box = (rows, 0, 0, 1, 0, 3, 0, 3)
     # Without and with the depth distortion (its variants are compiled for None and for an array).
     fwd_runs = (kernels.FORWARD_RUNS, kernels.FORWARD_RUNS + kernels.DISTORTION_RUNS)
     bwd_runs = (kernels.BACKWARD_RUNS, kernels.BACKWARD_RUNS + kernels.DISTORTION_BACKWARD_RUNS)
     dist = (None, np.zeros((2, 1, 1), f32))
     calls = [
-        (kernels._box_alpha, [(surfel, g, *box, 0, lane, work) for surfel in (True, False)]),
         (
             kernels._blend,
             [
-                (np.zeros((16, runs * lanes), f32), last, work, *box, np.int32(1), *one, f32(2.0), d)
+                (surfel, g, f, np.zeros((16, runs * lanes), f32), last, *box, np.int32(1), d)
                 for runs, d in zip(fwd_runs, dist)
+                for surfel in (True, False)
             ],
         ),
         (
-            kernels._unblend,
-            [(np.zeros((16, kernels.BACKWARD_RUNS * lanes), f32), last, work, acc, *box, np.int32(0), *one)],
-        ),
-        (
-            kernels._unblend_surfel,
+            kernels._unblend_box,
             [
-                (np.zeros((16, runs * lanes), f32), last, work, acc, g, *box, np.int32(0), lane, *one, d)
+                (surfel, g, f, np.zeros((16, runs * lanes), f32), last, *box, np.int32(0), d, np.zeros(20, f32))
                 for runs, d in zip(bwd_runs, dist)
+                for surfel in (True, False)
             ],
         ),
-        (kernels._ewa_grads, [(g, *box, np.int32(0), lane, work, acc)]),
-        (kernels._sum_lanes, [(acc, np.zeros(kernels.GRAD_SIZE, f32))]),
+        (kernels._exp_of_32th, [(f32(-0.1), f32)]),
     ]
     for kernel, argument_lists in calls:
         fresh = numba.njit(error_model="numpy", boundscheck=False)(kernel.py_func)

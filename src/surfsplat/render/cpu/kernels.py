@@ -73,6 +73,7 @@ from ..types import (
     LOWPASS_RHO_SCALE,
     TRANSMITTANCE_MIN,
 )
+from .simd import LANES, any_lane, count, fma, hsum, iota, load, select, splat, store
 
 
 @intrinsic
@@ -655,11 +656,6 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y):
 # Compositing
 # ---------------------------------------------------------------------------------------------
 
-# The per-pixel kernels let LLVM fuse a multiply and an add into one instruction (and one rounding):
-# no other fast-math liberty. Forward and backward call the same compiled alpha (`_box_alpha`), so
-# they still agree on every alpha bit.
-_CONTRACT = {"contract"}
-
 _EXP_MIN = LOG_ALPHA_MIN - 2.0  # exponents below this give alpha < ALPHA_MIN anyway
 _TAYLOR = (
     1.0,
@@ -677,26 +673,42 @@ _TAYLOR = (
 )
 
 
-# Numba's IR-level inlining is used for this one pure scalar function only, so that the pixel loops
-# of `_box_alpha` vectorize; it miscompiled larger array-writing helpers inside prange bodies.
-@njit(cache=True, inline="always", error_model="numpy", fastmath=_CONTRACT)
+@njit(cache=True, error_model="numpy")
 def _exp_nonpositive(x, ft):
-    """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (relative
-    error < 1e-14 in float64, a few float32 roundings times 32 in float32).
+    """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (a scalar
+    or a `simd.Vec`; relative error < 1e-14 in float64, a few float32 roundings times 32 in float32).
+    See `_exp_of_32th`, which takes x / 32."""
+    return _exp_of_32th(max(x, ft(_EXP_MIN)) * ft(0.03125), ft)
 
-    Plain multiply-adds, so a box of pixels evaluates in SIMD lanes (a libm call per pixel was
-    60% of the compositing time): the Taylor series at x / 32 (|x / 32| < 0.25, 12 terms in
-    float64, 7 in float32), then squared five times. Forward and backward both use it, so they agree on every alpha bit for bit.
-    Every constant is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
+
+@njit(cache=True, error_model="numpy")
+def _exp_of_32th(y, ft):
+    """e^(32 y) for y in [_EXP_MIN / 32, 0], in the float type ft of y (a scalar or a `simd.Vec`).
+
+    Plain multiply-adds, so a row of pixels evaluates in SIMD lanes (a libm call per pixel was
+    60% of the compositing time): the Taylor series at y (|y| < 0.25, 12 terms in float64, 7 in
+    float32), then squared five times. The series is evaluated by Estrin's scheme, in pairs, so that
+    its chain of dependent operations is 3 or 4 deep rather than 6 or 11 (the compositing waits on
+    it). Forward and backward both use it, so they agree on every alpha bit for bit. Every constant
+    is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
     """
-    y = max(x, ft(_EXP_MIN)) * ft(0.03125)
+    c = _TAYLOR
+    y2 = y * y
+    y4 = y2 * y2
     # float32 needs the series only to y^6: the next term, 0.24^7 / 7! < 1e-8, is below its roundings
     # (the max error over the range is the same as with all 12 terms). Decided at compile time: the
     # comparison of two constants folds away.
-    terms = 12 if ft(1.0) + ft(1e-10) != ft(1.0) else 7
-    p = ft(_TAYLOR[terms - 1])
-    for k in range(terms - 2, -1, -1):
-        p = p * y + ft(_TAYLOR[k])
+    if ft(1.0) + ft(1e-10) != ft(1.0):
+        f0 = fma(y2, fma(y, ft(c[3]), ft(c[2])), fma(y, ft(c[1]), ft(c[0])))
+        f1 = fma(y2, fma(y, ft(c[7]), ft(c[6])), fma(y, ft(c[5]), ft(c[4])))
+        f2 = fma(y2, fma(y, ft(c[11]), ft(c[10])), fma(y, ft(c[9]), ft(c[8])))
+        p = fma(y4 * y4, f2, fma(y4, f1, f0))
+    else:
+        p = fma(
+            y4,
+            fma(y2, ft(c[6]), fma(y, ft(c[5]), ft(c[4]))),
+            fma(y2, fma(y, ft(c[3]), ft(c[2])), fma(y, ft(c[1]), ft(c[0]))),
+        )
     p = p * p
     p = p * p
     p = p * p
@@ -704,19 +716,10 @@ def _exp_nonpositive(x, ft):
     return p * p
 
 
-# A tile's pixels are processed in chunks of LANES pixels of one row (a tile row wider than LANES
-# spans several): one AVX-512 register of float32, two of float64 - which is where float32 pays.
-# Pixel state is stored per chunk as LANES-long runs of each field (structure of arrays), chunk b =
-# tile row * chunks + chunk being row b of a 2D array. Every lane loop below has a constant trip
-# count, no branches (masks and selects) and non-negative in-loop indices, so LLVM vectorizes it
-# whole; each kernel call walks all the chunks of a Gaussian's box, so that the long dependency
-# chains of successive chunks (the exponential's polynomial) overlap in the core.
-LANES = 16  # (`_sum_lanes` halves it four times)
-
-# Runs of the per-chunk work rows: alpha, depth and 1 / hz (`_box_alpha`), then the backward's
-# dL/drho, dL/d(pair depth) and contribution mask (EWA; `_unblend_surfel` keeps them in registers).
-W_ALPHA, W_DEPTH, W_INV, W_GRHO, W_GDEPTH, W_ON = 0, 1, 2, 3, 4, 5
-WORK_RUNS = 6
+# A tile's pixels are processed LANES pixels of one row at a time (a tile row wider than LANES
+# spans several chunks), each quantity of those pixels one `simd.Vec`: one AVX-512 register of
+# float32, two AVX2 ones. Pixel state is stored per chunk as LANES-long runs of each field
+# (structure of arrays), chunk b = tile row * chunks + chunk being row b of a 2D array.
 
 # Forward pixel state runs: features 0-5, depth, transmittance (negated once the pixel has stopped).
 S_DEPTH, S_T = FEATURES, FEATURES + 1
@@ -735,20 +738,9 @@ DISTORTION_BACKWARD_RUNS = 4
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _lane_table(ft):
-    """0, 1, ..., LANES - 1 as floats of type ft (a lane's column offset, without an int-to-float cast per pixel)."""
-    lane = np.empty(LANES, dtype=ft)
-    for j in range(LANES):
-        lane[j] = j
-    return lane
-
-
-@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, work):
-    """alpha, depth and 1 / hz of Gaussian g at the pixels of its box, columns c0..c1 and rows
-    r0..r1 of the tile at (x0, y0), into the work runs W_ALPHA, W_DEPTH, W_INV of each chunk;
-    lanes outside the box get alpha 0. Rows r with rows[r - y0] <= after are skipped (they have
-    no pixel left to take the Gaussian).
+def _alpha_row(surfel, g, r, col0, c0, c1):
+    """alpha, depth, 1 / hz and the mask of pixels with alpha > 0 of Gaussian g (its geom row) at
+    the LANES pixels of row r from column col0; only columns c0..c1 (its box) can have alpha > 0.
 
     surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
@@ -757,113 +749,181 @@ def _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, after, lane, wor
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
     1 / hz is kept on the ray-splat branch and 0 on the filter branch (and for ewa), so the backward
     pass takes the very branch the forward pass took; lanes with alpha 0 get depth and 1 / hz 0.
-    Returns whether any pixel has alpha > 0. Computes in the dtype of g, constants included.
+    Plain IEEE arithmetic (see `simd`): forward and backward get the same bits from it. Computes in
+    the dtype of g, constants included.
     """
     ft = g.dtype.type
-    zero, half, one, two = ft(0.0), ft(0.5), ft(1.0), ft(2.0)
-    rho_scale, log_alpha_min, alpha_max = ft(LOWPASS_RHO_SCALE), ft(LOG_ALPHA_MIN), ft(ALPHA_MAX)
-    cx, cy, log_o, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_LOGO], g[GEOM_DEPTH]
-    A0, A1, A2 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_A + 2]
-    C0, C1, C2 = g[GEOM_C], g[GEOM_C + 1], g[GEOM_C + 2]
-    b0, b1, b2, det = g[GEOM_B], g[GEOM_B + 1], g[GEOM_B + 2], g[GEOM_DET]
-    lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
-    ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
-    hit = False
-    for r in range(r0, r1 + 1):
-        if rows[r - y0] <= after:
-            continue
-        # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
-        py = ft(r) + half
-        dy = py - cy
-        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-            b = (r - y0) * chunks + ch
-            col0 = x0 + ch * LANES
-            fc0, lo, hi = ft(col0), ft(c0 - col0), ft(c1 - col0)
-            if surfel:
-                ey = py - ly
-                a0, a1, a2 = A0 + dy * C0, A1 + dy * C1, A2 + dy * C2
-                for j in range(LANES):
-                    px = (fc0 + lane[j]) + half
-                    dx = px - cx
-                    hx = a0 + dx * b0
-                    hy = a1 + dx * b1
-                    hz = a2 + dx * b2
-                    ex = px - lx
-                    rho2d = rho_scale * ex * ex + rho_scale * ey * ey
-                    q = hx * hx + hy * hy
-                    use3d = q < rho2d * (hz * hz)
-                    inv = one / (hz if use3d else one)
-                    log_alpha = log_o - half * (q * inv * inv if use3d else rho2d)
-                    ok = (lane[j] >= lo) & (lane[j] <= hi) & (log_alpha >= log_alpha_min)
-                    work[b, W_ALPHA * LANES + j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
-                    work[b, W_DEPTH * LANES + j] = (det * inv if use3d else z) if ok else zero
-                    work[b, W_INV * LANES + j] = inv if use3d & ok else zero
-                    hit |= ok
-            else:
-                for j in range(LANES):
-                    dx = ((fc0 + lane[j]) + half) - cx
-                    log_alpha = log_o - half * (ca * dx * dx + two * cb * dx * dy + cc * dy * dy)
-                    ok = (lane[j] >= lo) & (lane[j] <= hi) & (log_alpha >= log_alpha_min)
-                    work[b, W_ALPHA * LANES + j] = min(_exp_nonpositive(log_alpha, ft), alpha_max) if ok else zero
-                    work[b, W_DEPTH * LANES + j] = z if ok else zero
-                    work[b, W_INV * LANES + j] = zero
-                    hit |= ok
-    return hit
+    zero, half, one = ft(0.0), ft(0.5), ft(1.0)
+    lane = iota(ft)
+    # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
+    px = lane + (ft(col0) + half)
+    py = ft(r) + half
+    dy = py - g[GEOM_CY]
+    inside = (lane >= ft(c0 - col0)) & (lane <= ft(c1 - col0))
+    if surfel:
+        ey = py - g[GEOM_LP + 1]
+        dx = px - g[GEOM_CX]
+        hx = fma(dx, g[GEOM_B], splat(g[GEOM_A] + dy * g[GEOM_C]))
+        hy = fma(dx, g[GEOM_B + 1], splat(g[GEOM_A + 1] + dy * g[GEOM_C + 1]))
+        hz = fma(dx, g[GEOM_B + 2], splat(g[GEOM_A + 2] + dy * g[GEOM_C + 2]))
+        ex = px - g[GEOM_LP]
+        rho2d = fma(ex * ft(LOWPASS_RHO_SCALE), ex, splat(ft(LOWPASS_RHO_SCALE) * ey * ey))
+        inv = one / hz  # first, as it is the slowest step (where hz = 0 it is not used)
+        q = fma(hx, hx, hy * hy)
+        ray = q < rho2d * (hz * hz)
+        rho = select(ray, q * inv * inv, rho2d)
+        depth = select(ray, g[GEOM_DET] * inv, splat(g[GEOM_DEPTH]))
+    else:
+        dx = px - g[GEOM_CX]
+        cb_dy = (ft(2.0) * g[GEOM_CONIC + 1]) * dy
+        rho = fma(dx, fma(dx, g[GEOM_CONIC], splat(cb_dy)), splat(g[GEOM_CONIC + 2] * dy * dy))
+        depth = splat(g[GEOM_DEPTH])
+        inv = splat(zero)
+        ray = inv != inv  # no lane
+    # log(alpha) / 32 = (log o - rho / 2) / 32 in one rounding: scaling by 2^-5 is exact, so the
+    # test against LOG_ALPHA_MIN / 32 is the test against LOG_ALPHA_MIN, and the exponential takes it
+    # as it is. Lanes that fail the test are not used, whatever their exponential.
+    y = fma(rho, ft(-1.0 / 64.0), splat(g[GEOM_LOGO] * ft(0.03125)))
+    ok = inside & (y >= ft(LOG_ALPHA_MIN) * ft(0.03125))
+    alpha = select(ok, min(_exp_of_32th(y, ft), ft(ALPHA_MAX)), splat(zero))
+    inv = select(ray & ok, inv, splat(zero))
+    return alpha, select(ok, depth, splat(zero)), inv, ok
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _blend(state, last, work, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5, z, distortion):
-    """Front-to-back blending of one Gaussian (features f0-f5, alpha and depth in the work rows) into
-    the chunks of its box: state [chunks, FORWARD_RUNS * LANES], last [chunks, LANES] (1 + the
-    tile-list position of each pixel's last blended Gaussian); rows [tile] counts the pixels of each
-    tile row still running (rows at 0 are skipped) and loses those that stop here.
-    Returns how many pixels stopped.
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
+    """Front-to-back blending of one Gaussian (geom row g, features f) into the chunks of its box,
+    columns c0..c1 and rows r0..r1 of the tile at (x0, y0): state [chunks, FORWARD_RUNS * LANES],
+    last [chunks, LANES] (1 + the tile-list position of each pixel's last blended Gaussian); rows
+    [tile] counts the pixels of each tile row still running (rows at 0 are skipped) and loses those
+    that stop here. Returns how many pixels stopped.
 
     The 3DGS/2DGS rule: a pixel takes the Gaussian when alpha > 0 and it has not stopped; the
     Gaussian that would take its transmittance below the floor ends the pixel and is itself not
-    blended. Masks select what a branch would have skipped, so a pixel's sums are those of the
-    one-pixel-at-a-time loop, bit for bit.
+    blended. Masks select what a branch would have skipped.
 
     distortion: None, or an array (only its type is read) to also accumulate 2DGS's depth distortion
     of the Gaussian's centre depth z in the runs S_MOMENT and S_DIST. Numba compiles one variant per
     type and drops the branch from the None one, so rendering without it costs what it did.
     """
     ft = state.dtype.type
-    zero, one, two, t_min = ft(0.0), ft(1.0), ft(2.0), ft(TRANSMITTANCE_MIN)
+    zero, one, two = ft(0.0), ft(1.0), ft(2.0)
+    f0, f1, f2, f3, f4, f5 = f[0], f[1], f[2], f[3], f[4], f[5]
+    z = g[GEOM_DEPTH]
     total = 0
     for r in range(r0, r1 + 1):
         if rows[r - y0] <= 0:
             continue
-        stopped = np.int32(0)
+        stopped = 0
         for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            col0 = x0 + ch * LANES
+            a, d, _, ok = _alpha_row(surfel, g, r, col0, c0, c1)
+            if not any_lane(ok):
+                continue
             b = (r - y0) * chunks + ch
-            for j in range(LANES):
-                a = work[b, W_ALPHA * LANES + j]
-                T = state[b, S_T * LANES + j]
-                T_next = T * (one - a)
-                takes = (a > zero) & (T > zero)
-                ends = takes & (T_next < t_min)
-                blends = takes & (T_next >= t_min)
-                w = a * T
-                state[b, j] += w * f0 if blends else zero
-                state[b, LANES + j] += w * f1 if blends else zero
-                state[b, 2 * LANES + j] += w * f2 if blends else zero
-                state[b, 3 * LANES + j] += w * f3 if blends else zero
-                state[b, 4 * LANES + j] += w * f4 if blends else zero
-                state[b, 5 * LANES + j] += w * f5 if blends else zero
-                state[b, S_DEPTH * LANES + j] += w * work[b, W_DEPTH * LANES + j] if blends else zero
-                if distortion is not None:
-                    # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
-                    # the weights in front, and M = sum w z in front.
-                    moment = state[b, S_MOMENT * LANES + j]
-                    state[b, S_DIST * LANES + j] += two * w * (z * (one - T) - moment) if blends else zero
-                    state[b, S_MOMENT * LANES + j] = moment + w * z if blends else moment
-                state[b, S_T * LANES + j] = T_next if blends else (-T if ends else T)
-                last[b, j] = position if blends else last[b, j]
-                stopped += np.int32(ends)
+            T = load(state, b, S_T * LANES)
+            T_next = T * (one - a)
+            takes = ok & (T > zero)
+            ends = takes & (T_next < ft(TRANSMITTANCE_MIN))
+            blends = takes & (T_next >= ft(TRANSMITTANCE_MIN))
+            w = select(blends, a * T, splat(zero))  # 0 adds nothing (the runs start at +0)
+            store(state, b, 0, fma(w, f0, load(state, b, 0)))
+            store(state, b, LANES, fma(w, f1, load(state, b, LANES)))
+            store(state, b, 2 * LANES, fma(w, f2, load(state, b, 2 * LANES)))
+            store(state, b, 3 * LANES, fma(w, f3, load(state, b, 3 * LANES)))
+            store(state, b, 4 * LANES, fma(w, f4, load(state, b, 4 * LANES)))
+            store(state, b, 5 * LANES, fma(w, f5, load(state, b, 5 * LANES)))
+            store(state, b, S_DEPTH * LANES, fma(w, d, load(state, b, S_DEPTH * LANES)))
+            if distortion is not None:
+                # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
+                # the weights in front, and M = sum w z in front.
+                moment = load(state, b, S_MOMENT * LANES)
+                gap = fma(one - T, z, -moment)
+                store(state, b, S_DIST * LANES, fma(two * w, gap, load(state, b, S_DIST * LANES)))
+                store(state, b, S_MOMENT * LANES, fma(w, z, moment))
+            store(state, b, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
+            store(last, b, 0, select(blends, splat(position), load(last, b, 0)))
+            stopped += count(ends)
         rows[r - y0] -= stopped
         total += stopped
     return total
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _composite_tile(
+    surfel,
+    geom,
+    features,
+    box,
+    ids,
+    x0,
+    y0,
+    x1,
+    y1,
+    tile,
+    state,
+    last,
+    rows,
+    out_color,
+    out_normal,
+    out_depth,
+    out_trans,
+    out_last,
+    out_distortion,
+):
+    """Front-to-back compositing of one tile, its pixels x0..x1 - 1, y0..y1 - 1, whose Gaussians
+    are ids (input indices, front to back), into the tile's part of the outputs (see
+    `composite_forward`); state, last and rows are the tile's scratch, set here."""
+    ft = geom.dtype.type
+    chunks = -(-tile // LANES)
+    state[:] = ft(0.0)
+    state[:, S_T * LANES : (S_T + 1) * LANES] = ft(1.0)
+    last[:] = 0
+    rows[:] = 0  # pixels of each tile row still running
+    rows[: y1 - y0] = x1 - x0
+    active = (x1 - x0) * (y1 - y0)
+    n = ids.shape[0]
+    for k in range(n):
+        if active == 0:
+            break  # every pixel of the tile has reached the transmittance floor
+        if k + _AHEAD < n:
+            ahead = ids[k + _AHEAD]
+            _prefetch(geom, ahead)
+            _prefetch(box, ahead)
+            _prefetch(features, ahead)
+        i = ids[k]
+        c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
+        r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
+        if c0 <= c1 and r0 <= r1:
+            active -= _blend(
+                surfel,
+                geom[i],
+                features[i],
+                state,
+                last,
+                rows,
+                x0,
+                y0,
+                chunks,
+                c0,
+                c1,
+                r0,
+                r1,
+                np.int32(k + 1),
+                out_distortion,
+            )
+    for r in range(y0, y1):
+        for c in range(x0, x1):
+            b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
+            for f in range(3):
+                out_color[f, r, c] = state[b, f * LANES + j]
+                out_normal[f, r, c] = state[b, (3 + f) * LANES + j]
+            out_depth[r, c] = state[b, S_DEPTH * LANES + j]
+            out_trans[r, c] = abs(state[b, S_T * LANES + j])
+            out_last[r, c] = last[b, j]
+            if out_distortion is not None:
+                out_distortion[0, r, c] = state[b, S_DIST * LANES + j]
+                out_distortion[1, r, c] = state[b, S_MOMENT * LANES + j]
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
@@ -900,168 +960,104 @@ def composite_forward(
     ft = geom.dtype.type
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
-    lane = _lane_table(ft)
     runs = FORWARD_RUNS if out_distortion is None else FORWARD_RUNS + DISTORTION_RUNS
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
-        x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        state = np.zeros((tile * chunks, runs * LANES), dtype=ft)
-        state[:, S_T * LANES : (S_T + 1) * LANES] = ft(1.0)
-        last = np.zeros((tile * chunks, LANES), dtype=np.int32)
-        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
-        rows = np.zeros(tile, dtype=np.int64)  # pixels of each tile row still running
-        rows[: y1 - y0] = x1 - x0
-        active = (x1 - x0) * (y1 - y0)
-        start, end = tile_start[t], tile_start[t + 1]
-        for k in range(start, end):
-            if active == 0:
-                break  # every pixel of the tile has reached the transmittance floor
-            if k + _AHEAD < end:
-                ahead = tile_ids[k + _AHEAD]
-                _prefetch(geom, ahead)
-                _prefetch(box, ahead)
-                _prefetch(features, ahead)
-            i = tile_ids[k]
-            c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
-            r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
-            if c0 > c1 or r0 > r1:
-                continue
-            if _box_alpha(surfel, geom[i], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work):
-                f = features[i]
-                position = np.int32(k - start + 1)
-                active -= _blend(
-                    state,
-                    last,
-                    work,
-                    x0,
-                    y0,
-                    chunks,
-                    c0,
-                    c1,
-                    r0,
-                    r1,
-                    rows,
-                    position,
-                    f[0],
-                    f[1],
-                    f[2],
-                    f[3],
-                    f[4],
-                    f[5],
-                    geom[i, GEOM_DEPTH],
-                    out_distortion,
-                )
-        for r in range(y0, y1):
-            for c in range(x0, x1):
-                b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
-                for f in range(3):
-                    out_color[f, r, c] = state[b, f * LANES + j]
-                    out_normal[f, r, c] = state[b, (3 + f) * LANES + j]
-                out_depth[r, c] = state[b, S_DEPTH * LANES + j]
-                out_trans[r, c] = abs(state[b, S_T * LANES + j])
-                out_last[r, c] = last[b, j]
-                if out_distortion is not None:
-                    out_distortion[0, r, c] = state[b, S_DIST * LANES + j]
-                    out_distortion[1, r, c] = state[b, S_MOMENT * LANES + j]
+        _composite_tile(
+            surfel,
+            geom,
+            features,
+            box,
+            tile_ids[tile_start[t] : tile_start[t + 1]],
+            x0,
+            y0,
+            min(x0 + tile, width),
+            min(y0 + tile, height),
+            tile,
+            np.empty((tile * chunks, runs * LANES), dtype=ft),
+            np.empty((tile * chunks, LANES), dtype=np.int32),
+            np.empty(tile, dtype=np.int64),
+            out_color,
+            out_normal,
+            out_depth,
+            out_trans,
+            out_last,
+            out_distortion,
+        )
 
 
-@njit(cache=True, inline="always", boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _unblend_lane(state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, z, distortion):
-    """The compositing's chain rule at lane j of chunk b (`_unblend`'s per-pixel step, which
-    `_unblend_surfel` shares): updates the transmittance and the sum behind in state, adds the
-    feature and log-opacity sums to acc, and returns (on, passes, w, depth, dL/d(depth feature),
-    dL/d(log alpha)) for the geometry gradients. distortion: None, or an array (its type selects
-    the variant, as in `_blend`) to add the depth distortion's gradients, of centre depth z."""
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _unblend(state, last, b, a, d, position, f, z, distortion):
+    """The compositing's chain rule at the LANES pixels of chunk b for one Gaussian of alpha a and
+    pair depth d (features f, centre depth z), back to front.
+
+    With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
+      dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
+    A pixel takes part where alpha > 0 and the Gaussian is not behind its last blended one
+    (position < last). It recovers T_i = T_{i+1} / (1 - a_i) and carries the sum behind in state.
+    Returns (on, w, dL/d(pair depth) upstream, dL/d(log alpha) where it passes to rho and the
+    opacity (0 elsewhere), the upstream feature gradients u0-u5, and dL/dz of the depth
+    distortion (0 without it)). distortion: None, or an array (its type selects the variant, as in
+    `_blend`) to add the depth distortion's gradients.
+    """
     ft = state.dtype.type
     zero, one, two = ft(0.0), ft(1.0), ft(2.0)
-    a = work[b, W_ALPHA * LANES + j]
-    on = (a > zero) & (position < last[b, j])
-    T_behind = state[b, B_T * LANES + j]
+    on = (a > zero) & (splat(position) < load(last, b, 0))
+    T_behind = load(state, b, B_T * LANES)
     inv_one_minus = one / (one - a)
     T = T_behind * inv_one_minus
     w = a * T
-    d = work[b, W_DEPTH * LANES + j]
-    g_d = state[b, B_GDEPTH * LANES + j]
-    u0, u1, u2 = state[b, j], state[b, LANES + j], state[b, 2 * LANES + j]
-    u3, u4, u5 = state[b, 3 * LANES + j], state[b, 4 * LANES + j], state[b, 5 * LANES + j]
-    g_w = g_d * d + u0 * f0 + u1 * f1 + u2 * f2 + u3 * f3 + u4 * f4 + u5 * f5
+    g_d = load(state, b, B_GDEPTH * LANES)
+    u0, u1, u2 = load(state, b, 0), load(state, b, LANES), load(state, b, 2 * LANES)
+    u3, u4, u5 = load(state, b, 3 * LANES), load(state, b, 4 * LANES), load(state, b, 5 * LANES)
+    # dL/dw: the upstream gradients times what the pair adds, summed as a tree (a shorter chain)
+    g_w = (fma(g_d, d, u0 * f[0]) + fma(u1, f[1], u2 * f[2])) + (fma(u3, f[3], u4 * f[4]) + u5 * f[5])
+    g_z = splat(zero)
     if distortion is not None:
         # D = 2 sum_i w_i (z_i A_i - M_i) is a function of the weights and depths alone, so its
         # dL/dw joins g_w and the chain rule that follows carries it to the alphas. With the ray's totals
         # W = sum w, M = sum w z and the moments A', M' up to and including i (A' = 1 - T behind):
         # dD/dw_i = 2 (2 (z_i A'_i - M'_i) + M - z_i W),  dD/dz_i = 2 w_i (2 A'_i - w_i - W).
-        g_dist = state[b, B_DIST_G * LANES + j]
-        total_w = state[b, B_DIST_W * LANES + j]
-        moment = state[b, B_DIST_MI * LANES + j]
+        g_dist = load(state, b, B_DIST_G * LANES)
+        total_w = load(state, b, B_DIST_W * LANES)
+        moment = load(state, b, B_DIST_MI * LANES)
         a_incl = one - T_behind
-        g_w += two * g_dist * (two * (z * a_incl - moment) + state[b, B_DIST_M * LANES + j] - z * total_w)
-        state[b, B_DIST_MI * LANES + j] = moment - w * z if on else moment
-        acc[GRAD_DEPTH * LANES + j] += two * g_dist * w * (two * a_incl - w - total_w) if on else zero
-    behind = state[b, B_BEHIND * LANES + j]
-    g_a = T * g_w - (behind + state[b, B_GOUT * LANES + j]) * inv_one_minus
-    state[b, B_T * LANES + j] = T if on else T_behind
-    state[b, B_BEHIND * LANES + j] = behind + w * g_w if on else behind
-    acc[GRAD_FEAT * LANES + j] += w * u0 if on else zero
-    acc[(GRAD_FEAT + 1) * LANES + j] += w * u1 if on else zero
-    acc[(GRAD_FEAT + 2) * LANES + j] += w * u2 if on else zero
-    acc[(GRAD_FEAT + 3) * LANES + j] += w * u3 if on else zero
-    acc[(GRAD_FEAT + 4) * LANES + j] += w * u4 if on else zero
-    acc[(GRAD_FEAT + 5) * LANES + j] += w * u5 if on else zero
+        spread = two * fma(a_incl, z, -moment) + (load(state, b, B_DIST_M * LANES) - total_w * z)
+        g_w = fma(two * g_dist, spread, g_w)
+        store(state, b, B_DIST_MI * LANES, select(on, moment - w * z, moment))
+        g_z = select(on, two * g_dist * w * ((two * a_incl - w) - total_w), splat(zero))
+    behind = load(state, b, B_BEHIND * LANES)
+    g_a = T * g_w - (behind + load(state, b, B_GOUT * LANES)) * inv_one_minus
+    store(state, b, B_T * LANES, select(on, T, T_behind))
+    store(state, b, B_BEHIND * LANES, select(on, fma(w, g_w, behind), behind))
     # alpha = min(exp(.), 0.99): a clamped pair passes nothing on to rho or the opacity.
-    passes = on & (a < ft(ALPHA_MAX))
-    g_log_alpha = g_a * a
-    acc[GRAD_LOGO * LANES + j] += g_log_alpha if passes else zero
-    return on, passes, w, d, g_d, g_log_alpha
+    g_log_alpha = select(on & (a < ft(ALPHA_MAX)), g_a * a, splat(zero))
+    w = select(on, w, splat(zero))
+    return on, w, g_d, g_log_alpha, u0, u1, u2, u3, u4, u5, g_z
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _unblend(state, last, work, acc, x0, y0, chunks, c0, c1, r0, r1, rows, position, f0, f1, f2, f3, f4, f5):
-    """The compositing's chain rule for one Gaussian over the chunks of its box, back to front.
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion, out):
+    """`_unblend` for one Gaussian (geom row g, features f) over the chunks of its box, with its
+    geometry gradients in the same pass; out [GRAD_SIZE] receives the sums over the box.
 
-    With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
-      dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
-    A pixel takes part where alpha > 0 and the Gaussian is not behind its last blended one
-    (position < last; rows [tile] holds each tile row's largest last, rows at or below position
-    are skipped). It recovers T_i = T_{i+1} / (1 - a_i) and carries the sum behind in state
-    [chunks, BACKWARD_RUNS * LANES]; the feature and log-opacity sums go to the per-lane runs of
-    acc [GRAD_SIZE * LANES], and dL/drho, dL/d(pair depth) and the mask to the work runs W_GRHO,
-    W_GDEPTH, W_ON for the EWA geometry (`_ewa_grads`); surfels use `_unblend_surfel`.
-    """
-    ft = state.dtype.type
-    zero, half, one = ft(0.0), ft(0.5), ft(1.0)
-    for r in range(r0, r1 + 1):
-        if rows[r - y0] <= position:
-            continue
-        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-            b = (r - y0) * chunks + ch
-            for j in range(LANES):
-                on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
-                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, zero, None
-                )
-                work[b, W_GRHO * LANES + j] = -half * g_log_alpha if passes else zero
-                work[b, W_GDEPTH * LANES + j] = w * g_d if on else zero
-                work[b, W_ON * LANES + j] = one if on else zero
-
-
-@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _unblend_surfel(
-    state, last, work, acc, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, f0, f1, f2, f3, f4, f5, distortion
-):
-    """`_unblend` for a surfel, with its geometry gradients in the same pass over the chunks of the
-    box: each lane's dL/drho, dL/d(pair depth) and mask go straight into the per-lane runs of acc,
-    not through the work runs (W_GRHO, W_GDEPTH, W_ON are not written).
-
-    Ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and depth = det / hz give dL/dh,
-    kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and dL/ddet. Filter branch:
-    rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre depth takes dL/ddepth
-    (and, with `distortion`, the depth distortion's dL/dz; see `_unblend_lane`).
+    The sums are kept per lane in registers and summed over the lanes at the end in a fixed order
+    (`simd.hsum`). Surfel, ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and
+    depth = det / hz give dL/dh, kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and
+    dL/ddet. Filter branch: rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre
+    depth takes dL/ddepth (and, with `distortion`, the depth distortion's dL/dz). EWA:
+    rho = d^T conic d gives dL/dconic and dL/dc, and the centre depth takes dL/ddepth.
     """
     ft = state.dtype.type
     zero, half, two = ft(0.0), ft(0.5), ft(2.0)
-    two_rho_scale = ft(2.0 * LOWPASS_RHO_SCALE)
-    cx, cy, z = g[GEOM_CX], g[GEOM_CY], g[GEOM_DEPTH]
+    cx, cy, lx, ly = g[GEOM_CX], g[GEOM_CY], g[GEOM_LP], g[GEOM_LP + 1]
+    ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
     A0, A1, b0, b1, C0, C1 = g[GEOM_A], g[GEOM_A + 1], g[GEOM_B], g[GEOM_B + 1], g[GEOM_C], g[GEOM_C + 1]
-    lx, ly = g[GEOM_LP], g[GEOM_LP + 1]
+    z = g[GEOM_DEPTH]
+    # Per-lane sums: surfel h (3), dx h (3), dy h (3), or EWA conic (3); then c_x, c_y, det, depth,
+    # log opacity and the 6 features.
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = splat(zero)
+    s14 = s15 = s16 = s17 = s18 = s19 = splat(zero)
     for r in range(r0, r1 + 1):
         if rows[r - y0] <= position:
             continue
@@ -1069,85 +1065,47 @@ def _unblend_surfel(
         dy, ey = py - cy, py - ly
         a0, a1 = A0 + dy * C0, A1 + dy * C1
         for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+            col0 = x0 + ch * LANES
+            a, d, inv, ok = _alpha_row(surfel, g, r, col0, c0, c1)
+            if not any_lane(ok):
+                continue
             b = (r - y0) * chunks + ch
-            fc0 = ft(x0 + ch * LANES)
-            for j in range(LANES):
-                on, passes, w, d, g_d, g_log_alpha = _unblend_lane(
-                    state, last, work, acc, b, j, position, f0, f1, f2, f3, f4, f5, z, distortion
-                )
-                g_rho = -half * g_log_alpha if passes else zero
-                g_dpair = w * g_d if on else zero
-                # Surfel geometry.
-                inv = work[b, W_INV * LANES + j]
-                px = (fc0 + lane[j]) + half
-                dx = px - cx
-                hx = a0 + dx * b0
-                hy = a1 + dx * b1
-                sc = two * g_rho * inv * inv
+            on, w, g_d, g_log_alpha, u0, u1, u2, u3, u4, u5, g_z = _unblend(
+                state, last, b, a, d, position, f, z, distortion
+            )
+            s13 = s13 + g_log_alpha
+            s14, s15, s16 = fma(w, u0, s14), fma(w, u1, s15), fma(w, u2, s16)
+            s17, s18, s19 = fma(w, u3, s17), fma(w, u4, s18), fma(w, u5, s19)
+            g_rho = g_log_alpha * -half
+            g_dpair = w * g_d
+            px = iota(ft) + (ft(col0) + half)
+            dx = px - cx
+            if surfel:
+                hx = fma(dx, b0, splat(a0))
+                hy = fma(dx, b1, splat(a1))
+                sc = (two * g_rho) * (inv * inv)  # 0 on the filter branch and off the box
                 g_hx, g_hy = sc * hx, sc * hy
-                g_hz = -(sc * (hx * hx + hy * hy) + g_dpair * d) * inv
-                ray = on & (inv != zero)
-                acc[GRAD_H * LANES + j] += g_hx if ray else zero
-                acc[(GRAD_H + 1) * LANES + j] += g_hy if ray else zero
-                acc[(GRAD_H + 2) * LANES + j] += g_hz if ray else zero
-                acc[GRAD_HX * LANES + j] += dx * g_hx if ray else zero
-                acc[(GRAD_HX + 1) * LANES + j] += dx * g_hy if ray else zero
-                acc[(GRAD_HX + 2) * LANES + j] += dx * g_hz if ray else zero
-                acc[GRAD_HY * LANES + j] += dy * g_hx if ray else zero
-                acc[(GRAD_HY + 1) * LANES + j] += dy * g_hy if ray else zero
-                acc[(GRAD_HY + 2) * LANES + j] += dy * g_hz if ray else zero
-                acc[GRAD_DET * LANES + j] += g_dpair * inv if ray else zero
+                g_hz = -fma(sc, fma(hx, hx, hy * hy), g_dpair * d) * inv
+                s0, s1, s2 = s0 + g_hx, s1 + g_hy, s2 + g_hz
+                s3, s4, s5 = fma(dx, g_hx, s3), fma(dx, g_hy, s4), fma(dx, g_hz, s5)
+                s6, s7, s8 = fma(g_hx, dy, s6), fma(g_hy, dy, s7), fma(g_hz, dy, s8)
+                s11 = fma(g_dpair, inv, s11)
                 lowpass = on & (inv == zero)
-                sc2 = two_rho_scale * g_rho
-                acc[GRAD_CX * LANES + j] -= sc2 * (px - lx) if lowpass else zero
-                acc[GRAD_CY * LANES + j] -= sc2 * ey if lowpass else zero
-                acc[GRAD_DEPTH * LANES + j] += g_dpair if lowpass else zero
-
-
-@njit(cache=True, boundscheck=False, error_model="numpy", fastmath=_CONTRACT)
-def _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc):
-    """EWA geometry gradients (rho = d^T conic d, d = p - c; centre depth) over the chunks of the
-    box, added to the per-lane runs of acc."""
-    ft = g.dtype.type
-    zero, half, two = ft(0.0), ft(0.5), ft(2.0)
-    cx, cy = g[GEOM_CX], g[GEOM_CY]
-    ca, cb, cc = g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2]
-    for r in range(r0, r1 + 1):
-        if rows[r - y0] <= position:
-            continue
-        dy = (ft(r) + half) - cy
-        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-            b = (r - y0) * chunks + ch
-            fc0 = ft(x0 + ch * LANES)
-            for j in range(LANES):
-                on = work[b, W_ON * LANES + j] != zero
-                g_rho = work[b, W_GRHO * LANES + j]
-                dx = ((fc0 + lane[j]) + half) - cx
-                acc[GRAD_CONIC * LANES + j] += g_rho * dx * dx if on else zero
-                acc[(GRAD_CONIC + 1) * LANES + j] += two * g_rho * dx * dy if on else zero
-                acc[(GRAD_CONIC + 2) * LANES + j] += g_rho * dy * dy if on else zero
-                acc[GRAD_CX * LANES + j] -= two * g_rho * (ca * dx + cb * dy) if on else zero
-                acc[GRAD_CY * LANES + j] -= two * g_rho * (cb * dx + cc * dy) if on else zero
-                acc[GRAD_DEPTH * LANES + j] += work[b, W_GDEPTH * LANES + j] if on else zero
-
-
-@njit(cache=True, boundscheck=False, error_model="numpy")
-def _sum_lanes(acc, row):
-    """row [GRAD_SIZE] = the per-lane runs of acc [GRAD_SIZE * LANES] summed over the lanes, by
-    halving: lane j takes lane j + 8, then j + 4, j + 2, j + 1 (a fixed order, the same for every
-    tile and thread). Each halving runs over the whole array, a run's upper lanes included, so that
-    it is one contiguous SIMD loop (a loop over the runs would vectorize across them, as gathers);
-    ascending i reads acc[i + width] before it is overwritten.
-    """
-    n = GRAD_SIZE * LANES
-    for i in range(n - LANES // 2):
-        acc[i] += acc[i + LANES // 2]
-    for i in range(n - LANES // 4):
-        acc[i] += acc[i + LANES // 4]
-    for i in range(n - LANES // 8):
-        acc[i] += acc[i + LANES // 8]
-    for f in range(GRAD_SIZE):
-        row[f] = acc[f * LANES] + acc[f * LANES + 1]
+                sc2 = select(lowpass, g_rho * ft(2.0 * LOWPASS_RHO_SCALE), splat(zero))
+                s9 = s9 - sc2 * (px - lx)
+                s10 = s10 - sc2 * ey
+                s12 = s12 + select(lowpass, g_dpair, splat(zero)) + g_z
+            else:
+                s0 = fma(g_rho * dx, dx, s0)
+                s1 = fma(two * g_rho * dx, dy, s1)
+                s2 = fma(g_rho * dy, dy, s2)
+                s9 = s9 - (two * g_rho) * fma(dx, ca, splat(cb * dy))
+                s10 = s10 - (two * g_rho) * fma(dx, cb, splat(cc * dy))
+                s12 = s12 + g_dpair
+    out[0], out[1], out[2], out[3], out[4] = hsum(s0), hsum(s1), hsum(s2), hsum(s3), hsum(s4)
+    out[5], out[6], out[7], out[8], out[9] = hsum(s5), hsum(s6), hsum(s7), hsum(s8), hsum(s9)
+    out[10], out[11], out[12], out[13], out[14] = hsum(s10), hsum(s11), hsum(s12), hsum(s13), hsum(s14)
+    out[15], out[16], out[17], out[18], out[19] = hsum(s15), hsum(s16), hsum(s17), hsum(s18), hsum(s19)
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
@@ -1188,7 +1146,6 @@ def composite_backward(
     zero, one = ft(0.0), ft(1.0)
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
-    lane = _lane_table(ft)
     runs = BACKWARD_RUNS if distortion is None else BACKWARD_RUNS + DISTORTION_BACKWARD_RUNS
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
@@ -1213,8 +1170,6 @@ def composite_backward(
                 last_px[b, j] = last[r, c]
                 rows[r - y0] = max(rows[r - y0], last[r, c])
         n_last = rows.max()
-        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
-        acc = np.empty(GRAD_SIZE * LANES, dtype=ft)
         start = tile_start[t]
         for k in range(start + n_last, tile_start[t + 1]):
             pair_grads[k, :] = zero  # behind every pixel's last blended Gaussian
@@ -1227,49 +1182,17 @@ def composite_backward(
             i = tile_ids[k]
             c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
             r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
-            position = np.int32(k - start)
-            g = geom[i]
-            if (
-                c0 > c1
-                or r0 > r1
-                or not _box_alpha(surfel, g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work)
-            ):
+            if c0 > c1 or r0 > r1:
                 pair_grads[k, :] = zero
                 continue
-            acc[:] = zero
-            f = features[i]
-            if surfel:
-                _unblend_surfel(
-                    state,
-                    last_px,
-                    work,
-                    acc,
-                    g,
-                    x0,
-                    y0,
-                    chunks,
-                    c0,
-                    c1,
-                    r0,
-                    r1,
-                    rows,
-                    position,
-                    lane,
-                    f[0],
-                    f[1],
-                    f[2],
-                    f[3],
-                    f[4],
-                    f[5],
-                    distortion,
-                )
-                _sum_lanes(acc, pair_grads[k])
-                continue
-            _unblend(
+            position = np.int32(k - start)
+            _unblend_box(
+                surfel,
+                geom[i],
+                features[i],
                 state,
                 last_px,
-                work,
-                acc,
+                rows,
                 x0,
                 y0,
                 chunks,
@@ -1277,17 +1200,10 @@ def composite_backward(
                 c1,
                 r0,
                 r1,
-                rows,
                 position,
-                f[0],
-                f[1],
-                f[2],
-                f[3],
-                f[4],
-                f[5],
+                distortion,
+                pair_grads[k],
             )
-            _ewa_grads(g, x0, y0, chunks, c0, c1, r0, r1, rows, position, lane, work, acc)
-            _sum_lanes(acc, pair_grads[k])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1625,32 +1541,19 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     A property of the scene and the view (the benchmark's measure of work), not of a backend.
     """
     n_tiles = tile_start.shape[0] - 1
-    ft = geom.dtype.type
-    zero = ft(0.0)
-    chunks = -(-tile // LANES)
     per_tile = np.zeros(n_tiles, dtype=np.int64)
-    lane = _lane_table(ft)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        work = np.empty((tile * chunks, WORK_RUNS * LANES), dtype=ft)
-        rows = np.ones(tile, dtype=np.int64)  # every row
-        count = 0
+        total = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             i = tile_ids[k]
             c0, c1 = max(box[i, 0], x0), min(box[i, 1], x1 - 1)
             r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
-            if (
-                c0 <= c1
-                and r0 <= r1
-                and _box_alpha(surfel, geom[i], x0, y0, chunks, c0, c1, r0, r1, rows, 0, lane, work)
-            ):
-                for r in range(r0, r1 + 1):
-                    for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-                        b = (r - y0) * chunks + ch
-                        for j in range(LANES):
-                            count += work[b, W_ALPHA * LANES + j] > zero
-        per_tile[t] = count
+            for r in range(r0, r1 + 1):
+                for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
+                    total += count(_alpha_row(surfel, geom[i], r, x0 + ch * LANES, c0, c1)[3])
+        per_tile[t] = total
     return per_tile.sum()
 
 
