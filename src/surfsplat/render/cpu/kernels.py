@@ -73,7 +73,7 @@ from ..types import (
     LOWPASS_RHO_SCALE,
     TRANSMITTANCE_MIN,
 )
-from .simd import LANES, any_lane, count, fma, hsum, iota, load, select, splat, store
+from .simd import LANES, any_lane, count, fma, half_iota, hsum, load2, select, splat, store2, upper_lanes
 
 
 @intrinsic
@@ -738,9 +738,37 @@ DISTORTION_BACKWARD_RUNS = 4
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _alpha_row(surfel, g, r, col0, c0, c1):
+def _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed):
+    """Where the LANES lanes of one step over a Gaussian's box sit in the tile at (x0, y0).
+
+    Not packed: the LANES pixels of chunk ch of row r. Packed (a box at most LANES / 2 wide within
+    one chunk): two rows at once, the lower lanes LANES / 2 pixels of row r and the upper lanes the
+    same columns of row r + 1, which halves the steps over the narrow boxes of small Gaussians.
+    Returns the state rows and in-row offsets of the two halves (for `simd.load2`), the pixel
+    centres px, py, the mask of lanes inside the box (columns c0..c1, rows up to r1) and the upper
+    half's row. A row r + 1 past the tile is the state's padding row (masked out).
+    """
+    half = LANES // 2
+    b_lo = (r - y0) * chunks + ch
+    if packed:
+        lo = hi = min(c0 - x0 - ch * LANES, half)
+        r_hi, b_hi = r + 1, b_lo + chunks
+    else:
+        lo, hi = 0, half
+        r_hi, b_hi = r, b_lo
+    upper = upper_lanes()
+    base = x0 + ch * LANES
+    col = half_iota(ft) + select(upper, splat(ft(base + hi)), splat(ft(base + lo)))
+    row = select(upper, splat(ft(r_hi)), splat(ft(r)))
+    inside = (col >= ft(c0)) & (col <= ft(c1)) & (row <= ft(r1))
+    # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
+    return b_lo, lo, b_hi, hi, col + ft(0.5), row + ft(0.5), inside, r_hi
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _alpha(surfel, g, px, py, inside):
     """alpha, depth, 1 / hz and the mask of pixels with alpha > 0 of Gaussian g (its geom row) at
-    the LANES pixels of row r from column col0; only columns c0..c1 (its box) can have alpha > 0.
+    the pixel centres (px, py) of the lanes; only lanes inside (its box) can have alpha > 0.
 
     surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
@@ -749,25 +777,20 @@ def _alpha_row(surfel, g, r, col0, c0, c1):
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
     1 / hz is kept on the ray-splat branch and 0 on the filter branch (and for ewa), so the backward
     pass takes the very branch the forward pass took; lanes with alpha 0 get depth and 1 / hz 0.
-    Plain IEEE arithmetic (see `simd`): forward and backward get the same bits from it. Computes in
-    the dtype of g, constants included.
+    Plain IEEE arithmetic (see `simd`): a pixel gets the same bits from it in every pass, packed or
+    not. Computes in the dtype of g, constants included.
     """
     ft = g.dtype.type
-    zero, half, one = ft(0.0), ft(0.5), ft(1.0)
-    lane = iota(ft)
-    # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
-    px = lane + (ft(col0) + half)
-    py = ft(r) + half
+    zero, one = ft(0.0), ft(1.0)
     dy = py - g[GEOM_CY]
-    inside = (lane >= ft(c0 - col0)) & (lane <= ft(c1 - col0))
     if surfel:
         ey = py - g[GEOM_LP + 1]
         dx = px - g[GEOM_CX]
-        hx = fma(dx, g[GEOM_B], splat(g[GEOM_A] + dy * g[GEOM_C]))
-        hy = fma(dx, g[GEOM_B + 1], splat(g[GEOM_A + 1] + dy * g[GEOM_C + 1]))
-        hz = fma(dx, g[GEOM_B + 2], splat(g[GEOM_A + 2] + dy * g[GEOM_C + 2]))
+        hx = fma(dx, g[GEOM_B], fma(dy, g[GEOM_C], g[GEOM_A]))
+        hy = fma(dx, g[GEOM_B + 1], fma(dy, g[GEOM_C + 1], g[GEOM_A + 1]))
+        hz = fma(dx, g[GEOM_B + 2], fma(dy, g[GEOM_C + 2], g[GEOM_A + 2]))
         ex = px - g[GEOM_LP]
-        rho2d = fma(ex * ft(LOWPASS_RHO_SCALE), ex, splat(ft(LOWPASS_RHO_SCALE) * ey * ey))
+        rho2d = fma(ex * ft(LOWPASS_RHO_SCALE), ex, (ey * ft(LOWPASS_RHO_SCALE)) * ey)
         inv = one / hz  # first, as it is the slowest step (where hz = 0 it is not used)
         q = fma(hx, hx, hy * hy)
         ray = q < rho2d * (hz * hz)
@@ -776,7 +799,7 @@ def _alpha_row(surfel, g, r, col0, c0, c1):
     else:
         dx = px - g[GEOM_CX]
         cb_dy = (ft(2.0) * g[GEOM_CONIC + 1]) * dy
-        rho = fma(dx, fma(dx, g[GEOM_CONIC], splat(cb_dy)), splat(g[GEOM_CONIC + 2] * dy * dy))
+        rho = fma(dx, fma(dx, g[GEOM_CONIC], cb_dy), (dy * g[GEOM_CONIC + 2]) * dy)
         depth = splat(g[GEOM_DEPTH])
         inv = splat(zero)
         ray = inv != inv  # no lane
@@ -793,10 +816,11 @@ def _alpha_row(surfel, g, r, col0, c0, c1):
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
     """Front-to-back blending of one Gaussian (geom row g, features f) into the chunks of its box,
-    columns c0..c1 and rows r0..r1 of the tile at (x0, y0): state [chunks, FORWARD_RUNS * LANES],
-    last [chunks, LANES] (1 + the tile-list position of each pixel's last blended Gaussian); rows
-    [tile] counts the pixels of each tile row still running (rows at 0 are skipped) and loses those
-    that stop here. Returns how many pixels stopped.
+    columns c0..c1 and rows r0..r1 of the tile at (x0, y0): state [(tile + 1) chunks,
+    FORWARD_RUNS * LANES], last [(tile + 1) chunks, LANES] (1 + the tile-list position of each
+    pixel's last blended Gaussian), the last tile row of each being padding (`_pixels`); rows
+    [tile + 1] counts the pixels of each tile row still running (rows at 0 are skipped) and loses
+    those that stop here. Returns how many pixels stopped.
 
     The 3DGS/2DGS rule: a pixel takes the Gaussian when alpha > 0 and it has not stopped; the
     Gaussian that would take its transmittance below the floor ends the pixel and is itself not
@@ -810,42 +834,45 @@ def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, posi
     zero, one, two = ft(0.0), ft(1.0), ft(2.0)
     f0, f1, f2, f3, f4, f5 = f[0], f[1], f[2], f[3], f[4], f[5]
     z = g[GEOM_DEPTH]
+    ch0, ch1 = (c0 - x0) // LANES, (c1 - x0) // LANES
+    packed = ch0 == ch1 and c1 - c0 < LANES // 2
+    upper = upper_lanes()
     total = 0
-    for r in range(r0, r1 + 1):
-        if rows[r - y0] <= 0:
+    for r in range(r0, r1 + 1, 2 if packed else 1):
+        if rows[r - y0] <= 0 and (not packed or r + 1 > r1 or rows[r + 1 - y0] <= 0):
             continue
-        stopped = 0
-        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-            col0 = x0 + ch * LANES
-            a, d, _, ok = _alpha_row(surfel, g, r, col0, c0, c1)
+        for ch in range(ch0, ch1 + 1):
+            b, lo, b2, hi, px, py, inside, r2 = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
+            a, d, _, ok = _alpha(surfel, g, px, py, inside)
             if not any_lane(ok):
                 continue
-            b = (r - y0) * chunks + ch
-            T = load(state, b, S_T * LANES)
+            at = (b, lo, b2, hi)
+            T = _get(state, at, S_T * LANES)
             T_next = T * (one - a)
             takes = ok & (T > zero)
             ends = takes & (T_next < ft(TRANSMITTANCE_MIN))
             blends = takes & (T_next >= ft(TRANSMITTANCE_MIN))
             w = select(blends, a * T, splat(zero))  # 0 adds nothing (the runs start at +0)
-            store(state, b, 0, fma(w, f0, load(state, b, 0)))
-            store(state, b, LANES, fma(w, f1, load(state, b, LANES)))
-            store(state, b, 2 * LANES, fma(w, f2, load(state, b, 2 * LANES)))
-            store(state, b, 3 * LANES, fma(w, f3, load(state, b, 3 * LANES)))
-            store(state, b, 4 * LANES, fma(w, f4, load(state, b, 4 * LANES)))
-            store(state, b, 5 * LANES, fma(w, f5, load(state, b, 5 * LANES)))
-            store(state, b, S_DEPTH * LANES, fma(w, d, load(state, b, S_DEPTH * LANES)))
+            _put(state, at, 0, fma(w, f0, _get(state, at, 0)))
+            _put(state, at, LANES, fma(w, f1, _get(state, at, LANES)))
+            _put(state, at, 2 * LANES, fma(w, f2, _get(state, at, 2 * LANES)))
+            _put(state, at, 3 * LANES, fma(w, f3, _get(state, at, 3 * LANES)))
+            _put(state, at, 4 * LANES, fma(w, f4, _get(state, at, 4 * LANES)))
+            _put(state, at, 5 * LANES, fma(w, f5, _get(state, at, 5 * LANES)))
+            _put(state, at, S_DEPTH * LANES, fma(w, d, _get(state, at, S_DEPTH * LANES)))
             if distortion is not None:
                 # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
                 # the weights in front, and M = sum w z in front.
-                moment = load(state, b, S_MOMENT * LANES)
+                moment = _get(state, at, S_MOMENT * LANES)
                 gap = fma(one - T, z, -moment)
-                store(state, b, S_DIST * LANES, fma(two * w, gap, load(state, b, S_DIST * LANES)))
-                store(state, b, S_MOMENT * LANES, fma(w, z, moment))
-            store(state, b, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
-            store(last, b, 0, select(blends, splat(position), load(last, b, 0)))
-            stopped += count(ends)
-        rows[r - y0] -= stopped
-        total += stopped
+                _put(state, at, S_DIST * LANES, fma(two * w, gap, _get(state, at, S_DIST * LANES)))
+                _put(state, at, S_MOMENT * LANES, fma(w, z, moment))
+            _put(state, at, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
+            _put(last, at, 0, select(blends, splat(position), _get(last, at, 0)))
+            stopped_upper = count(ends & upper)
+            rows[r - y0] -= count(ends) - stopped_upper
+            rows[r2 - y0] -= stopped_upper
+            total += count(ends)
     return total
 
 
@@ -974,9 +1001,9 @@ def composite_forward(
             min(x0 + tile, width),
             min(y0 + tile, height),
             tile,
-            np.empty((tile * chunks, runs * LANES), dtype=ft),
-            np.empty((tile * chunks, LANES), dtype=np.int32),
-            np.empty(tile, dtype=np.int64),
+            np.empty(((tile + 1) * chunks, runs * LANES), dtype=ft),
+            np.empty(((tile + 1) * chunks, LANES), dtype=np.int32),
+            np.empty(tile + 1, dtype=np.int64),
             out_color,
             out_normal,
             out_depth,
@@ -987,9 +1014,22 @@ def composite_forward(
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _unblend(state, last, b, a, d, position, f, z, distortion):
-    """The compositing's chain rule at the LANES pixels of chunk b for one Gaussian of alpha a and
-    pair depth d (features f, centre depth z), back to front.
+def _get(array, at, col):
+    """The lanes at = (b, lo, b2, hi) (`_pixels`) of the run starting at column col of array."""
+    return load2(array, at[0], col + at[1], at[2], col + at[3])
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _put(array, at, col, value):
+    """Store value to the lanes at = (b, lo, b2, hi) of the run starting at column col of array."""
+    store2(array, at[0], col + at[1], at[2], col + at[3], value)
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _unblend(state, last, at, a, d, position, f, z, distortion):
+    """The compositing's chain rule at the LANES pixels at = (b, lo, b2, hi) of state (`_pixels`,
+    `simd.load2`) for one Gaussian of alpha a and pair depth d (features f, centre depth z), back
+    to front.
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
       dL/da_i = T_i g_i - (sum_{j>i} w_j g_j + dL/dT_out T_out) / (1 - a_i).
@@ -1002,14 +1042,14 @@ def _unblend(state, last, b, a, d, position, f, z, distortion):
     """
     ft = state.dtype.type
     zero, one, two = ft(0.0), ft(1.0), ft(2.0)
-    on = (a > zero) & (splat(position) < load(last, b, 0))
-    T_behind = load(state, b, B_T * LANES)
+    on = (a > zero) & (splat(position) < _get(last, at, 0))
+    T_behind = _get(state, at, B_T * LANES)
     inv_one_minus = one / (one - a)
     T = T_behind * inv_one_minus
     w = a * T
-    g_d = load(state, b, B_GDEPTH * LANES)
-    u0, u1, u2 = load(state, b, 0), load(state, b, LANES), load(state, b, 2 * LANES)
-    u3, u4, u5 = load(state, b, 3 * LANES), load(state, b, 4 * LANES), load(state, b, 5 * LANES)
+    g_d = _get(state, at, B_GDEPTH * LANES)
+    u0, u1, u2 = _get(state, at, 0), _get(state, at, LANES), _get(state, at, 2 * LANES)
+    u3, u4, u5 = _get(state, at, 3 * LANES), _get(state, at, 4 * LANES), _get(state, at, 5 * LANES)
     # dL/dw: the upstream gradients times what the pair adds, summed as a tree (a shorter chain)
     g_w = (fma(g_d, d, u0 * f[0]) + fma(u1, f[1], u2 * f[2])) + (fma(u3, f[3], u4 * f[4]) + u5 * f[5])
     g_z = splat(zero)
@@ -1018,18 +1058,18 @@ def _unblend(state, last, b, a, d, position, f, z, distortion):
         # dL/dw joins g_w and the chain rule that follows carries it to the alphas. With the ray's totals
         # W = sum w, M = sum w z and the moments A', M' up to and including i (A' = 1 - T behind):
         # dD/dw_i = 2 (2 (z_i A'_i - M'_i) + M - z_i W),  dD/dz_i = 2 w_i (2 A'_i - w_i - W).
-        g_dist = load(state, b, B_DIST_G * LANES)
-        total_w = load(state, b, B_DIST_W * LANES)
-        moment = load(state, b, B_DIST_MI * LANES)
+        g_dist = _get(state, at, B_DIST_G * LANES)
+        total_w = _get(state, at, B_DIST_W * LANES)
+        moment = _get(state, at, B_DIST_MI * LANES)
         a_incl = one - T_behind
-        spread = two * fma(a_incl, z, -moment) + (load(state, b, B_DIST_M * LANES) - total_w * z)
+        spread = two * fma(a_incl, z, -moment) + (_get(state, at, B_DIST_M * LANES) - total_w * z)
         g_w = fma(two * g_dist, spread, g_w)
-        store(state, b, B_DIST_MI * LANES, select(on, moment - w * z, moment))
+        _put(state, at, B_DIST_MI * LANES, select(on, moment - w * z, moment))
         g_z = select(on, two * g_dist * w * ((two * a_incl - w) - total_w), splat(zero))
-    behind = load(state, b, B_BEHIND * LANES)
-    g_a = T * g_w - (behind + load(state, b, B_GOUT * LANES)) * inv_one_minus
-    store(state, b, B_T * LANES, select(on, T, T_behind))
-    store(state, b, B_BEHIND * LANES, select(on, fma(w, g_w, behind), behind))
+    behind = _get(state, at, B_BEHIND * LANES)
+    g_a = T * g_w - (behind + _get(state, at, B_GOUT * LANES)) * inv_one_minus
+    _put(state, at, B_T * LANES, select(on, T, T_behind))
+    _put(state, at, B_BEHIND * LANES, select(on, fma(w, g_w, behind), behind))
     # alpha = min(exp(.), 0.99): a clamped pair passes nothing on to rho or the opacity.
     g_log_alpha = select(on & (a < ft(ALPHA_MAX)), g_a * a, splat(zero))
     w = select(on, w, splat(zero))
@@ -1058,31 +1098,28 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
     # log opacity and the 6 features.
     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = splat(zero)
     s14 = s15 = s16 = s17 = s18 = s19 = splat(zero)
-    for r in range(r0, r1 + 1):
-        if rows[r - y0] <= position:
+    ch0, ch1 = (c0 - x0) // LANES, (c1 - x0) // LANES
+    packed = ch0 == ch1 and c1 - c0 < LANES // 2
+    for r in range(r0, r1 + 1, 2 if packed else 1):
+        if rows[r - y0] <= position and (not packed or r + 1 > r1 or rows[r + 1 - y0] <= position):
             continue
-        py = ft(r) + half
-        dy, ey = py - cy, py - ly
-        a0, a1 = A0 + dy * C0, A1 + dy * C1
-        for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-            col0 = x0 + ch * LANES
-            a, d, inv, ok = _alpha_row(surfel, g, r, col0, c0, c1)
+        for ch in range(ch0, ch1 + 1):
+            b, lo, b2, hi, px, py, inside, _ = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
+            a, d, inv, ok = _alpha(surfel, g, px, py, inside)
             if not any_lane(ok):
                 continue
-            b = (r - y0) * chunks + ch
             on, w, g_d, g_log_alpha, u0, u1, u2, u3, u4, u5, g_z = _unblend(
-                state, last, b, a, d, position, f, z, distortion
+                state, last, (b, lo, b2, hi), a, d, position, f, z, distortion
             )
             s13 = s13 + g_log_alpha
             s14, s15, s16 = fma(w, u0, s14), fma(w, u1, s15), fma(w, u2, s16)
             s17, s18, s19 = fma(w, u3, s17), fma(w, u4, s18), fma(w, u5, s19)
             g_rho = g_log_alpha * -half
             g_dpair = w * g_d
-            px = iota(ft) + (ft(col0) + half)
-            dx = px - cx
+            dx, dy = px - cx, py - cy
             if surfel:
-                hx = fma(dx, b0, splat(a0))
-                hy = fma(dx, b1, splat(a1))
+                hx = fma(dx, b0, fma(dy, C0, A0))
+                hy = fma(dx, b1, fma(dy, C1, A1))
                 sc = (two * g_rho) * (inv * inv)  # 0 on the filter branch and off the box
                 g_hx, g_hy = sc * hx, sc * hy
                 g_hz = -fma(sc, fma(hx, hx, hy * hy), g_dpair * d) * inv
@@ -1093,14 +1130,14 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
                 lowpass = on & (inv == zero)
                 sc2 = select(lowpass, g_rho * ft(2.0 * LOWPASS_RHO_SCALE), splat(zero))
                 s9 = s9 - sc2 * (px - lx)
-                s10 = s10 - sc2 * ey
+                s10 = s10 - sc2 * (py - ly)
                 s12 = s12 + select(lowpass, g_dpair, splat(zero)) + g_z
             else:
                 s0 = fma(g_rho * dx, dx, s0)
                 s1 = fma(two * g_rho * dx, dy, s1)
                 s2 = fma(g_rho * dy, dy, s2)
-                s9 = s9 - (two * g_rho) * fma(dx, ca, splat(cb * dy))
-                s10 = s10 - (two * g_rho) * fma(dx, cb, splat(cc * dy))
+                s9 = s9 - (two * g_rho) * fma(dx, ca, dy * cb)
+                s10 = s10 - (two * g_rho) * fma(dx, cb, dy * cc)
                 s12 = s12 + g_dpair
     out[0], out[1], out[2], out[3], out[4] = hsum(s0), hsum(s1), hsum(s2), hsum(s3), hsum(s4)
     out[5], out[6], out[7], out[8], out[9] = hsum(s5), hsum(s6), hsum(s7), hsum(s8), hsum(s9)
@@ -1150,9 +1187,10 @@ def composite_backward(
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-        state = np.zeros((tile * chunks, runs * LANES), dtype=ft)
-        last_px = np.zeros((tile * chunks, LANES), dtype=np.int32)
-        rows = np.zeros(tile, dtype=np.int64)  # the largest `last` of each tile row
+        # One more tile row, of padding (`_pixels`).
+        state = np.zeros(((tile + 1) * chunks, runs * LANES), dtype=ft)
+        last_px = np.zeros(((tile + 1) * chunks, LANES), dtype=np.int32)
+        rows = np.zeros(tile + 1, dtype=np.int64)  # the largest `last` of each tile row
         for r in range(y0, y1):
             for c in range(x0, x1):
                 b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
@@ -1541,6 +1579,7 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
     A property of the scene and the view (the benchmark's measure of work), not of a backend.
     """
     n_tiles = tile_start.shape[0] - 1
+    ft = geom.dtype.type
     per_tile = np.zeros(n_tiles, dtype=np.int64)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
@@ -1552,7 +1591,8 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
             r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
             for r in range(r0, r1 + 1):
                 for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
-                    total += count(_alpha_row(surfel, geom[i], r, x0 + ch * LANES, c0, c1)[3])
+                    px, py, inside = _pixels(ft, x0, y0, 1, c0, c1, r1, r, ch, False)[4:7]
+                    total += count(_alpha(surfel, geom[i], px, py, inside)[3])
         per_tile[t] = total
     return per_tile.sum()
 

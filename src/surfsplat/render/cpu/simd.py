@@ -20,6 +20,8 @@ backward rely on this for alpha). `fma` is LLVM's fused multiply-add, one roundi
     m & n, m | n, ~m                   # masks
     select(m, a, b), fma(a, b, c), min(a, b), max(a, b) (also vmin, vmax), hsum(a)
     any_lane(m), count(m)
+    load2(array, row_lo, col_lo, row_hi, col_hi), store2(...)   # two half-width rows as one Vec
+    half_iota(ft), upper_lanes()
 """
 
 from __future__ import annotations
@@ -419,3 +421,69 @@ def hsum(typingctx, a):
         return builder.extract_element(value, i32(0))
 
     return a.dtype(a), codegen
+
+
+@intrinsic
+def load2(typingctx, array, row_lo, col_lo, row_hi, col_hi):
+    """array[row_lo, col_lo:col_lo + LANES / 2] in the lower lanes and array[row_hi, col_hi:col_hi +
+    LANES / 2] in the upper ones: two half-width loads (no bounds check)."""
+    _check_rows(array)
+    vec = Vec(array.dtype)
+
+    def codegen(context, builder, signature, args):
+        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
+        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
+        halves = []
+        for row, col in ((args[1], args[2]), (args[3], args[4])):
+            pointer = _pointer(context, builder, array, args[0], row, col)
+            halves.append(builder.load(builder.bitcast(pointer, half_type.as_pointer()), align=element_bytes))
+        both = ir.Constant(ir.VectorType(ir.IntType(32), LANES), list(range(LANES)))
+        return builder.shuffle_vector(halves[0], halves[1], both)
+
+    return vec(array, row_lo, col_lo, row_hi, col_hi), codegen
+
+
+@intrinsic
+def store2(typingctx, array, row_lo, col_lo, row_hi, col_hi, value):
+    """The inverse of `load2`: the lower lanes of value to array[row_lo, col_lo:...], the upper
+    ones to array[row_hi, col_hi:...] (in that order; no bounds check)."""
+    _check_rows(array)
+    if not (isinstance(value, Vec) and value.dtype == array.dtype):
+        raise TypeError(f"cannot store {value} into {array}")
+
+    def codegen(context, builder, signature, args):
+        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
+        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
+        i32 = ir.IntType(32)
+        for k, (row, col) in enumerate(((args[1], args[2]), (args[3], args[4]))):
+            lanes = ir.Constant(ir.VectorType(i32, LANES // 2), list(range(k * LANES // 2, (k + 1) * LANES // 2)))
+            part = builder.shuffle_vector(args[5], ir.Constant(args[5].type, ir.Undefined), lanes)
+            pointer = _pointer(context, builder, array, args[0], row, col)
+            builder.store(part, builder.bitcast(pointer, half_type.as_pointer()), align=element_bytes)
+        return context.get_dummy_value()
+
+    return types.void(array, row_lo, col_lo, row_hi, col_hi, value), codegen
+
+
+@intrinsic
+def half_iota(typingctx, dtype):
+    """0, 1, ..., LANES / 2 - 1 twice, as a Vec of the float type given as its class."""
+    ft = dtype.dtype if isinstance(dtype, types.NumberClass) else dtype.instance_type
+
+    def codegen(context, builder, signature, args):
+        vector_type = _vector_type(context, ft)
+        values = [float(j % (LANES // 2)) for j in range(LANES)]
+        return ir.Constant(vector_type, [ir.Constant(vector_type.element, v) for v in values])
+
+    return Vec(ft)(dtype), codegen
+
+
+@intrinsic
+def upper_lanes(typingctx):
+    """The mask of the upper half of the lanes (LANES / 2 .. LANES - 1)."""
+
+    def codegen(context, builder, signature, args):
+        bits = [ir.Constant(ir.IntType(1), int(j >= LANES // 2)) for j in range(LANES)]
+        return ir.Constant(ir.VectorType(ir.IntType(1), LANES), bits)
+
+    return mask_type(), codegen
