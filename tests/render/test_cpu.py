@@ -282,7 +282,18 @@ def test_float32_kernels_compute_in_float32():
         (
             kernels._unblend_box,
             [
-                (surfel, g, f, np.zeros((16, runs * lanes), f32), last, *box, np.int32(0), d, np.zeros(20, f32))
+                (
+                    surfel,
+                    g,
+                    f,
+                    np.zeros((16, runs * lanes), f32),
+                    last,
+                    *box,
+                    np.int32(0),
+                    d,
+                    np.zeros((1, kernels.GRAD_SIZE), f32),
+                    0,
+                )
                 for runs, d in zip(bwd_runs, dist)
                 for surfel in (True, False)
             ],

@@ -73,7 +73,21 @@ from ..types import (
     LOWPASS_RHO_SCALE,
     TRANSMITTANCE_MIN,
 )
-from .simd import LANES, any_lane, count, fma, half_iota, hsum, load2, select, splat, store2, upper_lanes
+from .simd import (
+    LANES,
+    any_lane,
+    count,
+    fma,
+    half_iota,
+    lane,
+    lane_sums,
+    load2,
+    select,
+    splat,
+    store,
+    store2,
+    upper_lanes,
+)
 
 
 @intrinsic
@@ -1077,12 +1091,13 @@ def _unblend(state, last, at, a, d, position, f, z, distortion):
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion, out):
+def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion, pair_grads, k):
     """`_unblend` for one Gaussian (geom row g, features f) over the chunks of its box, with its
-    geometry gradients in the same pass; out [GRAD_SIZE] receives the sums over the box.
+    geometry gradients in the same pass; row k of pair_grads [pairs, GRAD_SIZE] receives the sums
+    over the box.
 
     The sums are kept per lane in registers and summed over the lanes at the end in a fixed order
-    (`simd.hsum`). Surfel, ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and
+    (`simd.lane_sums`). Surfel, ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and
     depth = det / hz give dL/dh, kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and
     dL/ddet. Filter branch: rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre
     depth takes dL/ddepth (and, with `distortion`, the depth distortion's dL/dz). EWA:
@@ -1139,10 +1154,10 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
                 s9 = s9 - (two * g_rho) * fma(dx, ca, dy * cb)
                 s10 = s10 - (two * g_rho) * fma(dx, cb, dy * cc)
                 s12 = s12 + g_dpair
-    out[0], out[1], out[2], out[3], out[4] = hsum(s0), hsum(s1), hsum(s2), hsum(s3), hsum(s4)
-    out[5], out[6], out[7], out[8], out[9] = hsum(s5), hsum(s6), hsum(s7), hsum(s8), hsum(s9)
-    out[10], out[11], out[12], out[13], out[14] = hsum(s10), hsum(s11), hsum(s12), hsum(s13), hsum(s14)
-    out[15], out[16], out[17], out[18], out[19] = hsum(s15), hsum(s16), hsum(s17), hsum(s18), hsum(s19)
+    store(pair_grads, k, 0, lane_sums((s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s12, s13, s14, s15)))
+    rest = lane_sums((s16, s17, s18, s19))
+    for j in range(GRAD_SIZE - LANES):
+        pair_grads[k, LANES + j] = lane(rest, j)
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
@@ -1240,7 +1255,8 @@ def composite_backward(
                 r1,
                 position,
                 distortion,
-                pair_grads[k],
+                pair_grads,
+                k,
             )
 
 

@@ -14,12 +14,12 @@ backward rely on this for alpha). `fma` is LLVM's fused multiply-add, one roundi
     v = load(array, row, col)          # array[row, col:col + LANES] of a C-contiguous 2D array
     store(array, row, col, v)
     splat(x)                           # LANES copies of a scalar
-    iota(ft)                           # 0, 1, ..., LANES - 1 as floats of type ft
     a + b, a - b, a * b, a / b, -a     # with a Vec or a scalar of its type on either side
     a < b, a <= b, a > b, a >= b, a == b, a != b   # -> Mask (ordered; != is unordered, as Python's)
     m & n, m | n, ~m                   # masks
-    select(m, a, b), fma(a, b, c), min(a, b), max(a, b) (also vmin, vmax), hsum(a)
-    any_lane(m), count(m)
+    select(m, a, b), fma(a, b, c), min(a, b), max(a, b) (also vmin, vmax)
+    any_lane(m), count(m), lane(a, j)
+    lane_sums((a, b, ...))             # lane k: the sum of the lanes of the k-th Vec
     load2(array, row_lo, col_lo, row_hi, col_hi), store2(...)   # two half-width rows as one Vec
     half_iota(ft), upper_lanes()
 """
@@ -131,18 +131,6 @@ def splat(typingctx, value):
         return _splat(builder, scalar, _vector_type(context, dtype))
 
     return Vec(dtype)(value), codegen
-
-
-@intrinsic
-def iota(typingctx, dtype):
-    """0, 1, ..., LANES - 1 as a Vec of the float type given as its class (e.g. `ft`)."""
-    ft = dtype.dtype if isinstance(dtype, types.NumberClass) else dtype.instance_type
-
-    def codegen(context, builder, signature, args):
-        vector_type = _vector_type(context, ft)
-        return ir.Constant(vector_type, [ir.Constant(vector_type.element, float(j)) for j in range(LANES)])
-
-    return Vec(ft)(dtype), codegen
 
 
 def _binary(float_op, int_op):
@@ -403,27 +391,6 @@ def count(typingctx, m):
 
 
 @intrinsic
-def hsum(typingctx, a):
-    """The sum of the lanes in a fixed order: lane j takes lane j + LANES / 2, then j + LANES / 4,
-    ..., j + 1; lane 0 is the result. The same order on every CPU, so sums are reproducible."""
-    if not (isinstance(a, Vec) and isinstance(a.dtype, types.Float)):
-        raise TypeError(f"hsum({a})")
-
-    def codegen(context, builder, signature, args):
-        value = args[0]
-        width = LANES // 2
-        i32 = ir.IntType(32)
-        while width >= 1:
-            upper = [(j + width) % LANES for j in range(LANES)]
-            shifted = builder.shuffle_vector(value, value, ir.Constant(ir.VectorType(i32, LANES), upper))
-            value = builder.fadd(value, shifted)
-            width //= 2
-        return builder.extract_element(value, i32(0))
-
-    return a.dtype(a), codegen
-
-
-@intrinsic
 def load2(typingctx, array, row_lo, col_lo, row_hi, col_hi):
     """array[row_lo, col_lo:col_lo + LANES / 2] in the lower lanes and array[row_hi, col_hi:col_hi +
     LANES / 2] in the upper ones: two half-width loads (no bounds check)."""
@@ -487,3 +454,50 @@ def upper_lanes(typingctx):
         return ir.Constant(ir.VectorType(ir.IntType(1), LANES), bits)
 
     return mask_type(), codegen
+
+
+@intrinsic
+def lane_sums(typingctx, vectors):
+    """A Vec whose lane k is the sum of the lanes of vectors[k] (a tuple of at most LANES Vecs;
+    lanes past the tuple are 0), by a butterfly of shuffles and adds: each step adds the two
+    halves of every group of lanes while packing two vectors into one, 15 adds for 16 vectors
+    where summing each alone would take 64. A fixed order on every CPU, so sums are reproducible."""
+    if not (isinstance(vectors, types.UniTuple) and isinstance(vectors.dtype, Vec) and vectors.count <= LANES):
+        raise TypeError(f"lane_sums takes a tuple of at most {LANES} Vecs, not {vectors}")
+    vec = vectors.dtype
+
+    def codegen(context, builder, signature, args):
+        vector_type = _vector_type(context, vec.dtype)
+        i32 = ir.IntType(32)
+        values = [builder.extract_value(args[0], k) for k in range(vectors.count)]
+        values += [ir.Constant(vector_type, [ir.Constant(vector_type.element, 0.0)] * LANES)] * (LANES - vectors.count)
+        group = LANES  # lanes per partial sum
+        while len(values) > 1:
+            # Pairs (a, b) -> c holding a's groups of lanes, then b's, each half as wide: the sum of
+            # the lower and the upper half of every group (b's lanes are LANES.. in the shuffle).
+            half, n = group // 2, LANES // group
+            lower = [g * group + j for g in range(n) for j in range(half)]
+            upper = [g * group + half + j for g in range(n) for j in range(half)]
+            pick_lower = ir.Constant(ir.VectorType(i32, LANES), lower + [LANES + k for k in lower])
+            pick_upper = ir.Constant(ir.VectorType(i32, LANES), upper + [LANES + k for k in upper])
+            values = [
+                builder.fadd(builder.shuffle_vector(a, b, pick_lower), builder.shuffle_vector(a, b, pick_upper))
+                for a, b in zip(values[0::2], values[1::2])
+            ]
+            group = half
+        return values[0]
+
+    return vec(vectors), codegen
+
+
+@intrinsic
+def lane(typingctx, value, j):
+    """Lane j of a Vec, as a scalar."""
+    if not isinstance(value, Vec):
+        raise TypeError(f"lane({value}, {j})")
+
+    def codegen(context, builder, signature, args):
+        index = builder.trunc(args[1], ir.IntType(32)) if args[1].type.width > 32 else args[1]
+        return builder.extract_element(args[0], index)
+
+    return value.dtype(value, j), codegen
