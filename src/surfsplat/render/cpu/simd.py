@@ -31,6 +31,7 @@ import operator
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
+from numba.core.errors import TypingError
 from numba.extending import intrinsic, models, overload, register_model
 
 LANES = 16
@@ -84,7 +85,7 @@ def _pointer(context, builder, array_type, array, row, col):
 
 def _check_rows(array):
     if not (isinstance(array, types.Array) and array.ndim == 2 and array.layout == "C"):
-        raise TypeError(f"simd loads and stores take C-contiguous 2D arrays, not {array}")
+        raise TypingError(f"simd loads and stores take C-contiguous 2D arrays, not {array}")
 
 
 @intrinsic
@@ -107,7 +108,7 @@ def store(typingctx, array, row, col, value):
     """array[row, col:col + LANES] = value (no bounds check)."""
     _check_rows(array)
     if not (isinstance(value, Vec) and value.dtype == array.dtype):
-        raise TypeError(f"cannot store {value} into {array}")
+        raise TypingError(f"cannot store {value} into {array}")
 
     def codegen(context, builder, signature, args):
         vector_type = _vector_type(context, array.dtype)
@@ -123,7 +124,7 @@ def store(typingctx, array, row, col, value):
 def splat(typingctx, value):
     """LANES copies of a scalar (float32, float64 or int32)."""
     if not isinstance(value, (types.Float, types.Integer)):
-        raise TypeError(f"cannot splat {value}")
+        raise TypingError(f"cannot splat {value}")
     dtype = value if isinstance(value, types.Float) else types.int32
 
     def codegen(context, builder, signature, args):
@@ -137,7 +138,7 @@ def _binary(float_op, int_op):
     @intrinsic
     def op(typingctx, a, b):
         if not (isinstance(a, Vec) and a == b):
-            raise TypeError(f"vector operands differ: {a}, {b}")
+            raise TypingError(f"vector operands differ: {a}, {b}")
         is_float = isinstance(a.dtype, types.Float)
         method = float_op if is_float else int_op
 
@@ -159,7 +160,7 @@ def _compare(symbol):
     @intrinsic
     def op(typingctx, a, b):
         if not (isinstance(a, Vec) and a == b):
-            raise TypeError(f"vector operands differ: {a}, {b}")
+            raise TypingError(f"vector operands differ: {a}, {b}")
 
         def codegen(context, builder, signature, args):
             if isinstance(a.dtype, types.Float):
@@ -189,7 +190,7 @@ def _register_binary(python_op, vector_op):
 def _splat_like(typingctx, value, like):
     """LANES copies of a scalar, cast to the element type of the Vec `like`."""
     if not (isinstance(like, Vec) and isinstance(value, (types.Float, types.Integer))):
-        raise TypeError(f"cannot splat {value} like {like}")
+        raise TypingError(f"cannot splat {value} like {like}")
 
     def codegen(context, builder, signature, args):
         scalar = context.cast(builder, args[0], value, like.dtype)
@@ -277,7 +278,7 @@ def _overload_invert(a):
 def select(typingctx, condition, a, b):
     """a where the mask is set, else b (per lane)."""
     if not (isinstance(condition, Mask) and isinstance(a, Vec) and a == b):
-        raise TypeError(f"select({condition}, {a}, {b})")
+        raise TypingError(f"select({condition}, {a}, {b})")
 
     def codegen(context, builder, signature, args):
         return builder.select(args[0], args[1], args[2])
@@ -293,13 +294,13 @@ def fma(typingctx, a, b, c):
     if vectors:
         result = vectors[0]
         if not (isinstance(result.dtype, types.Float) and all(x == result for x in vectors)):
-            raise TypeError(f"fma({a}, {b}, {c})")
+            raise TypingError(f"fma({a}, {b}, {c})")
         if not all(isinstance(x, (Vec, types.Float, types.Integer)) for x in (a, b, c)):
-            raise TypeError(f"fma({a}, {b}, {c})")
+            raise TypingError(f"fma({a}, {b}, {c})")
     elif isinstance(a, types.Float) and a == b == c:
         result = a
     else:
-        raise TypeError(f"fma({a}, {b}, {c})")
+        raise TypingError(f"fma({a}, {b}, {c})")
 
     def codegen(context, builder, signature, args):
         dtype = result.dtype if isinstance(result, Vec) else result
@@ -416,7 +417,7 @@ def store2(typingctx, array, row_lo, col_lo, row_hi, col_hi, value):
     ones to array[row_hi, col_hi:...] (in that order; no bounds check)."""
     _check_rows(array)
     if not (isinstance(value, Vec) and value.dtype == array.dtype):
-        raise TypeError(f"cannot store {value} into {array}")
+        raise TypingError(f"cannot store {value} into {array}")
 
     def codegen(context, builder, signature, args):
         half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
@@ -463,7 +464,7 @@ def lane_sums(typingctx, vectors):
     halves of every group of lanes while packing two vectors into one, 15 adds for 16 vectors
     where summing each alone would take 64. A fixed order on every CPU, so sums are reproducible."""
     if not (isinstance(vectors, types.UniTuple) and isinstance(vectors.dtype, Vec) and vectors.count <= LANES):
-        raise TypeError(f"lane_sums takes a tuple of at most {LANES} Vecs, not {vectors}")
+        raise TypingError(f"lane_sums takes a tuple of at most {LANES} Vecs, not {vectors}")
     vec = vectors.dtype
 
     def codegen(context, builder, signature, args):
@@ -494,7 +495,7 @@ def lane_sums(typingctx, vectors):
 def lane(typingctx, value, j):
     """Lane j of a Vec, as a scalar."""
     if not isinstance(value, Vec):
-        raise TypeError(f"lane({value}, {j})")
+        raise TypingError(f"lane({value}, {j})")
 
     def codegen(context, builder, signature, args):
         index = builder.trunc(args[1], ir.IntType(32)) if args[1].type.width > 32 else args[1]
