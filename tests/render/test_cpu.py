@@ -13,13 +13,13 @@ import torch.nn.functional as F
 from surfsplat import Cameras, Gaussians
 from surfsplat.data.synthetic.surfel_scene import frame_from_normal
 from surfsplat.geometry.rotations import matrix_to_quat
-from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render, resolve_backend
+from surfsplat.render import CpuRenderSettings, TorchRenderSettings, normalize_by_alpha, render, resolve_backend
 from surfsplat.utils.checks import SurfSplatInputError
 from tests.helpers.reference_render import reference_render
 
 numba = pytest.importorskip("numba", reason="the compiled CPU backend needs numba")
 from surfsplat.render.cpu import kernels  # noqa: E402
-from surfsplat.render.cpu.backend import contributing_pairs, render_cpu  # noqa: E402
+from surfsplat.render.cpu.backend import contributing_pairs, normalize_cpu, render_cpu  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 
@@ -672,3 +672,27 @@ def test_depth_order_is_the_stable_sort_of_the_survivors():
     index = np.flatnonzero(keep)
     expected = index[np.argsort(depth[index], kind="stable")]
     np.testing.assert_array_equal(kernels.depth_order(keep, depth), expected)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("threshold", [0.3, None])
+def test_normalization_kernels_match_the_torch_ops(dtype, threshold):
+    # Rows of 37 pixels: two whole SIMD chunks and a masked last one; two cameras.
+    gen = torch.Generator().manual_seed(7)
+    C, H, W = 2, 5, 37
+    maps = [torch.rand(C, k, H, W, generator=gen, dtype=dtype) for k in (3, 1, 1, 3)]
+    maps[1][0, 0, 0, :5] = 0.0  # uncovered pixels
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=dtype)
+    ours_in = [m.clone().requires_grad_(True) for m in maps]
+    ref_in = [m.clone().requires_grad_(True) for m in maps]
+    ours = normalize_cpu(*ours_in, threshold, bg)
+    color, depth, normal, coverage = normalize_by_alpha(*ref_in, threshold)
+    ref = (color + (1 - coverage) * bg[None, :, None, None], depth, normal)
+    for name, a, b in zip(("color", "depth", "normal"), ours, ref):
+        assert torch.equal(a, b), name  # the same operations in the same order: the same bits
+    upstream = [torch.randn(r.shape, generator=gen, dtype=dtype) for r in ref]
+    torch.autograd.backward(ours, upstream)
+    torch.autograd.backward(ref, upstream)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for name, a, b in zip(("color", "alpha", "depth", "normal"), ours_in, ref_in):
+        torch.testing.assert_close(a.grad, b.grad, rtol=tol, atol=tol, msg=name)

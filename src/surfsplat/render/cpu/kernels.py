@@ -82,10 +82,12 @@ from .simd import (
     lane,
     lane_sums,
     load2,
+    load_first,
     select,
     splat,
     store,
     store2,
+    store_first,
     upper_lanes,
 )
 
@@ -114,6 +116,30 @@ def _prefetch(typingctx, array, row):
         builder.call(fn, [builder.bitcast(pointer, byte_pointer), i32(0), i32(3), i32(1)])  # read, keep, data
         return context.get_dummy_value()
 
+    return types.void(array, row), codegen
+
+
+@intrinsic
+def _prefetch_last(typingctx, array, row):
+    """`_prefetch` of the last element of array[row] (a 2D row): a row that is not aligned to a cache
+    line, or is longer than one, also needs its end fetched."""
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        data = context.make_array(array_type)(context, builder, args[0])
+        shape = cgutils.unpack_tuple(builder, data.shape, array_type.ndim)
+        last = builder.sub(shape[1], context.get_constant(types.intp, 1))
+        pointer = cgutils.get_item_pointer(context, builder, array_type, data, [args[1], last], wraparound=False)
+        byte_pointer = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]), "llvm.prefetch.p0"
+        )
+        builder.call(fn, [builder.bitcast(pointer, byte_pointer), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    if not (isinstance(array, types.Array) and array.ndim == 2):
+        raise TypeError(f"_prefetch_last takes a 2D array, not {array}")
     return types.void(array, row), codegen
 
 
@@ -1441,6 +1467,7 @@ def sum_pair_rows(order, pair_start, pair_of, pair_grads, rows):
         for q in range(pair_start[m], pair_start[m + 1]):
             if q + _AHEAD < n_pairs:
                 _prefetch(pair_grads, pair_of[q + _AHEAD])
+                _prefetch_last(pair_grads, pair_of[q + _AHEAD])  # a row spans two cache lines
             k = pair_of[q]
             for j in range(GRAD_SIZE):
                 rows[i, j] += pair_grads[k, j]
@@ -1636,21 +1663,28 @@ def normalize_forward(color, alpha, depth, normal, threshold, background, out_co
     alpha and the pixel counts as covered, elsewhere they stay and the coverage is alpha; the colour
     gets (1 - coverage) background. The same operations in the same order as the torch code, so the
     same bits; as torch ops they were some ten passes over the image forward and more backward.
+    Each row goes LANES pixels at a time (`simd`; a row's last chunk masked).
     """
     ft = color.dtype.type
     one = ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
+    # Rows of pixels: channel k of camera c, image row r is row (c * channels + k) * height + r.
+    color, normal = color.reshape(-1, width), normal.reshape(-1, width)
+    out_color, out_normal = out_color.reshape(-1, width), out_normal.reshape(-1, width)
+    alpha, depth, out_depth = alpha.reshape(-1, width), depth.reshape(-1, width), out_depth.reshape(-1, width)
     for row in range(cams * height):
         c, r = row // height, row % height
-        for x in range(width):
-            a = alpha[c, 0, r, x]
+        for x in range(0, width, LANES):
+            n = min(LANES, width - x)
+            a = load_first(alpha, row, x, n)
             mask = a >= threshold
-            safe = a if mask else one
-            rest = one - (one if mask else a)
+            safe = select(mask, a, splat(one))
+            rest = one - select(mask, splat(one), a)
             for k in range(3):
-                out_color[c, k, r, x] = color[c, k, r, x] / safe + rest * background[k]
-                out_normal[c, k, r, x] = normal[c, k, r, x] / safe
-            out_depth[c, 0, r, x] = depth[c, 0, r, x] / safe
+                i = (c * 3 + k) * height + r
+                store_first(out_color, i, x, load_first(color, i, x, n) / safe + rest * background[k], n)
+                store_first(out_normal, i, x, load_first(normal, i, x, n) / safe, n)
+            store_first(out_depth, row, x, load_first(depth, row, x, n) / safe, n)
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
@@ -1678,20 +1712,29 @@ def normalize_backward(
     ft = color.dtype.type
     zero, one = ft(0.0), ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
+    # Rows of pixels as in `normalize_forward`.
+    color, normal = color.reshape(-1, width), normal.reshape(-1, width)
+    g_out_color, g_out_normal = g_out_color.reshape(-1, width), g_out_normal.reshape(-1, width)
+    g_color, g_normal = g_color.reshape(-1, width), g_normal.reshape(-1, width)
+    alpha, depth, g_out_depth = alpha.reshape(-1, width), depth.reshape(-1, width), g_out_depth.reshape(-1, width)
+    g_alpha, g_depth = g_alpha.reshape(-1, width), g_depth.reshape(-1, width)
     for row in range(cams * height):
         c, r = row // height, row % height
-        for x in range(width):
-            a = alpha[c, 0, r, x]
+        for x in range(0, width, LANES):
+            n = min(LANES, width - x)
+            a = load_first(alpha, row, x, n)
             mask = a >= threshold
-            safe = a if mask else one
-            divided, behind = zero, zero
+            safe = select(mask, a, splat(one))
+            divided, behind = splat(zero), splat(zero)
             for k in range(3):
-                go_c, go_n = g_out_color[c, k, r, x], g_out_normal[c, k, r, x]
-                g_color[c, k, r, x] = go_c / safe
-                g_normal[c, k, r, x] = go_n / safe
-                divided += go_c * color[c, k, r, x] + go_n * normal[c, k, r, x]
-                behind += go_c * background[k]
-            go_d = g_out_depth[c, 0, r, x]
-            g_depth[c, 0, r, x] = go_d / safe
-            divided += go_d * depth[c, 0, r, x]
-            g_alpha[c, 0, r, x] += -divided / (safe * safe) if mask else -behind
+                i = (c * 3 + k) * height + r
+                go_c, go_n = load_first(g_out_color, i, x, n), load_first(g_out_normal, i, x, n)
+                store_first(g_color, i, x, go_c / safe, n)
+                store_first(g_normal, i, x, go_n / safe, n)
+                divided = divided + (go_c * load_first(color, i, x, n) + go_n * load_first(normal, i, x, n))
+                behind = behind + go_c * background[k]
+            go_d = load_first(g_out_depth, row, x, n)
+            store_first(g_depth, row, x, go_d / safe, n)
+            divided = divided + go_d * load_first(depth, row, x, n)
+            g_a = select(mask, -divided / (safe * safe), -behind)
+            store_first(g_alpha, row, x, load_first(g_alpha, row, x, n) + g_a, n)

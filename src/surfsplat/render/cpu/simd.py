@@ -21,6 +21,7 @@ backward rely on this for alpha). `fma` is LLVM's fused multiply-add, one roundi
     any_lane(m), count(m), lane(a, j)
     lane_sums((a, b, ...))             # lane k: the sum of the lanes of the k-th Vec
     load2(array, row_lo, col_lo, row_hi, col_hi), store2(...)   # two half-width rows as one Vec
+    load_first(array, row, col, n), store_first(array, row, col, v, n)   # the first n lanes only
     half_iota(ft), upper_lanes()
 """
 
@@ -502,3 +503,62 @@ def lane(typingctx, value, j):
         return builder.extract_element(args[0], index)
 
     return value.dtype(value, j), codegen
+
+
+def _masked(builder, n):
+    """The lane mask `lane < n` (n an i64) for LLVM's masked loads and stores."""
+    i32 = ir.IntType(32)
+    lanes = ir.Constant(ir.VectorType(i32, LANES), list(range(LANES)))
+    bound = _splat(builder, builder.trunc(n, i32), ir.VectorType(i32, LANES))
+    return builder.icmp_signed("<", lanes, bound)
+
+
+def _masked_name(kind, vector_type):
+    element = {"float": "f32", "double": "f64", "i32": "i32"}[str(vector_type.element)]
+    return f"llvm.masked.{kind}.v{LANES}{element}.p0"
+
+
+@intrinsic
+def load_first(typingctx, array, row, col, n):
+    """array[row, col:col + n] in the first n lanes, 0 in the others (a masked load: nothing past
+    the n elements is read, so a row's last, partial chunk is safe)."""
+    _check_rows(array)
+    vec = Vec(array.dtype)
+
+    def codegen(context, builder, signature, args):
+        vector_type = _vector_type(context, array.dtype)
+        pointer = builder.bitcast(
+            _pointer(context, builder, array, args[0], args[1], args[2]), vector_type.as_pointer()
+        )
+        mask = _masked(builder, args[3])
+        zero = ir.Constant(vector_type, [ir.Constant(vector_type.element, 0)] * LANES)
+        i32 = ir.IntType(32)
+        function_type = ir.FunctionType(vector_type, [pointer.type, i32, mask.type, vector_type])
+        fn = cgutils.get_or_insert_function(builder.module, function_type, _masked_name("load", vector_type))
+        align = context.get_abi_sizeof(context.get_value_type(array.dtype))
+        return builder.call(fn, [pointer, i32(align), mask, zero])
+
+    return vec(array, row, col, n), codegen
+
+
+@intrinsic
+def store_first(typingctx, array, row, col, value, n):
+    """array[row, col:col + n] = the first n lanes of value (a masked store)."""
+    _check_rows(array)
+    if not (isinstance(value, Vec) and value.dtype == array.dtype):
+        raise TypingError(f"cannot store {value} into {array}")
+
+    def codegen(context, builder, signature, args):
+        vector_type = _vector_type(context, array.dtype)
+        pointer = builder.bitcast(
+            _pointer(context, builder, array, args[0], args[1], args[2]), vector_type.as_pointer()
+        )
+        mask = _masked(builder, args[4])
+        i32 = ir.IntType(32)
+        function_type = ir.FunctionType(ir.VoidType(), [vector_type, pointer.type, i32, mask.type])
+        fn = cgutils.get_or_insert_function(builder.module, function_type, _masked_name("store", vector_type))
+        align = context.get_abi_sizeof(context.get_value_type(array.dtype))
+        builder.call(fn, [args[3], pointer, i32(align), mask])
+        return context.get_dummy_value()
+
+    return types.void(array, row, col, value, n), codegen
