@@ -174,6 +174,7 @@ def _prepare(
     threads = numba.get_num_threads()
     geom = np.empty((n, kernels.GEOM_SIZE), dtype=dtype)
     box = np.empty((n, 4), dtype=np.int64)
+    bin_box = np.empty((n, 4), dtype=np.int64)
     keep = np.empty(n, dtype=np.bool_)
     depth = np.empty(n)
     features = np.empty((n, kernels.FEATURES), dtype=dtype)
@@ -199,6 +200,7 @@ def _prepare(
             *_convention_args(settings),
             geom,
             box,
+            bin_box,
             keep,
             depth,
             features,
@@ -210,7 +212,7 @@ def _prepare(
     tile = settings.tile_size
     tiles_x, tiles_y = -(-camera.width // tile), -(-camera.height // tile)
     order = kernels.depth_order(keep, depth)
-    tile_start, tile_ids, pair_start, pair_of = kernels.bin_tiles(box, order, tile, tiles_x, tiles_y)
+    tile_start, tile_ids, pair_start, pair_of = kernels.bin_tiles(bin_box, order, tile, tiles_x, tiles_y)
     rank = np.full(n, -1, dtype=np.int64)
     rank[order] = np.arange(order.shape[0])
     return _Plan(

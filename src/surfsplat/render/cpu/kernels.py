@@ -13,10 +13,11 @@ shaped for a CPU core:
   tiles, so every tile lists its Gaussians front to back (no global key sort). The lists hold
   input indices: nothing per Gaussian is copied into sorted order.
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
-  each, only over the pixels of its box, LANES pixels of a row at a time: alpha for the box
-  (`_box_alpha`), then front-to-back blending into tile-local pixel state (`_blend`), both as
-  branch-free loops over pixel state stored field by field, which LLVM turns into SIMD code.
-  Pixels stop by the 3DGS rule and the tile stops once all of its pixels have.
+  each, only over the pixels of its box, LANES pixels at a time as one `simd.Vec` each: a row of
+  the box, or two rows of a box at most LANES / 2 wide (`_pixels`). Alpha (`_alpha`) and the
+  front-to-back blend into tile-local pixel state (`_blend`) are one branch-free pass per step,
+  over pixel state stored field by field. Pixels stop by the 3DGS rule and the tile stops once all
+  of its pixels have.
 * `composite_backward`: the same tiles traversed back to front. Each pixel recovers the
   transmittance in front of a Gaussian by dividing out its alpha, and carries the weighted sum of
   what lies behind, so no per-pixel-pair state is stored. Each (tile, Gaussian) entry gets its own
@@ -24,7 +25,7 @@ shaped for a CPU core:
   per-thread buffers), and `sum_pair_rows` sums a Gaussian's rows in a fixed order: gradients are
   bit-identical for any number of threads and any scheduling.
 * Depth distortion (2DGS Eq. 13, surfels, when asked): `_blend` also carries two runs per pixel, the
-  running moment sum w z and the distortion, and `_unblend_lane` adds its dL/dw to each weight's
+  running moment sum w z and the distortion, and `_unblend` adds its dL/dw to each weight's
   gradient (the alpha chain rule does the rest) and its dL/dz to the centre depth's. The switch is
   an argument that is None or an array: numba compiles one variant per type and drops the branch
   from the None one, so rendering without it runs the kernels it ran before.
@@ -471,6 +472,7 @@ def project(
     release_support,
     geom,
     box,
+    bin_box,
     keep,
     depth,
     features,
@@ -486,7 +488,9 @@ def project(
 
     means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
     covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
-    Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1), keep [N], depth [N] (camera
+    Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1: the pixels that can have alpha
+    > 0, which the compositing visits), bin_box [N, 4] (the pixels whose tiles list the Gaussian:
+    box, or for EWA with release_support the release rule's tiles), keep [N], depth [N] (camera
     z, the sort key), features [N, 6] (colour, normal facing the camera), flip [N] (+-1, the
     normal's sign) and lit [N] (bit ch set where colour channel ch is not clamped at 0, so the
     backward pass need not evaluate the SH again). scratch [threads, >= 16], cov_scratch [threads, 2, 3, 3] are per-thread work space.
@@ -568,9 +572,9 @@ def project(
             det = max(a * c - b * b, _CONIC_DET_MIN)
             cx = K[0, 0] * (mu[0] / safe_z) + K[0, 1] * (mu[1] / safe_z) + K[0, 2]
             cy = K[1, 1] * (mu[1] / safe_z) + K[1, 2]
-            if not release_support:
-                hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
-                xmin, xmax, ymin, ymax = cx - hx, cx + hx, cy - hy, cy + hy
+            # The k-sigma ellipse's box: no pixel outside it has alpha >= ALPHA_MIN.
+            hx, hy = math.sqrt(k2 * a), math.sqrt(k2 * c)
+            xmin, xmax, ymin, ymax = cx - hx, cx + hx, cy - hy, cy + hy
             g[GEOM_DEPTH] = z
             g[GEOM_DET] = 0.0
             g[GEOM_CONIC], g[GEOM_CONIC + 1], g[GEOM_CONIC + 2] = c / det, -b / det, a / det
@@ -580,14 +584,24 @@ def project(
         if surfel or not release_support:
             box[i, 0], box[i, 1] = _pixel_range(xmin, xmax, width)
             box[i, 2], box[i, 3] = _pixel_range(ymin, ymax, height)
+            for j in range(4):
+                bin_box[i, j] = box[i, j]
         else:  # diff-gaussian-rasterization's square of radius ceil(3 sqrt(lambda_max)), in 16-pixel tiles
             mid = 0.5 * (a + c)
             lam = mid + math.sqrt(max(EWA_LAMBDA_GAP_MIN, mid * mid - (a * c - b * b)))
             radius = math.ceil(EWA_RADIUS_SIGMAS * math.sqrt(max(lam, 0.0)))
-            box[i, 0], box[i, 1] = _release_tile_range(cx - 0.5, radius, width)
-            box[i, 2], box[i, 3] = _release_tile_range(cy - 0.5, radius, height)
+            bin_box[i, 0], bin_box[i, 1] = _release_tile_range(cx - 0.5, radius, width)
+            bin_box[i, 2], bin_box[i, 3] = _release_tile_range(cy - 0.5, radius, height)
+            # Those tiles list it; inside them only the ellipse's box (a pixel wider, against
+            # rounding) is composited: the release support is whole tiles, mostly of alpha 0.
+            box[i, 0], box[i, 1] = _pixel_range(xmin - 1.0, xmax + 1.0, width)
+            box[i, 2], box[i, 3] = _pixel_range(ymin - 1.0, ymax + 1.0, height)
         keep[i] = (
-            z > near and z < far and opacities[i] >= ALPHA_MIN and box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]
+            z > near
+            and z < far
+            and opacities[i] >= ALPHA_MIN
+            and bin_box[i, 0] <= bin_box[i, 1]
+            and bin_box[i, 2] <= bin_box[i, 3]
         )
         # Colour: SH at the direction from the camera centre, + 0.5, clamped at 0 (3DGS).
         dx, dy, dz, _ = _view_direction(means[i], cam_center)
@@ -765,10 +779,10 @@ def _exp_of_32th(y, ft):
     return p * p
 
 
-# A tile's pixels are processed LANES pixels of one row at a time (a tile row wider than LANES
-# spans several chunks), each quantity of those pixels one `simd.Vec`: one AVX-512 register of
-# float32, two AVX2 ones. Pixel state is stored per chunk as LANES-long runs of each field
-# (structure of arrays), chunk b = tile row * chunks + chunk being row b of a 2D array.
+# A tile's pixels are processed LANES at a time (a tile row wider than LANES spans several chunks),
+# each quantity of those pixels one `simd.Vec`: one AVX-512 register of float32, two AVX2 ones.
+# Pixel state is stored per chunk as LANES-long runs of each field (structure of arrays), chunk
+# b = tile row * chunks + chunk being row b of a 2D array, with one more tile row of padding.
 
 # Forward pixel state runs: features 0-5, depth, transmittance (negated once the pixel has stopped).
 S_DEPTH, S_T = FEATURES, FEATURES + 1
