@@ -59,6 +59,7 @@ import numpy as np
 from llvmlite import ir
 from numba import get_thread_id, njit, prange, types
 from numba.core import cgutils
+from numba.core.errors import TypingError
 from numba.extending import intrinsic
 
 from ...geometry.gaussians import THIN_SCALE
@@ -140,7 +141,7 @@ def _prefetch_last(typingctx, array, row):
         return context.get_dummy_value()
 
     if not (isinstance(array, types.Array) and array.ndim == 2):
-        raise TypeError(f"_prefetch_last takes a 2D array, not {array}")
+        raise TypingError(f"_prefetch_last takes a 2D array, not {array}")
     return types.void(array, row), codegen
 
 
@@ -1141,8 +1142,8 @@ def _unblend(state, last, at, a, d, position, f, z, distortion):
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion, pair_grads, k):
-    """`_unblend` for one Gaussian (geom row g, features f) over the chunks of its box, with its
-    geometry gradients in the same pass; row k of pair_grads [pairs, GRAD_SIZE] receives the sums
+    """`_unblend` for one Gaussian (geom row g, features f) over its box, in the steps of `_pixels`,
+    with its geometry gradients in the same pass; row k of pair_grads [pairs, GRAD_SIZE] receives the sums
     over the box.
 
     The sums are kept per lane in registers and summed over the lanes at the end in a fixed order

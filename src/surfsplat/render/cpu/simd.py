@@ -326,6 +326,8 @@ def fma(typingctx, a, b, c):
 @intrinsic
 def vmin(typingctx, a, b):
     """Per lane a if a < b else b (Python's min for numbers that are not NaN)."""
+    if not (isinstance(a, Vec) and a == b):
+        raise TypingError(f"vmin({a}, {b})")
 
     def codegen(context, builder, signature, args):
         return builder.select(builder.fcmp_ordered("<", args[0], args[1]), args[0], args[1])
@@ -336,6 +338,8 @@ def vmin(typingctx, a, b):
 @intrinsic
 def vmax(typingctx, a, b):
     """Per lane a if a > b else b."""
+    if not (isinstance(a, Vec) and a == b):
+        raise TypingError(f"vmax({a}, {b})")
 
     def codegen(context, builder, signature, args):
         return builder.select(builder.fcmp_ordered(">", args[0], args[1]), args[0], args[1])
@@ -343,26 +347,8 @@ def vmax(typingctx, a, b):
     return a(a, b), codegen
 
 
-@overload(min)
-def _overload_min(a, b):
-    if isinstance(a, Vec) and isinstance(b, Vec):
-        return lambda a, b: vmin(a, b)
-    if isinstance(a, Vec):
-        return lambda a, b: vmin(a, _splat_like(b, a))
-    if isinstance(b, Vec):
-        return lambda a, b: vmin(_splat_like(a, b), b)
-    return None
-
-
-@overload(max)
-def _overload_max(a, b):
-    if isinstance(a, Vec) and isinstance(b, Vec):
-        return lambda a, b: vmax(a, b)
-    if isinstance(a, Vec):
-        return lambda a, b: vmax(a, _splat_like(b, a))
-    if isinstance(b, Vec):
-        return lambda a, b: vmax(_splat_like(a, b), b)
-    return None
+_register_binary(min, vmin)
+_register_binary(max, vmax)
 
 
 def _mask_bits(builder, value):
