@@ -721,60 +721,48 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y):
 # ---------------------------------------------------------------------------------------------
 
 _EXP_MIN = LOG_ALPHA_MIN - 2.0  # exponents below this give alpha < ALPHA_MIN anyway
-_TAYLOR = (
-    1.0,
-    1.0,
-    1.0 / 2,
-    1.0 / 6,
-    1.0 / 24,
-    1.0 / 120,
-    1.0 / 720,
-    1.0 / 5040,
-    1.0 / 40320,
-    1.0 / 362880,
-    1.0 / 3628800,
-    1.0 / 39916800,
-)
+_TAYLOR = tuple(1.0 / math.factorial(k) for k in range(20))  # e^y's series
 
 
 @njit(cache=True, error_model="numpy")
 def _exp_nonpositive(x, ft):
     """e^x for x in [_EXP_MIN, 0], clamped below at _EXP_MIN, in the float type ft of x (a scalar
-    or a `simd.Vec`; relative error < 1e-14 in float64, a few float32 roundings times 32 in float32).
-    See `_exp_of_32th`, which takes x / 32."""
-    return _exp_of_32th(max(x, ft(_EXP_MIN)) * ft(0.03125), ft)
+    or a `simd.Vec`; relative error < 1e-14 in float64, < 2e-6 in float32). See `_exp_of_8th`,
+    which takes x / 8."""
+    return _exp_of_8th(max(x, ft(_EXP_MIN)) * ft(0.125), ft)
 
 
 @njit(cache=True, error_model="numpy")
-def _exp_of_32th(y, ft):
-    """e^(32 y) for y in [_EXP_MIN / 32, 0], in the float type ft of y (a scalar or a `simd.Vec`).
+def _exp_of_8th(y, ft):
+    """e^(8 y) for y in [_EXP_MIN / 8, 0], in the float type ft of y (a scalar or a `simd.Vec`).
 
     Plain multiply-adds, so a row of pixels evaluates in SIMD lanes (a libm call per pixel was
-    60% of the compositing time): the Taylor series at y (|y| < 0.25, 12 terms in float64, 7 in
-    float32), then squared five times. The series is evaluated by Estrin's scheme, in pairs, so that
-    its chain of dependent operations is 3 or 4 deep rather than 6 or 11 (the compositing waits on
-    it). Forward and backward both use it, so they agree on every alpha bit for bit. Every constant
-    is cast to ft: a float64 literal would turn float32 lanes into float64 ones.
+    60% of the compositing time): the Taylor series at y (|y| < 0.95; 12 terms in float32, 20 in
+    float64), then squared three times. The series runs by Estrin's scheme, in pairs, so that its
+    chain of dependent operations is 4 or 5 deep rather than 11 or 19 (the compositing waits on
+    it); three squarings multiply its rounding error by 8 (five, from y = x / 32, multiplied it
+    by 32). Forward and backward both use it, so they agree on every alpha bit. Every constant is
+    cast to ft: a float64 literal would turn float32 lanes into float64 ones.
     """
     c = _TAYLOR
     y2 = y * y
     y4 = y2 * y2
-    # float32 needs the series only to y^6: the next term, 0.24^7 / 7! < 1e-8, is below its roundings
-    # (the max error over the range is the same as with all 12 terms). Decided at compile time: the
-    # comparison of two constants folds away.
+    y8 = y4 * y4
+    # Decided at compile time: the comparison of two constants folds away.
     if ft(1.0) + ft(1e-10) != ft(1.0):
+        # float64: 20 terms (the next, 0.95^20 / 20!, is below 1e-19)
         f0 = fma(y2, fma(y, ft(c[3]), ft(c[2])), fma(y, ft(c[1]), ft(c[0])))
         f1 = fma(y2, fma(y, ft(c[7]), ft(c[6])), fma(y, ft(c[5]), ft(c[4])))
         f2 = fma(y2, fma(y, ft(c[11]), ft(c[10])), fma(y, ft(c[9]), ft(c[8])))
-        p = fma(y4 * y4, f2, fma(y4, f1, f0))
+        f3 = fma(y2, fma(y, ft(c[15]), ft(c[14])), fma(y, ft(c[13]), ft(c[12])))
+        f4 = fma(y2, fma(y, ft(c[19]), ft(c[18])), fma(y, ft(c[17]), ft(c[16])))
+        p = fma(y8 * y8, f4, fma(y8, fma(y4, f3, f2), fma(y4, f1, f0)))
     else:
-        p = fma(
-            y4,
-            fma(y2, ft(c[6]), fma(y, ft(c[5]), ft(c[4]))),
-            fma(y2, fma(y, ft(c[3]), ft(c[2])), fma(y, ft(c[1]), ft(c[0]))),
-        )
-    p = p * p
-    p = p * p
+        # float32: 12 terms (the next, 0.95^12 / 12!, is below 2e-9)
+        f0 = fma(y2, fma(y, ft(c[3]), ft(c[2])), fma(y, ft(c[1]), ft(c[0])))
+        f1 = fma(y2, fma(y, ft(c[7]), ft(c[6])), fma(y, ft(c[5]), ft(c[4])))
+        f2 = fma(y2, fma(y, ft(c[11]), ft(c[10])), fma(y, ft(c[9]), ft(c[8])))
+        p = fma(y8, f2, fma(y4, f1, f0))
     p = p * p
     p = p * p
     return p * p
@@ -867,12 +855,12 @@ def _alpha(surfel, g, px, py, inside):
         depth = splat(g[GEOM_DEPTH])
         inv = splat(zero)
         ray = inv != inv  # no lane
-    # log(alpha) / 32 = (log o - rho / 2) / 32 in one rounding: scaling by 2^-5 is exact, so the
-    # test against LOG_ALPHA_MIN / 32 is the test against LOG_ALPHA_MIN, and the exponential takes it
+    # log(alpha) / 8 = (log o - rho / 2) / 8 in one rounding: scaling by 2^-3 is exact, so the
+    # test against LOG_ALPHA_MIN / 8 is the test against LOG_ALPHA_MIN, and the exponential takes it
     # as it is. Lanes that fail the test are not used, whatever their exponential.
-    y = fma(rho, ft(-1.0 / 64.0), splat(g[GEOM_LOGO] * ft(0.03125)))
-    ok = inside & (y >= ft(LOG_ALPHA_MIN) * ft(0.03125))
-    alpha = select(ok, min(_exp_of_32th(y, ft), ft(ALPHA_MAX)), splat(zero))
+    y = fma(rho, ft(-1.0 / 16.0), splat(g[GEOM_LOGO] * ft(0.125)))
+    ok = inside & (y >= ft(LOG_ALPHA_MIN) * ft(0.125))
+    alpha = select(ok, min(_exp_of_8th(y, ft), ft(ALPHA_MAX)), splat(zero))
     inv = select(ray & ok, inv, splat(zero))
     return alpha, select(ok, depth, splat(zero)), inv, ok
 
