@@ -94,6 +94,16 @@ from .simd import (
 )
 
 
+def _emit_prefetch(builder, pointer):
+    """LLVM's prefetch of the cache line at pointer: a read, kept close, of data."""
+    byte_pointer = ir.IntType(8).as_pointer()
+    i32 = ir.IntType(32)
+    fn = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]), "llvm.prefetch.p0"
+    )
+    builder.call(fn, [builder.bitcast(pointer, byte_pointer), i32(0), i32(3), i32(1)])  # read, keep, data
+
+
 @intrinsic
 def _prefetch(typingctx, array, row):
     """Ask the cache for array[row, 0, ...] ahead of its use (LLVM's prefetch: a read, kept close).
@@ -110,12 +120,7 @@ def _prefetch(typingctx, array, row):
         zero = context.get_constant(types.intp, 0)
         index = [args[1]] + [zero] * (array_type.ndim - 1)
         pointer = cgutils.get_item_pointer(context, builder, array_type, data, index, wraparound=False)
-        byte_pointer = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]), "llvm.prefetch.p0"
-        )
-        builder.call(fn, [builder.bitcast(pointer, byte_pointer), i32(0), i32(3), i32(1)])  # read, keep, data
+        _emit_prefetch(builder, pointer)
         return context.get_dummy_value()
 
     return types.void(array, row), codegen
@@ -132,12 +137,7 @@ def _prefetch_last(typingctx, array, row):
         shape = cgutils.unpack_tuple(builder, data.shape, array_type.ndim)
         last = builder.sub(shape[1], context.get_constant(types.intp, 1))
         pointer = cgutils.get_item_pointer(context, builder, array_type, data, [args[1], last], wraparound=False)
-        byte_pointer = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(ir.VoidType(), [byte_pointer, i32, i32, i32]), "llvm.prefetch.p0"
-        )
-        builder.call(fn, [builder.bitcast(pointer, byte_pointer), i32(0), i32(3), i32(1)])
+        _emit_prefetch(builder, pointer)
         return context.get_dummy_value()
 
     if not (isinstance(array, types.Array) and array.ndim == 2):

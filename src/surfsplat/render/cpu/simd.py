@@ -323,28 +323,23 @@ def fma(typingctx, a, b, c):
     return result(a, b, c), codegen
 
 
-@intrinsic
-def vmin(typingctx, a, b):
-    """Per lane a if a < b else b (Python's min for numbers that are not NaN)."""
-    if not (isinstance(a, Vec) and a == b):
-        raise TypingError(f"vmin({a}, {b})")
+def _pick(name, symbol):
+    @intrinsic
+    def op(typingctx, a, b):
+        if not (isinstance(a, Vec) and a == b):
+            raise TypingError(f"{name}({a}, {b})")
 
-    def codegen(context, builder, signature, args):
-        return builder.select(builder.fcmp_ordered("<", args[0], args[1]), args[0], args[1])
+        def codegen(context, builder, signature, args):
+            return builder.select(builder.fcmp_ordered(symbol, args[0], args[1]), args[0], args[1])
 
-    return a(a, b), codegen
+        return a(a, b), codegen
+
+    op.__doc__ = f"Per lane a if a {symbol} b else b."
+    return op
 
 
-@intrinsic
-def vmax(typingctx, a, b):
-    """Per lane a if a > b else b."""
-    if not (isinstance(a, Vec) and a == b):
-        raise TypingError(f"vmax({a}, {b})")
-
-    def codegen(context, builder, signature, args):
-        return builder.select(builder.fcmp_ordered(">", args[0], args[1]), args[0], args[1])
-
-    return a(a, b), codegen
+vmin = _pick("vmin", "<")  # Python's min for numbers that are not NaN
+vmax = _pick("vmax", ">")
 
 
 _register_binary(min, vmin)
