@@ -265,7 +265,7 @@ def test_float32_kernels_compute_in_float32():
     rows, g, f = np.ones(16, dtype=np.int64), np.zeros(kernels.GEOM_SIZE, f32), np.ones(kernels.FEATURES, f32)
     g[kernels.GEOM_LOGO] = -0.5
     last = np.zeros((16, lanes), dtype=np.int32)
-    box = (rows, 0, 0, 1, 0, 3, 0, 3)
+    box = (0, 0, 1, 0, 3, 0, 3)  # x0, y0, chunks, c0, c1, r0, r1
     # Without and with the depth distortion (its variants are compiled for None and for an array).
     fwd_runs = (kernels.FORWARD_RUNS, kernels.FORWARD_RUNS + kernels.DISTORTION_RUNS)
     bwd_runs = (kernels.BACKWARD_RUNS, kernels.BACKWARD_RUNS + kernels.DISTORTION_BACKWARD_RUNS)
@@ -288,6 +288,7 @@ def test_float32_kernels_compute_in_float32():
                     f,
                     np.zeros((16, runs * lanes), f32),
                     last,
+                    rows,
                     *box,
                     np.int32(0),
                     d,

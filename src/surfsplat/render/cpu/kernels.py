@@ -6,10 +6,10 @@ intermediate stored. The kernels compute the function of the torch reference
 (`render/torch_backend.py`) pair by pair, the way the CUDA rasterizers of 3DGS/2DGS do, but
 shaped for a CPU core:
 
-* `quats_to_rotations`, `project`: one pass over the Gaussians (`project` parallel) giving each one's
-  camera-frame geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour
-  and camera-facing normal.
-* `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a counting sort into
+* `project`: one parallel pass over the Gaussians giving each one's rotation, camera-frame
+  geometry, per-pixel coefficients, opacity-aware pixel box, culling flag, SH colour and
+  camera-facing normal.
+* `depth_order`, `bin_tiles`: stable depth sort of the survivors, then a parallel counting sort into
   tiles, so every tile lists its Gaussians front to back (no global key sort). The lists hold
   input indices: nothing per Gaussian is copied into sorted order.
 * `composite_forward`: tiles in parallel; inside a tile the loop runs over its Gaussians and, for
@@ -249,26 +249,20 @@ def _release_tile_range(p, radius, size):
     return int(t0) * EWA_TILE, min(int(t1) * EWA_TILE, size) - 1
 
 
-# The light per-Gaussian and per-pixel passes (rotations, binning, normalization) run on one thread:
-# a parallel region has to wake the other threads, and beside another busy process a woken thread
-# waits for a core for up to the scheduler's latency (12 ms measured on 2 cores, against 1.6 ms for
-# a whole serial gather of 84k rows); alone they take a millisecond or two either way.
 @njit(cache=True, error_model="numpy")
-def quats_to_rotations(quats, out):
-    """out [N, 3, 3] = rotation of the normalized quaternion (w, x, y, z) (geometry/rotations.py)."""
-    for i in range(quats.shape[0]):
-        q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-        norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
-        w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
-        R = out[i]
-        R[0, 0], R[0, 1], R[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
-        R[1, 0], R[1, 1], R[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
-        R[2, 0], R[2, 1], R[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+def _quat_rotation(q, R):
+    """R [3, 3] = rotation of the normalized quaternion q = (w, x, y, z) (geometry/rotations.py)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
+    w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
 @njit(cache=True, error_model="numpy")
 def quats_backward(quats, g_rotations, g_quats):
-    """g_quats [N, 4] = dL/dquats from dL/drotations [N, 3, 3] through `quats_to_rotations`."""
+    """g_quats [N, 4] = dL/dquats from dL/drotations [N, 3, 3] through `_quat_rotation`."""
     for i in range(quats.shape[0]):
         q0, q1, q2, q3 = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         raw = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
@@ -427,11 +421,14 @@ def _view_direction(x, cam_center):
 def _beyond(mu, radius, K, row, border, side):
     """Whether the sphere of `radius` about mu lies wholly on the `side` (+-1) of the plane through
     the camera centre that projects onto pixel coordinate `border` along image axis `row` (0: x, 1: y):
-    (K[row] - border K[2]) . X = 0."""
+    (K[row] - border K[2]) . X = 0. The test d > radius |n| of the signed distance d = side n . mu as
+    d > 0 and d^2 > radius^2 |n|^2, without the square root (four a Gaussian were a quarter of the
+    projection's time)."""
     n0 = K[row, 0] - border * K[2, 0]
     n1 = K[row, 1] - border * K[2, 1]
     n2 = K[row, 2] - border * K[2, 2]
-    return side * (n0 * mu[0] + n1 * mu[1] + n2 * mu[2]) > radius * math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    d = side * (n0 * mu[0] + n1 * mu[1] + n2 * mu[2])
+    return d > 0.0 and d * d > radius * radius * (n0 * n0 + n1 * n1 + n2 * n2)
 
 
 @njit(cache=True, error_model="numpy")
@@ -455,6 +452,8 @@ def _surfel_off_image(mu, radius, margin, K, width, height):
 def project(
     surfel,
     means,
+    quats,
+    fill_rotations,
     rotations,
     scales,
     opacities,
@@ -487,7 +486,9 @@ def project(
     lowpass_sigma (<= 0: none), jacobian_clamp (inf: none) and release_support are the
     `RenderConventions` of the call.
 
-    means [N, 3], rotations [N, 3, 3], scales [N, 2], opacities [N], sh [N, 3, B] (world frame);
+    means [N, 3], quats [N, 4], rotations [N, 3, 3] (written here from quats when fill_rotations,
+    read otherwise: a call's later cameras reuse the first one's), scales [N, 2], opacities [N],
+    sh [N, 3, B] (world frame);
     covariances [N, 3, 3] explicit EWA covariances or [0, 3, 3] to use the surfels' own thin ones.
     Writes geom [N, GEOM_SIZE], box [N, 4] (col0, col1, row0, row1: the pixels that can have alpha
     > 0, which the compositing visits), bin_box [N, 4] (the pixels whose tiles list the Gaussian:
@@ -502,6 +503,8 @@ def project(
     lim_y = jacobian_clamp * height / (2.0 * K[1, 1])
     for i in prange(means.shape[0]):
         tid = get_thread_id()
+        if fill_rotations:
+            _quat_rotation(quats[i], rotations[i])
         mu = _camera_point(means[i], R_cw, t_cw)
         z = mu[2]
         safe_z = z if abs(z) > _NEAR_ZERO else 1.0
@@ -605,7 +608,9 @@ def project(
             and bin_box[i, 2] <= bin_box[i, 3]
         )
         # Colour: SH at the direction from the camera centre, + 0.5, clamped at 0 (3DGS).
-        dx, dy, dz, _ = _view_direction(means[i], cam_center)
+        dx = dy = dz = 0.0  # degree 0 is the same from every direction
+        if n_bases > 1:
+            dx, dy, dz, _ = _view_direction(means[i], cam_center)
         Y = scratch[tid]
         _sh_basis(dx, dy, dz, n_bases, Y)
         bits = 0
@@ -661,8 +666,8 @@ def _order_ties(sorted_key, order):
         j = e
 
 
-@njit(cache=True, error_model="numpy")
-def bin_tiles(box, order, tile, tiles_x, tiles_y):
+@njit(parallel=True, cache=True, error_model="numpy")
+def bin_tiles(box, order, tile, tiles_x, tiles_y, parts):
     """The survivors, front to back (input indices order [M]; box [N, 4] the pixel boxes of every
     Gaussian in input order), listed per tile.
 
@@ -672,47 +677,65 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y):
     tiles in row-major order). The backward pass sums per-tile gradients through them in that fixed
     order, whatever thread handled which tile. The tile lists name Gaussians by input index, so the
     compositing reads every per-Gaussian array as the projection wrote it, with no sorted copy.
+
+    A counting sort in parallel: the survivors are cut into `parts` runs of consecutive ones (taken
+    by threads as they come free); each run counts its entries per tile, a serial prefix sum gives
+    every run its own cursor into each tile's list (after the runs in front of it), and each run
+    then writes its entries in depth order. The result does not depend on `parts`.
     """
     n = order.shape[0]
     n_tiles = tiles_x * tiles_y
     tiles = np.empty((n, 4), dtype=np.int64)  # tile range of each survivor's box: tx0, tx1, ty0, ty1
-    tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
-    pair_start = np.zeros(n + 1, dtype=np.int64)
+    # Each run's count (then cursor) per tile, rows a cache line longer so no two runs share a line.
+    cursor = np.zeros((parts, n_tiles + 8), dtype=np.int64)
+    pair_start = np.empty(n + 1, dtype=np.int64)
+    pair_start[0] = 0
     # A survivor's box lies in the image (non-negative pixels), so a power-of-two tile divides by a
     # shift (the four integer divisions were a fifth of this pass).
     shift = 0
     while (1 << shift) < tile:
         shift += 1
     pow2 = (1 << shift) == tile
-    for m in range(n):
-        if m + _AHEAD < n:
-            _prefetch(box, order[m + _AHEAD])
-        i = order[m]
-        if pow2:
-            tx0, tx1, ty0, ty1 = box[i, 0] >> shift, box[i, 1] >> shift, box[i, 2] >> shift, box[i, 3] >> shift
-        else:
-            tx0, tx1, ty0, ty1 = box[i, 0] // tile, box[i, 1] // tile, box[i, 2] // tile, box[i, 3] // tile
-        tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
-        for ty in range(ty0, ty1 + 1):
-            for tx in range(tx0, tx1 + 1):
-                tile_start[ty * tiles_x + tx + 1] += 1
-        pair_start[m + 1] = pair_start[m] + (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+    for j in prange(parts):
+        m1 = (j + 1) * n // parts
+        for m in range(j * n // parts, m1):
+            if m + _AHEAD < m1:
+                _prefetch(box, order[m + _AHEAD])
+            i = order[m]
+            if pow2:
+                tx0, tx1, ty0, ty1 = box[i, 0] >> shift, box[i, 1] >> shift, box[i, 2] >> shift, box[i, 3] >> shift
+            else:
+                tx0, tx1, ty0, ty1 = box[i, 0] // tile, box[i, 1] // tile, box[i, 2] // tile, box[i, 3] // tile
+            tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    cursor[j, ty * tiles_x + tx] += 1
+            pair_start[m + 1] = (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+    tile_start = np.empty(n_tiles + 1, dtype=np.int64)
+    tile_start[0] = 0
     for t in range(n_tiles):
-        tile_start[t + 1] += tile_start[t]
-    cursor = tile_start[:-1].copy()
+        at = tile_start[t]
+        for j in range(parts):
+            at, cursor[j, t] = at + cursor[j, t], at
+        tile_start[t + 1] = at
+    for m in range(n):
+        pair_start[m + 1] += pair_start[m]
     tile_ids = np.empty(tile_start[n_tiles], dtype=np.int64)
     pair_of = np.empty(tile_start[n_tiles], dtype=np.int64)
-    # Visiting survivors in depth order fills every tile's list already front to back.
-    q = 0
-    for m in range(n):
-        i = order[m]
-        for ty in range(tiles[m, 2], tiles[m, 3] + 1):
-            for tx in range(tiles[m, 0], tiles[m, 1] + 1):
-                t = ty * tiles_x + tx
-                tile_ids[cursor[t]] = i
-                pair_of[q] = cursor[t]
-                q += 1
-                cursor[t] += 1
+    # Visiting survivors in depth order fills every tile's list front to back.
+    for j in prange(parts):
+        m1 = (j + 1) * n // parts
+        q = pair_start[j * n // parts]
+        for m in range(j * n // parts, m1):
+            i = order[m]
+            for ty in range(tiles[m, 2], tiles[m, 3] + 1):
+                for tx in range(tiles[m, 0], tiles[m, 1] + 1):
+                    t = ty * tiles_x + tx
+                    at = cursor[j, t]
+                    tile_ids[at] = i
+                    pair_of[q] = at
+                    q += 1
+                    cursor[j, t] = at + 1
     return tile_start, tile_ids, pair_start, pair_of
 
 
@@ -797,8 +820,8 @@ def _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed):
     one chunk): two rows at once, the lower lanes LANES / 2 pixels of row r and the upper lanes the
     same columns of row r + 1, which halves the steps over the narrow boxes of small Gaussians.
     Returns the state rows and in-row offsets of the two halves (for `simd.load2`), the pixel
-    centres px, py, the mask of lanes inside the box (columns c0..c1, rows up to r1) and the upper
-    half's row. A row r + 1 past the tile is the state's padding row (masked out).
+    centres px, py and the mask of lanes inside the box (columns c0..c1, rows up to r1). A row
+    r + 1 past the tile is the state's padding row (masked out).
     """
     half = LANES // 2
     b_lo = (r - y0) * chunks + ch
@@ -814,7 +837,7 @@ def _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed):
     row = select(upper, splat(ft(r_hi)), splat(ft(r)))
     inside = (col >= ft(c0)) & (col <= ft(c1)) & (row <= ft(r1))
     # Pixel centres are exact integers plus one half, so every pass computes the same offsets.
-    return b_lo, lo, b_hi, hi, col + ft(0.5), row + ft(0.5), inside, r_hi
+    return b_lo, lo, b_hi, hi, col + ft(0.5), row + ft(0.5), inside
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
@@ -838,11 +861,13 @@ def _alpha(surfel, g, px, py, inside):
     if surfel:
         ey = py - g[GEOM_LP + 1]
         dx = px - g[GEOM_CX]
-        hx = fma(dx, g[GEOM_B], fma(dy, g[GEOM_C], g[GEOM_A]))
-        hy = fma(dx, g[GEOM_B + 1], fma(dy, g[GEOM_C + 1], g[GEOM_A + 1]))
-        hz = fma(dx, g[GEOM_B + 2], fma(dy, g[GEOM_C + 2], g[GEOM_A + 2]))
+        # Terms in px alone first: they are the same on every row of a column of steps, where the
+        # compiler computes them once (`_blend`).
+        hx = fma(dy, g[GEOM_C], fma(dx, g[GEOM_B], g[GEOM_A]))
+        hy = fma(dy, g[GEOM_C + 1], fma(dx, g[GEOM_B + 1], g[GEOM_A + 1]))
+        hz = fma(dy, g[GEOM_C + 2], fma(dx, g[GEOM_B + 2], g[GEOM_A + 2]))
         ex = px - g[GEOM_LP]
-        rho2d = fma(ex * ft(LOWPASS_RHO_SCALE), ex, (ey * ft(LOWPASS_RHO_SCALE)) * ey)
+        rho2d = fma(ey * ft(LOWPASS_RHO_SCALE), ey, (ex * ft(LOWPASS_RHO_SCALE)) * ex)
         inv = one / hz  # first, as it is the slowest step (where hz = 0 it is not used)
         q = fma(hx, hx, hy * hy)
         ray = q < rho2d * (hz * hz)
@@ -850,8 +875,7 @@ def _alpha(surfel, g, px, py, inside):
         depth = select(ray, g[GEOM_DET] * inv, splat(g[GEOM_DEPTH]))
     else:
         dx = px - g[GEOM_CX]
-        cb_dy = (ft(2.0) * g[GEOM_CONIC + 1]) * dy
-        rho = fma(dx, fma(dx, g[GEOM_CONIC], cb_dy), (dy * g[GEOM_CONIC + 2]) * dy)
+        rho = fma(dy, fma(dy, g[GEOM_CONIC + 2], (ft(2.0) * g[GEOM_CONIC + 1]) * dx), (dx * g[GEOM_CONIC]) * dx)
         depth = splat(g[GEOM_DEPTH])
         inv = splat(zero)
         ray = inv != inv  # no lane
@@ -866,13 +890,12 @@ def _alpha(surfel, g, px, py, inside):
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
+def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
     """Front-to-back blending of one Gaussian (geom row g, features f) into the chunks of its box,
     columns c0..c1 and rows r0..r1 of the tile at (x0, y0): state [(tile + 1) chunks,
     FORWARD_RUNS * LANES], last [(tile + 1) chunks, LANES] (1 + the tile-list position of each
-    pixel's last blended Gaussian), the last tile row of each being padding (`_pixels`); rows
-    [tile + 1] counts the pixels of each tile row still running (rows at 0 are skipped) and loses
-    those that stop here. Returns how many pixels stopped.
+    pixel's last blended Gaussian), the last tile row of each being padding (`_pixels`). Returns
+    how many pixels stopped.
 
     The 3DGS/2DGS rule: a pixel takes the Gaussian when alpha > 0 and it has not stopped; the
     Gaussian that would take its transmittance below the floor ends the pixel and is itself not
@@ -888,13 +911,14 @@ def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, posi
     z = g[GEOM_DEPTH]
     ch0, ch1 = (c0 - x0) // LANES, (c1 - x0) // LANES
     packed = ch0 == ch1 and c1 - c0 < LANES // 2
-    upper = upper_lanes()
     total = 0
-    for r in range(r0, r1 + 1, 2 if packed else 1):
-        if rows[r - y0] <= 0 and (not packed or r + 1 > r1 or rows[r + 1 - y0] <= 0):
-            continue
-        for ch in range(ch0, ch1 + 1):
-            b, lo, b2, hi, px, py, inside, r2 = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
+    # A step over pixels that have all stopped computes alpha to no effect (their T <= 0 takes
+    # nothing): that costs less than keeping count of each row's running pixels to skip it. Steps
+    # run column of chunks by column (each pixel is one step's alone, so their order is free), so
+    # that what alpha computes from the columns alone is computed once a column.
+    for ch in range(ch0, ch1 + 1):
+        for r in range(r0, r1 + 1, 2 if packed else 1):
+            b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
             a, d, _, ok = _alpha(surfel, g, px, py, inside)
             if not any_lane(ok):
                 continue
@@ -921,9 +945,6 @@ def _blend(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, posi
                 _put(state, at, S_MOMENT * LANES, fma(w, z, moment))
             _put(state, at, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
             _put(last, at, 0, select(blends, splat(position), _get(last, at, 0)))
-            stopped_upper = count(ends & upper)
-            rows[r - y0] -= count(ends) - stopped_upper
-            rows[r2 - y0] -= stopped_upper
             total += count(ends)
     return total
 
@@ -942,7 +963,6 @@ def _composite_tile(
     tile,
     state,
     last,
-    rows,
     out_color,
     out_normal,
     out_depth,
@@ -952,14 +972,12 @@ def _composite_tile(
 ):
     """Front-to-back compositing of one tile, its pixels x0..x1 - 1, y0..y1 - 1, whose Gaussians
     are ids (input indices, front to back), into the tile's part of the outputs (see
-    `composite_forward`); state, last and rows are the tile's scratch, set here."""
+    `composite_forward`); state and last are the tile's scratch, set here."""
     ft = geom.dtype.type
     chunks = -(-tile // LANES)
     state[:] = ft(0.0)
     state[:, S_T * LANES : (S_T + 1) * LANES] = ft(1.0)
     last[:] = 0
-    rows[:] = 0  # pixels of each tile row still running
-    rows[: y1 - y0] = x1 - x0
     active = (x1 - x0) * (y1 - y0)
     n = ids.shape[0]
     for k in range(n):
@@ -980,7 +998,6 @@ def _composite_tile(
                 features[i],
                 state,
                 last,
-                rows,
                 x0,
                 y0,
                 chunks,
@@ -1032,7 +1049,7 @@ def composite_forward(
     transmittance out_trans [H, W] and out_last [H, W] (1 + position in the tile list of the last
     blended Gaussian). Computes in the dtype of geom, which features and the float outputs share.
     Inside a tile the loop runs over its Gaussians, front to back, and for each over the chunks of
-    the rows of its box that still have a pixel running; the tile stops once all of its pixels have.
+    the rows of its box; the tile stops once all of its pixels have.
     out_distortion: None, or [2, H, W] for 2DGS's depth distortion and the ray's moment sum w z
     (kept for the backward); None compiles the kernel without it (see `_blend`).
     """
@@ -1055,7 +1072,6 @@ def composite_forward(
             tile,
             np.empty(((tile + 1) * chunks, runs * LANES), dtype=ft),
             np.empty(((tile + 1) * chunks, LANES), dtype=np.int32),
-            np.empty(tile + 1, dtype=np.int64),
             out_color,
             out_normal,
             out_depth,
@@ -1157,7 +1173,7 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
         if rows[r - y0] <= position and (not packed or r + 1 > r1 or rows[r + 1 - y0] <= position):
             continue
         for ch in range(ch0, ch1 + 1):
-            b, lo, b2, hi, px, py, inside, _ = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
+            b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
             a, d, inv, ok = _alpha(surfel, g, px, py, inside)
             if not any_lane(ok):
                 continue
@@ -1592,7 +1608,9 @@ def project_backward(
             for r in range(3):
                 g_rotations[i, r, 2] += flip[i] * gr[GRAD_FEAT + 3 + r]
         # Colour feature = max(sum_k sh_k Y_k(d) + 0.5, 0), d = normalize(x - camera centre).
-        dx, dy, dz, norm = _view_direction(means[i], cam_center)
+        dx = dy = dz = norm = 0.0  # degree 0 is the same from every direction
+        if n_bases > 1:
+            dx, dy, dz, norm = _view_direction(means[i], cam_center)
         Y, GX, GY, GZ = scratch[tid, 0:16], scratch[tid, 16:32], scratch[tid, 32:48], scratch[tid, 48:64]
         _sh_basis(dx, dy, dz, n_bases, Y)
         gd0, gd1, gd2 = 0.0, 0.0, 0.0
@@ -1657,25 +1675,47 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
 # ---------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
-def normalize_forward(color, alpha, depth, normal, threshold, background, out_color, out_depth, out_normal):
-    """`render.normalize_by_alpha` and the background in one pass (one thread: see `quats_to_rotations`).
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
+def normalize_forward(color, alpha, depth, normal, threshold, background, out_color, out_depth, out_normal, parts):
+    """`render.normalize_by_alpha` and the background in one pass.
 
     color, normal [C, 3, H, W], alpha, depth [C, 1, H, W] un-normalized; threshold (inf: none) and
     background [3] in their dtype. Where alpha >= threshold colour, depth and normal are divided by
     alpha and the pixel counts as covered, elsewhere they stay and the coverage is alpha; the colour
     gets (1 - coverage) background. The same operations in the same order as the torch code, so the
     same bits; as torch ops they were some ten passes over the image forward and more backward.
-    Each row goes LANES pixels at a time (`simd`; a row's last chunk masked).
+    Each row goes LANES pixels at a time (`simd`; a row's last chunk masked). parts > 1 splits the
+    image rows into that many runs taken by the threads (a parallel region wakes the other threads,
+    which beside another busy process can cost more than a small image's pass: 1 runs it here).
     """
-    ft = color.dtype.type
-    one = ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
     # Rows of pixels: channel k of camera c, image row r is row (c * channels + k) * height + r.
-    color, normal = color.reshape(-1, width), normal.reshape(-1, width)
-    out_color, out_normal = out_color.reshape(-1, width), out_normal.reshape(-1, width)
-    alpha, depth, out_depth = alpha.reshape(-1, width), depth.reshape(-1, width), out_depth.reshape(-1, width)
-    for row in range(cams * height):
+    views = (
+        color.reshape(-1, width),
+        alpha.reshape(-1, width),
+        depth.reshape(-1, width),
+        normal.reshape(-1, width),
+        out_color.reshape(-1, width),
+        out_depth.reshape(-1, width),
+        out_normal.reshape(-1, width),
+    )
+    rows = cams * height
+    if parts <= 1:
+        _normalize_forward_rows(*views, threshold, background, height, 0, rows)
+    else:
+        for j in prange(parts):
+            _normalize_forward_rows(*views, threshold, background, height, j * rows // parts, (j + 1) * rows // parts)
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _normalize_forward_rows(
+    color, alpha, depth, normal, out_color, out_depth, out_normal, threshold, background, height, first, end
+):
+    """Rows first..end - 1 of `normalize_forward` (its arrays as rows of pixels)."""
+    ft = color.dtype.type
+    one = ft(1.0)
+    width = color.shape[1]
+    for row in range(first, end):
         c, r = row // height, row % height
         for x in range(0, width, LANES):
             n = min(LANES, width - x)
@@ -1690,7 +1730,7 @@ def normalize_forward(color, alpha, depth, normal, threshold, background, out_co
             store_first(out_depth, row, x, load_first(depth, row, x, n) / safe, n)
 
 
-@njit(cache=True, boundscheck=False, error_model="numpy")
+@njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def normalize_backward(
     color,
     alpha,
@@ -1705,23 +1745,61 @@ def normalize_backward(
     g_alpha,
     g_depth,
     g_normal,
+    parts,
 ):
     """Chain rule of `normalize_forward`: dL/d(colour, depth, normal) and the alpha gradient they add.
 
     g_alpha [C, 1, H, W] holds dL/dalpha from alpha's own use on entry and gets the normalization's
     share added: -sum g_o o / alpha^2 over the divided maps where alpha >= threshold, else
-    -g_colour . background.
+    -g_colour . background. parts as in `normalize_forward`.
     """
-    ft = color.dtype.type
-    zero, one = ft(0.0), ft(1.0)
     cams, height, width = color.shape[0], color.shape[2], color.shape[3]
     # Rows of pixels as in `normalize_forward`.
-    color, normal = color.reshape(-1, width), normal.reshape(-1, width)
-    g_out_color, g_out_normal = g_out_color.reshape(-1, width), g_out_normal.reshape(-1, width)
-    g_color, g_normal = g_color.reshape(-1, width), g_normal.reshape(-1, width)
-    alpha, depth, g_out_depth = alpha.reshape(-1, width), depth.reshape(-1, width), g_out_depth.reshape(-1, width)
-    g_alpha, g_depth = g_alpha.reshape(-1, width), g_depth.reshape(-1, width)
-    for row in range(cams * height):
+    views = (
+        color.reshape(-1, width),
+        alpha.reshape(-1, width),
+        depth.reshape(-1, width),
+        normal.reshape(-1, width),
+        g_out_color.reshape(-1, width),
+        g_out_depth.reshape(-1, width),
+        g_out_normal.reshape(-1, width),
+        g_color.reshape(-1, width),
+        g_alpha.reshape(-1, width),
+        g_depth.reshape(-1, width),
+        g_normal.reshape(-1, width),
+    )
+    rows = cams * height
+    if parts <= 1:
+        _normalize_backward_rows(*views, threshold, background, height, 0, rows)
+    else:
+        for j in prange(parts):
+            _normalize_backward_rows(*views, threshold, background, height, j * rows // parts, (j + 1) * rows // parts)
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _normalize_backward_rows(
+    color,
+    alpha,
+    depth,
+    normal,
+    g_out_color,
+    g_out_depth,
+    g_out_normal,
+    g_color,
+    g_alpha,
+    g_depth,
+    g_normal,
+    threshold,
+    background,
+    height,
+    first,
+    end,
+):
+    """Rows first..end - 1 of `normalize_backward` (its arrays as rows of pixels)."""
+    ft = color.dtype.type
+    zero, one = ft(0.0), ft(1.0)
+    width = color.shape[1]
+    for row in range(first, end):
         c, r = row // height, row % height
         for x in range(0, width, LANES):
             n = min(LANES, width - x)
