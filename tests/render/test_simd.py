@@ -17,11 +17,11 @@ from surfsplat.render.cpu.simd import (
     lane,
     lane_sums,
     load,
-    load2,
+    load_at,
     select,
     splat,
     store,
-    store2,
+    store_at,
     upper_lanes,
 )
 
@@ -133,24 +133,53 @@ def test_lane_sums_add_each_vector_in_a_fixed_tree(dtype):
 
 
 @njit
-def _halves(state, last):
-    # Rows 1 and 2 at column 3, scaled, and the int32 runs alike.
-    v = load2(state, 1, 3, 2, 3)
-    store2(state, 1, 3, 2, 3, v * state.dtype.type(2.0))
-    store2(last, 0, 8, 3, 0, load2(last, 0, 0, 3, 8))
+def _places(state, last):
+    # Rows 1 and 2 at column 3 (two half rows), scaled; the int32 runs alike; row 3 whole, at
+    # column LANES.
+    v = load_at(state, (1, 3, 2, 3), 0)
+    store_at(state, (1, 3, 2, 3), 0, v * state.dtype.type(2.0))
+    store_at(last, (0, 8, 3, 0), 0, load_at(last, (0, 0, 3, 8), 0))
+    store_at(state, (3,), LANES, load_at(state, (3,), LANES) + state.dtype.type(1.0))
 
 
-def test_half_width_rows_load_and_store_in_place():
+def test_places_load_and_store_in_place():
     state = np.arange(4 * 2 * LANES, dtype=np.float32).reshape(4, 2 * LANES)
     last = np.arange(4 * LANES, dtype=np.int32).reshape(4, LANES)
     expected, expected_last = state.copy(), last.copy()
     half = LANES // 2
     expected[1, 3 : 3 + half] *= 2
     expected[2, 3 : 3 + half] *= 2
+    expected[3, LANES:] += 1
     expected_last[0, 8:16], expected_last[3, 0:8] = last[0, 0:8], last[3, 8:16]
-    _halves(state, last)
+    _places(state, last)
     np.testing.assert_array_equal(state, expected)
     np.testing.assert_array_equal(last, expected_last)
+
+
+@njit
+def _whole_row(state):
+    store_at(state, (0,), 0, load_at(state, (0,), 0) * state.dtype.type(2.0))
+
+
+def test_a_whole_row_is_one_load_and_one_store():
+    # The compositing's unpacked steps rely on it: two half-width accesses cost a shuffle each.
+    state = np.ones((1, LANES), np.float32)
+    _whole_row(state)
+    np.testing.assert_array_equal(state, 2.0)
+    ir = _whole_row.inspect_llvm(_whole_row.signatures[0])
+    body = "".join(f for f in ir.split("\ndefine ")[1:] if "cpython" not in f.split("(")[0])
+    assert body.count(f"load <{LANES} x float>") == 1
+    assert body.count(f"store <{LANES} x float>") == 1
+    assert "shufflevector" not in body
+
+
+def test_a_place_must_be_one_or_four_integers():
+    @njit
+    def three(x):
+        return load_at(x, (0, 0, 0), 0)
+
+    with pytest.raises(numba.core.errors.TypingError):
+        three(np.ones((1, LANES), np.float32))
 
 
 @njit

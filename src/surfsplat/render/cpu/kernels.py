@@ -83,12 +83,12 @@ from .simd import (
     half_iota,
     lane,
     lane_sums,
-    load2,
+    load_at,
     load_first,
     select,
     splat,
     store,
-    store2,
+    store_at,
     store_first,
     upper_lanes,
 )
@@ -819,7 +819,7 @@ def _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed):
     Not packed: the LANES pixels of chunk ch of row r. Packed (a box at most LANES / 2 wide within
     one chunk): two rows at once, the lower lanes LANES / 2 pixels of row r and the upper lanes the
     same columns of row r + 1, which halves the steps over the narrow boxes of small Gaussians.
-    Returns the state rows and in-row offsets of the two halves (for `simd.load2`), the pixel
+    Returns the state rows and in-row offsets of the two halves (for `simd.load_at`), the pixel
     centres px, py and the mask of lanes inside the box (columns c0..c1, rows up to r1). A row
     r + 1 past the tile is the state's padding row (masked out).
     """
@@ -906,47 +906,59 @@ def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, 
     type and drops the branch from the None one, so rendering without it costs what it did.
     """
     ft = state.dtype.type
-    zero, one, two = ft(0.0), ft(1.0), ft(2.0)
-    f0, f1, f2, f3, f4, f5 = f[0], f[1], f[2], f[3], f[4], f[5]
-    z = g[GEOM_DEPTH]
     ch0, ch1 = (c0 - x0) // LANES, (c1 - x0) // LANES
-    packed = ch0 == ch1 and c1 - c0 < LANES // 2
     total = 0
     # A step over pixels that have all stopped computes alpha to no effect (their T <= 0 takes
-    # nothing): that costs less than keeping count of each row's running pixels to skip it. Steps
-    # run column of chunks by column (each pixel is one step's alone, so their order is free), so
-    # that what alpha computes from the columns alone is computed once a column.
-    for ch in range(ch0, ch1 + 1):
-        for r in range(r0, r1 + 1, 2 if packed else 1):
-            b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
+    # nothing): that costs less than keeping count of each row's running pixels to skip it.
+    if ch0 == ch1 and c1 - c0 < LANES // 2:  # packed: two half rows a step
+        for r in range(r0, r1 + 1, 2):
+            b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch0, True)
             a, d, _, ok = _alpha(surfel, g, px, py, inside)
-            if not any_lane(ok):
-                continue
-            at = (b, lo, b2, hi)
-            T = _get(state, at, S_T * LANES)
-            T_next = T * (one - a)
-            takes = ok & (T > zero)
-            ends = takes & (T_next < ft(TRANSMITTANCE_MIN))
-            blends = takes & (T_next >= ft(TRANSMITTANCE_MIN))
-            w = select(blends, a * T, splat(zero))  # 0 adds nothing (the runs start at +0)
-            _put(state, at, 0, fma(w, f0, _get(state, at, 0)))
-            _put(state, at, LANES, fma(w, f1, _get(state, at, LANES)))
-            _put(state, at, 2 * LANES, fma(w, f2, _get(state, at, 2 * LANES)))
-            _put(state, at, 3 * LANES, fma(w, f3, _get(state, at, 3 * LANES)))
-            _put(state, at, 4 * LANES, fma(w, f4, _get(state, at, 4 * LANES)))
-            _put(state, at, 5 * LANES, fma(w, f5, _get(state, at, 5 * LANES)))
-            _put(state, at, S_DEPTH * LANES, fma(w, d, _get(state, at, S_DEPTH * LANES)))
-            if distortion is not None:
-                # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
-                # the weights in front, and M = sum w z in front.
-                moment = _get(state, at, S_MOMENT * LANES)
-                gap = fma(one - T, z, -moment)
-                _put(state, at, S_DIST * LANES, fma(two * w, gap, _get(state, at, S_DIST * LANES)))
-                _put(state, at, S_MOMENT * LANES, fma(w, z, moment))
-            _put(state, at, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
-            _put(last, at, 0, select(blends, splat(position), _get(last, at, 0)))
-            total += count(ends)
+            if any_lane(ok):
+                total += _take(state, last, (b, lo, b2, hi), a, d, ok, f, g[GEOM_DEPTH], position, distortion)
+    else:
+        # Whole rows, a column of chunks at a time (each pixel is one step's alone, so their order
+        # is free): what the step computes from the columns alone is then computed once a column.
+        for ch in range(ch0, ch1 + 1):
+            for r in range(r0, r1 + 1):
+                b, _, _, _, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, False)
+                a, d, _, ok = _alpha(surfel, g, px, py, inside)
+                if any_lane(ok):
+                    total += _take(state, last, (b,), a, d, ok, f, g[GEOM_DEPTH], position, distortion)
     return total
+
+
+@njit(cache=True, boundscheck=False, error_model="numpy")
+def _take(state, last, at, a, d, ok, f, z, position, distortion):
+    """One step of `_blend`: the Gaussian of alpha a (lanes ok) and pair depth d blended into the
+    LANES pixels at `at` (`simd.load_at`: (row,) for a whole row, or two half rows). Returns how
+    many pixels stopped. The place's type selects the loads and stores when compiling, so whole
+    rows take one load and one store a run."""
+    ft = state.dtype.type
+    zero, one, two = ft(0.0), ft(1.0), ft(2.0)
+    T = _get(state, at, S_T * LANES)
+    T_next = T * (one - a)
+    takes = ok & (T > zero)
+    ends = takes & (T_next < ft(TRANSMITTANCE_MIN))
+    blends = takes & (T_next >= ft(TRANSMITTANCE_MIN))
+    w = select(blends, a * T, splat(zero))  # 0 adds nothing (the runs start at +0)
+    _put(state, at, 0, fma(w, f[0], _get(state, at, 0)))
+    _put(state, at, LANES, fma(w, f[1], _get(state, at, LANES)))
+    _put(state, at, 2 * LANES, fma(w, f[2], _get(state, at, 2 * LANES)))
+    _put(state, at, 3 * LANES, fma(w, f[3], _get(state, at, 3 * LANES)))
+    _put(state, at, 4 * LANES, fma(w, f[4], _get(state, at, 4 * LANES)))
+    _put(state, at, 5 * LANES, fma(w, f[5], _get(state, at, 5 * LANES)))
+    _put(state, at, S_DEPTH * LANES, fma(w, d, _get(state, at, S_DEPTH * LANES)))
+    if distortion is not None:
+        # D += 2 w (z A - M) with the two running moments of 2DGS's rasterizer: A = 1 - T,
+        # the weights in front, and M = sum w z in front.
+        moment = _get(state, at, S_MOMENT * LANES)
+        gap = fma(one - T, z, -moment)
+        _put(state, at, S_DIST * LANES, fma(two * w, gap, _get(state, at, S_DIST * LANES)))
+        _put(state, at, S_MOMENT * LANES, fma(w, z, moment))
+    _put(state, at, S_T * LANES, select(blends, T_next, select(ends, -T, T)))
+    _put(last, at, 0, select(blends, splat(position), _get(last, at, 0)))
+    return count(ends)
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
@@ -1083,20 +1095,21 @@ def composite_forward(
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _get(array, at, col):
-    """The lanes at = (b, lo, b2, hi) (`_pixels`) of the run starting at column col of array."""
-    return load2(array, at[0], col + at[1], at[2], col + at[3])
+    """The lanes at `at` ((b,) or (b, lo, b2, hi): `_pixels`, `simd.load_at`) of the run starting at
+    column col of array."""
+    return load_at(array, at, col)
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _put(array, at, col, value):
-    """Store value to the lanes at = (b, lo, b2, hi) of the run starting at column col of array."""
-    store2(array, at[0], col + at[1], at[2], col + at[3], value)
+    """Store value to the lanes at `at` of the run starting at column col of array (`_get`)."""
+    store_at(array, at, col, value)
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _unblend(state, last, at, a, d, position, f, z, distortion):
     """The compositing's chain rule at the LANES pixels at = (b, lo, b2, hi) of state (`_pixels`,
-    `simd.load2`) for one Gaussian of alpha a and pair depth d (features f, centre depth z), back
+    `simd.load_at`) for one Gaussian of alpha a and pair depth d (features f, centre depth z), back
     to front.
 
     With w_i = a_i T_i and T_out = T_in prod (1 - a_i), for a loss L with dL/dw_i = g_i:
@@ -1187,8 +1200,8 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
             g_dpair = w * g_d
             dx, dy = px - cx, py - cy
             if surfel:
-                hx = fma(dx, b0, fma(dy, C0, A0))
-                hy = fma(dx, b1, fma(dy, C1, A1))
+                hx = fma(dy, C0, fma(dx, b0, A0))  # as `_alpha` computes them
+                hy = fma(dy, C1, fma(dx, b1, A1))
                 sc = (two * g_rho) * (inv * inv)  # 0 on the filter branch and off the box
                 g_hx, g_hy = sc * hx, sc * hy
                 g_hz = -fma(sc, fma(hx, hx, hy * hy), g_dpair * d) * inv

@@ -20,7 +20,8 @@ backward rely on this for alpha). `fma` is LLVM's fused multiply-add, one roundi
     select(m, a, b), fma(a, b, c), min(a, b), max(a, b) (also vmin, vmax)
     any_lane(m), count(m), lane(a, j)
     lane_sums((a, b, ...))             # lane k: the sum of the lanes of the k-th Vec
-    load2(array, row_lo, col_lo, row_hi, col_hi), store2(...)   # two half-width rows as one Vec
+    load_at(array, at, col), store_at(array, at, col, v)  # at = (row,): a whole row; at =
+                                       # (row_lo, off_lo, row_hi, off_hi): two half rows as one Vec
     load_first(array, row, col, n), store_first(array, row, col, v, n)   # the first n lanes only
     half_iota(ft), upper_lanes()
 """
@@ -373,46 +374,72 @@ def count(typingctx, m):
     return types.int64(m), codegen
 
 
+def _check_at(at):
+    if not (isinstance(at, types.UniTuple) and len(at) in (1, 4) and isinstance(at.dtype, types.Integer)):
+        raise TypingError(f"a place of LANES pixels is (row,) or (row_lo, offset_lo, row_hi, offset_hi), not {at}")
+
+
+def _at_pointers(context, builder, array_type, array, at_type, at, col):
+    """The pointers to the one whole row, or to the two half rows, that `at` names at column col."""
+    parts = [builder.extract_value(at, j) for j in range(len(at_type))]
+    if len(parts) == 1:
+        return [_pointer(context, builder, array_type, array, parts[0], col)]
+    return [
+        _pointer(context, builder, array_type, array, parts[0], builder.add(col, parts[1])),
+        _pointer(context, builder, array_type, array, parts[2], builder.add(col, parts[3])),
+    ]
+
+
 @intrinsic
-def load2(typingctx, array, row_lo, col_lo, row_hi, col_hi):
-    """array[row_lo, col_lo:col_lo + LANES / 2] in the lower lanes and array[row_hi, col_hi:col_hi +
-    LANES / 2] in the upper ones: two half-width loads (no bounds check)."""
+def load_at(typingctx, array, at, col):
+    """The LANES pixels at a place: at = (row,) reads array[row, col:col + LANES] in one load (as
+    `load`); at = (row_lo, offset_lo, row_hi, offset_hi) reads array[row_lo, col + offset_lo:...]
+    into the lower LANES / 2 lanes and array[row_hi, col + offset_hi:...] into the upper ones, two
+    half-width loads. Which one is decided by the type of at, when compiling (no bounds check)."""
     _check_rows(array)
+    _check_at(at)
     vec = Vec(array.dtype)
 
     def codegen(context, builder, signature, args):
-        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
+        col = context.cast(builder, args[2], signature.args[2], signature.args[1].dtype)
+        pointers = _at_pointers(context, builder, array, args[0], signature.args[1], args[1], col)
         element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
-        halves = []
-        for row, col in ((args[1], args[2]), (args[3], args[4])):
-            pointer = _pointer(context, builder, array, args[0], row, col)
-            halves.append(builder.load(builder.bitcast(pointer, half_type.as_pointer()), align=element_bytes))
+        if len(pointers) == 1:
+            vector_type = _vector_type(context, array.dtype)
+            return builder.load(builder.bitcast(pointers[0], vector_type.as_pointer()), align=element_bytes)
+        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
+        halves = [builder.load(builder.bitcast(p, half_type.as_pointer()), align=element_bytes) for p in pointers]
         both = ir.Constant(ir.VectorType(ir.IntType(32), LANES), list(range(LANES)))
         return builder.shuffle_vector(halves[0], halves[1], both)
 
-    return vec(array, row_lo, col_lo, row_hi, col_hi), codegen
+    return vec(array, at, col), codegen
 
 
 @intrinsic
-def store2(typingctx, array, row_lo, col_lo, row_hi, col_hi, value):
-    """The inverse of `load2`: the lower lanes of value to array[row_lo, col_lo:...], the upper
-    ones to array[row_hi, col_hi:...] (in that order; no bounds check)."""
+def store_at(typingctx, array, at, col, value):
+    """The inverse of `load_at`: value to the LANES pixels at a place (one store, or two halves)."""
     _check_rows(array)
+    _check_at(at)
     if not (isinstance(value, Vec) and value.dtype == array.dtype):
         raise TypingError(f"cannot store {value} into {array}")
 
     def codegen(context, builder, signature, args):
-        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
+        col = context.cast(builder, args[2], signature.args[2], signature.args[1].dtype)
+        pointers = _at_pointers(context, builder, array, args[0], signature.args[1], args[1], col)
         element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
+        if len(pointers) == 1:
+            vector_type = _vector_type(context, array.dtype)
+            builder.store(args[3], builder.bitcast(pointers[0], vector_type.as_pointer()), align=element_bytes)
+            return context.get_dummy_value()
+        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
         i32 = ir.IntType(32)
-        for k, (row, col) in enumerate(((args[1], args[2]), (args[3], args[4]))):
+        for k, pointer in enumerate(pointers):
             lanes = ir.Constant(ir.VectorType(i32, LANES // 2), list(range(k * LANES // 2, (k + 1) * LANES // 2)))
-            part = builder.shuffle_vector(args[5], ir.Constant(args[5].type, ir.Undefined), lanes)
-            pointer = _pointer(context, builder, array, args[0], row, col)
+            part = builder.shuffle_vector(args[3], ir.Constant(args[3].type, ir.Undefined), lanes)
             builder.store(part, builder.bitcast(pointer, half_type.as_pointer()), align=element_bytes)
         return context.get_dummy_value()
 
-    return types.void(array, row_lo, col_lo, row_hi, col_hi, value), codegen
+    return types.void(array, at, col, value), codegen
 
 
 @intrinsic
