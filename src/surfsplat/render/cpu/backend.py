@@ -21,6 +21,7 @@ backend's split, which keeps sub-pixel accuracy on large images. float64 is the 
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numba
@@ -85,6 +86,33 @@ class _Plan:
     rank: np.ndarray  # [N] each Gaussian's survivor index m (-1: culled)
     order: np.ndarray  # [M] each survivor's input index (the inverse of rank)
     tiles_x: int
+
+
+class _Held(threading.local):
+    """Work arrays each thread keeps from one backward pass to the next, by name."""
+
+    def __init__(self) -> None:
+        self.arrays: dict[tuple[str, type], np.ndarray] = {}
+
+
+_held = _Held()
+
+
+def _held_empty(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """np.empty(shape, dtype), from a buffer this thread keeps for `name` from call to call.
+
+    For the backward's largest work arrays, whose contents never outlive the call: a fresh array of
+    this size is fresh memory from the system every call (glibc maps anything over 32 MB anew),
+    which the kernel has to fault in and zero, page by page. That took 90-110 ms of system time in
+    some forward+backward calls at 1024 x 1024, against 8 ms in others. A buffer more than 4x
+    larger than asked for is let go, so one large render does not hold its memory for good.
+    """
+    size = math.prod(shape)
+    buffer = _held.arrays.get((name, dtype))
+    if buffer is None or buffer.size < size or buffer.size > 4 * size:
+        buffer = np.empty(max(size, 1), dtype=dtype)
+        _held.arrays[(name, dtype)] = buffer
+    return buffer[:size].reshape(shape)
 
 
 def _np(t: Tensor, dtype: type[np.floating] = np.float64) -> np.ndarray:
@@ -333,12 +361,15 @@ class _Rasterize(torch.autograd.Function):
             distortion = np.stack((_np(g_distortion, ft)[:, 0], ctx.moments[:, 1]), axis=1)
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
-        rows = np.empty((n, kernels.GRAD_SIZE))  # each survivor's compositing gradient, per camera
+        rows = _held_empty(
+            "rows", (n, kernels.GRAD_SIZE), np.float64
+        )  # each survivor's compositing gradient, per camera
         wanted = ctx.needs_input_grad
         geometry = wanted[0] or wanted[1]  # means or rotations
         shape = wanted[2] or wanted[5]  # scales or explicit covariances
         for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
-            pair_grads = np.empty((plan.tile_ids.shape[0], kernels.GRAD_SIZE), dtype=ft)  # every row gets written
+            # every row gets written
+            pair_grads = _held_empty("pair_grads", (plan.tile_ids.shape[0], kernels.GRAD_SIZE), ft)
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_backward(
                     ctx.surfel,
