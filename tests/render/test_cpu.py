@@ -18,7 +18,7 @@ from surfsplat.utils.checks import SurfSplatInputError
 from tests.helpers.reference_render import reference_render
 
 numba = pytest.importorskip("numba", reason="the compiled CPU backend needs numba")
-from surfsplat.render.cpu import kernels  # noqa: E402
+from surfsplat.render.cpu import backend, kernels  # noqa: E402
 from surfsplat.render.cpu.backend import contributing_pairs, normalize_cpu, render_cpu  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
@@ -697,3 +697,18 @@ def test_normalization_kernels_match_the_torch_ops(dtype, threshold):
     tol = 1e-12 if dtype == torch.float64 else 1e-5
     for name, a, b in zip(("color", "alpha", "depth", "normal"), ours_in, ref_in):
         torch.testing.assert_close(a.grad, b.grad, rtol=tol, atol=tol, msg=name)
+
+
+def test_backward_work_arrays_are_held_from_call_to_call():
+    # The backward's largest work arrays come from one buffer per thread and name, so a training
+    # loop does not get fresh memory from the system (and zero it) every step.
+    first = backend._held_empty("test", (10, 20), np.float32)
+    again = backend._held_empty("test", (8, 20), np.float32)
+    assert again.shape == (8, 20) and np.shares_memory(first, again)
+    other = backend._held_empty("test", (10, 20), np.float64)
+    assert not np.shares_memory(first, other)
+    # Much smaller: the large buffer is let go; larger: a new one.
+    small = backend._held_empty("test", (1, 20), np.float32)
+    assert not np.shares_memory(first, small)
+    large = backend._held_empty("test", (50, 20), np.float32)
+    assert large.shape == (50, 20) and not np.shares_memory(small, large)
