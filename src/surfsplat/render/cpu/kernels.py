@@ -83,6 +83,7 @@ from .simd import (
     half_iota,
     lane,
     lane_sums,
+    load,
     load_at,
     load_first,
     select,
@@ -642,32 +643,36 @@ def depth_order(keep, depth):
     """Input indices of the survivors sorted front to back (stable: ties keep input order).
 
     NumPy's default sort (vectorized on AVX-512 machines: 9x faster than its stable sort on 84k
-    depths), then every run of equal depths put back in input order (`_order_ties`), which is the
-    stable sort's result exactly. Numba's compiled mergesort took 5x longer than the stable sort.
+    depths), then every run of equal depths put back in input order (`_survivors_in_order`), which
+    is the stable sort's result exactly. Numba's compiled mergesort took 5x longer than the stable sort.
     """
     index = np.flatnonzero(keep)
     key = depth[index]
-    order = np.argsort(key)
-    _order_ties(key[order], order)
-    return index[order]
+    return _survivors_in_order(key, np.argsort(key), index)
 
 
 @njit(cache=True, error_model="numpy")
-def _order_ties(sorted_key, order):
-    """Sorts order within each run of equal sorted_key (positions ascending, as a stable sort leaves them)."""
+def _survivors_in_order(key, order, index):
+    """index[order] with order sorted within each run of equal key[order] (positions ascending, as a
+    stable sort leaves them), in one pass."""
     m = order.shape[0]
+    out = np.empty(m, dtype=np.int64)
     j = 0
     while j < m:
+        first = key[order[j]]
         e = j + 1
-        while e < m and sorted_key[e] == sorted_key[j]:
+        while e < m and key[order[e]] == first:
             e += 1
         if e - j > 1:
             order[j:e] = np.sort(order[j:e])
+        for t in range(j, e):
+            out[t] = index[order[t]]
         j = e
+    return out
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def bin_tiles(box, order, tile, tiles_x, tiles_y, parts):
+def bin_tiles(box, order, tile, tiles_x, tiles_y, parts, rank):
     """The survivors, front to back (input indices order [M]; box [N, 4] the pixel boxes of every
     Gaussian in input order), listed per tile.
 
@@ -681,7 +686,8 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts):
     A counting sort in parallel: the survivors are cut into `parts` runs of consecutive ones (taken
     by threads as they come free); each run counts its entries per tile, a serial prefix sum gives
     every run its own cursor into each tile's list (after the runs in front of it), and each run
-    then writes its entries in depth order. The result does not depend on `parts`.
+    then writes its entries in depth order. The result does not depend on `parts`. Also sets
+    rank[order[m]] = m (each survivor's place in depth order; the caller fills rank with -1).
     """
     n = order.shape[0]
     n_tiles = tiles_x * tiles_y
@@ -702,6 +708,7 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts):
             if m + _AHEAD < m1:
                 _prefetch(box, order[m + _AHEAD])
             i = order[m]
+            rank[i] = m
             if pow2:
                 tx0, tx1, ty0, ty1 = box[i, 0] >> shift, box[i, 1] >> shift, box[i, 2] >> shift, box[i, 3] >> shift
             else:
@@ -1020,18 +1027,24 @@ def _composite_tile(
                 np.int32(k + 1),
                 out_distortion,
             )
+    # Read out, LANES pixels at a time (a tile row's last chunk masked).
     for r in range(y0, y1):
-        for c in range(x0, x1):
-            b, j = (r - y0) * chunks + (c - x0) // LANES, (c - x0) % LANES
+        for ch in range(chunks):
+            x = x0 + ch * LANES
+            n = min(LANES, x1 - x)
+            if n <= 0:
+                break
+            b = (r - y0) * chunks + ch
             for f in range(3):
-                out_color[f, r, c] = state[b, f * LANES + j]
-                out_normal[f, r, c] = state[b, (3 + f) * LANES + j]
-            out_depth[r, c] = state[b, S_DEPTH * LANES + j]
-            out_trans[r, c] = abs(state[b, S_T * LANES + j])
-            out_last[r, c] = last[b, j]
+                store_first(out_color[f], r, x, load(state, b, f * LANES), n)
+                store_first(out_normal[f], r, x, load(state, b, (3 + f) * LANES), n)
+            store_first(out_depth, r, x, load(state, b, S_DEPTH * LANES), n)
+            T = load(state, b, S_T * LANES)
+            store_first(out_trans, r, x, select(T < ft(0.0), -T, T), n)
+            store_first(out_last, r, x, load(last, b, 0), n)
             if out_distortion is not None:
-                out_distortion[0, r, c] = state[b, S_DIST * LANES + j]
-                out_distortion[1, r, c] = state[b, S_MOMENT * LANES + j]
+                store_first(out_distortion[0], r, x, load(state, b, S_DIST * LANES), n)
+                store_first(out_distortion[1], r, x, load(state, b, S_MOMENT * LANES), n)
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
