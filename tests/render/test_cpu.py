@@ -712,3 +712,22 @@ def test_backward_work_arrays_are_held_from_call_to_call():
     assert not np.shares_memory(first, small)
     large = backend._held_empty("test", (50, 20), np.float32)
     assert large.shape == (50, 20) and not np.shares_memory(small, large)
+
+
+@pytest.mark.parametrize("case", ["random", "ties", "signed zeros", "lowest bits", "negative"])
+def test_depth_order_integer_keys_give_the_stable_sort(case):
+    # One integer sort of depth keys with the index in their lowest bits, then exact order within
+    # keys that agree but for those bits: it must be NumPy's stable sort of the depths.
+    rng = np.random.default_rng(7)
+    n = 70_000
+    depth = {
+        "random": rng.random(n) * 5 + 0.1,
+        "ties": np.round(rng.random(n) * 5, 1),  # many exactly equal depths
+        "signed zeros": rng.choice([-0.0, 0.0, 1.0, -2.0], n),
+        "lowest bits": 1.0 + rng.integers(0, 4, n) * 1e-15,  # equal but for the dropped bits
+        "negative": rng.standard_normal(n),
+    }[case]
+    keep = rng.random(n) < 0.9
+    survivors = np.flatnonzero(keep)
+    expected = survivors[np.argsort(depth[survivors], kind="stable")]
+    np.testing.assert_array_equal(kernels.depth_order(keep, depth), expected)

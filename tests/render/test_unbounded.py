@@ -135,7 +135,7 @@ def test_culling_before_projection_keeps_every_footprint_that_reaches_the_image(
     sigma = RenderConventions().lowpass_center_sigma
     culled, straddling = 0, 0
     for mu, s, o in zip(g.means.numpy(), g.scales.numpy(), g.opacities.numpy()):
-        k2 = kernels._opacity_extent(o)
+        k2 = kernels._opacity_extent(math.log(o))
         reach = max(math.sqrt(k2), sigma) * s.max()
         culled += kernels._surfel_off_image(mu, reach, math.sqrt(k2 / LOWPASS_RHO_SCALE) + 1.0, K.numpy(), size, size)
         straddling += mu[2] <= reach

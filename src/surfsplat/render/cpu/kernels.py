@@ -198,9 +198,10 @@ def _surfel_matrix(mu, R, s0, s1, R_cw, K):
 
 
 @njit(cache=True, error_model="numpy")
-def _opacity_extent(opacity):
-    """k^2 with o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2."""
-    return 2.0 * math.log(max(opacity / ALPHA_MIN, 1.0))
+def _opacity_extent(log_opacity):
+    """k^2 with o exp(-rho / 2) >= ALPHA_MIN exactly when rho <= k^2: 2 log(o / ALPHA_MIN), taken
+    from log o (the projection computes it anyway; a second logarithm was a tenth of its time)."""
+    return 2.0 * max(log_opacity - LOG_ALPHA_MIN, 0.0)
 
 
 @njit(cache=True, error_model="numpy")
@@ -510,7 +511,8 @@ def project(
         z = mu[2]
         safe_z = z if abs(z) > _NEAR_ZERO else 1.0
         depth[i] = z
-        k2 = _opacity_extent(opacities[i])
+        log_o = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
+        k2 = _opacity_extent(log_o)
         # Cull before projecting, by rules that keep every Gaussian `keep` below would keep: the
         # depth and opacity tests themselves, and for surfels a bounding sphere of the k-sigma
         # ellipse (and of the sigma-ellipse that places the low-pass centre) that projects off the
@@ -526,7 +528,7 @@ def project(
             lit[i] = 0
             continue
         g = geom[i]
-        g[GEOM_LOGO] = math.log(opacities[i]) if opacities[i] > 0 else -math.inf
+        g[GEOM_LOGO] = log_o
         if surfel:
             tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
                 mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
@@ -642,31 +644,66 @@ def project(
 def depth_order(keep, depth):
     """Input indices of the survivors sorted front to back (stable: ties keep input order).
 
-    NumPy's default sort (vectorized on AVX-512 machines: 9x faster than its stable sort on 84k
-    depths), then every run of equal depths put back in input order (`_survivors_in_order`), which
-    is the stable sort's result exactly. Numba's compiled mergesort took 5x longer than the stable sort.
+    One sort of 64-bit integers: each survivor's depth as an integer of the same order (`_depth_keys`)
+    with its lowest bits given to the input index, so NumPy's vectorized integer sort (on AVX-512:
+    0.77 ms for 120k keys, where its argsort of the depths took 2.0 ms and its stable sort 9x that)
+    orders by depth and then by index. Depths equal in all but those lowest bits are put in exact
+    order afterwards (`_order_from_keys`): the result is the stable sort's exactly.
     """
-    index = np.flatnonzero(keep)
-    key = depth[index]
-    return _survivors_in_order(key, np.argsort(key), index)
+    keys, bits = _depth_keys(keep, depth.view(np.int64))
+    keys.sort()
+    return _order_from_keys(keys, bits, depth.view(np.int64))
 
 
 @njit(cache=True, error_model="numpy")
-def _survivors_in_order(key, order, index):
-    """index[order] with order sorted within each run of equal key[order] (positions ascending, as a
-    stable sort leaves them), in one pass."""
-    m = order.shape[0]
+def _ordered(b):
+    """The bits b of a float64 as an int64 in the same order as the floats (0.0 and -0.0 equal)."""
+    if b == np.int64(-0x8000000000000000):  # -0.0
+        return np.int64(0)
+    return b ^ np.int64(0x7FFFFFFFFFFFFFFF) if b < 0 else b
+
+
+@njit(cache=True, error_model="numpy")
+def _depth_keys(keep, depth_bits):
+    """Sort keys of the survivors (keep): the ordered depth with its lowest `bits` bits replaced by
+    the input index, and `bits` (enough for every index)."""
+    n = keep.shape[0]
+    bits = 1
+    while (1 << bits) < n:
+        bits += 1
+    keys = np.empty(np.count_nonzero(keep), dtype=np.int64)
+    j = 0
+    for i in range(n):
+        if keep[i]:
+            keys[j] = ((_ordered(depth_bits[i]) >> bits) << bits) | i
+            j += 1
+    return keys, bits
+
+
+@njit(cache=True, error_model="numpy")
+def _order_from_keys(keys, bits, depth_bits):
+    """The input indices of sorted keys, each run of keys equal but for the index bits put in the
+    order of the full depths, ties by index (insertion sort: such runs are a few keys at most)."""
+    m = keys.shape[0]
     out = np.empty(m, dtype=np.int64)
+    index_mask = (np.int64(1) << bits) - 1
+    for j in range(m):
+        out[j] = keys[j] & index_mask
     j = 0
     while j < m:
-        first = key[order[j]]
         e = j + 1
-        while e < m and key[order[e]] == first:
+        while e < m and keys[e] >> bits == keys[j] >> bits:
             e += 1
-        if e - j > 1:
-            order[j:e] = np.sort(order[j:e])
-        for t in range(j, e):
-            out[t] = index[order[t]]
+        for t in range(j + 1, e):
+            i = out[t]
+            d = _ordered(depth_bits[i])
+            u = t
+            while u > j and (
+                _ordered(depth_bits[out[u - 1]]) > d or (_ordered(depth_bits[out[u - 1]]) == d and out[u - 1] > i)
+            ):
+                out[u] = out[u - 1]
+                u -= 1
+            out[u] = i
         j = e
     return out
 
