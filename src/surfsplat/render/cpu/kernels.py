@@ -723,7 +723,8 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts, rank):
     A counting sort in parallel: the survivors are cut into `parts` runs of consecutive ones (taken
     by threads as they come free); each run counts its entries per tile, a serial prefix sum gives
     every run its own cursor into each tile's list (after the runs in front of it), and each run
-    then writes its entries in depth order. The result does not depend on `parts`. Also sets
+    then writes its entries in depth order. The result does not depend on `parts`; parts = 1
+    runs on this thread alone (no parallel region: see `normalize_forward`). Also sets
     rank[order[m]] = m (each survivor's place in depth order; the caller fills rank with -1).
     """
     n = order.shape[0]
@@ -739,22 +740,11 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts, rank):
     while (1 << shift) < tile:
         shift += 1
     pow2 = (1 << shift) == tile
-    for j in prange(parts):
-        m1 = (j + 1) * n // parts
-        for m in range(j * n // parts, m1):
-            if m + _AHEAD < m1:
-                _prefetch(box, order[m + _AHEAD])
-            i = order[m]
-            rank[i] = m
-            if pow2:
-                tx0, tx1, ty0, ty1 = box[i, 0] >> shift, box[i, 1] >> shift, box[i, 2] >> shift, box[i, 3] >> shift
-            else:
-                tx0, tx1, ty0, ty1 = box[i, 0] // tile, box[i, 1] // tile, box[i, 2] // tile, box[i, 3] // tile
-            tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
-            for ty in range(ty0, ty1 + 1):
-                for tx in range(tx0, tx1 + 1):
-                    cursor[j, ty * tiles_x + tx] += 1
-            pair_start[m + 1] = (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+    if parts == 1:
+        _count_run(box, order, tile, tiles_x, shift, pow2, 0, 1, tiles, cursor, pair_start, rank)
+    else:
+        for j in prange(parts):
+            _count_run(box, order, tile, tiles_x, shift, pow2, j, parts, tiles, cursor, pair_start, rank)
     tile_start = np.empty(n_tiles + 1, dtype=np.int64)
     tile_start[0] = 0
     for t in range(n_tiles):
@@ -767,20 +757,52 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts, rank):
     tile_ids = np.empty(tile_start[n_tiles], dtype=np.int64)
     pair_of = np.empty(tile_start[n_tiles], dtype=np.int64)
     # Visiting survivors in depth order fills every tile's list front to back.
-    for j in prange(parts):
-        m1 = (j + 1) * n // parts
-        q = pair_start[j * n // parts]
-        for m in range(j * n // parts, m1):
-            i = order[m]
-            for ty in range(tiles[m, 2], tiles[m, 3] + 1):
-                for tx in range(tiles[m, 0], tiles[m, 1] + 1):
-                    t = ty * tiles_x + tx
-                    at = cursor[j, t]
-                    tile_ids[at] = i
-                    pair_of[q] = at
-                    q += 1
-                    cursor[j, t] = at + 1
+    if parts == 1:
+        _fill_run(order, tiles_x, 0, 1, tiles, cursor, pair_start, tile_ids, pair_of)
+    else:
+        for j in prange(parts):
+            _fill_run(order, tiles_x, j, parts, tiles, cursor, pair_start, tile_ids, pair_of)
     return tile_start, tile_ids, pair_start, pair_of
+
+
+@njit(cache=True, error_model="numpy")
+def _count_run(box, order, tile, tiles_x, shift, pow2, j, parts, tiles, cursor, pair_start, rank):
+    """`bin_tiles`' first pass over run j of `parts`: its entries per tile, each survivor's tile
+    range, entry count and rank."""
+    n = order.shape[0]
+    m1 = (j + 1) * n // parts
+    for m in range(j * n // parts, m1):
+        if m + _AHEAD < m1:
+            _prefetch(box, order[m + _AHEAD])
+        i = order[m]
+        rank[i] = m
+        if pow2:
+            tx0, tx1, ty0, ty1 = box[i, 0] >> shift, box[i, 1] >> shift, box[i, 2] >> shift, box[i, 3] >> shift
+        else:
+            tx0, tx1, ty0, ty1 = box[i, 0] // tile, box[i, 1] // tile, box[i, 2] // tile, box[i, 3] // tile
+        tiles[m, 0], tiles[m, 1], tiles[m, 2], tiles[m, 3] = tx0, tx1, ty0, ty1
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                cursor[j, ty * tiles_x + tx] += 1
+        pair_start[m + 1] = (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+
+
+@njit(cache=True, error_model="numpy")
+def _fill_run(order, tiles_x, j, parts, tiles, cursor, pair_start, tile_ids, pair_of):
+    """`bin_tiles`' second pass over run j of `parts`: its entries written at its own cursors."""
+    n = order.shape[0]
+    m1 = (j + 1) * n // parts
+    q = pair_start[j * n // parts]
+    for m in range(j * n // parts, m1):
+        i = order[m]
+        for ty in range(tiles[m, 2], tiles[m, 3] + 1):
+            for tx in range(tiles[m, 0], tiles[m, 1] + 1):
+                t = ty * tiles_x + tx
+                at = cursor[j, t]
+                tile_ids[at] = i
+                pair_of[q] = at
+                q += 1
+                cursor[j, t] = at + 1
 
 
 # ---------------------------------------------------------------------------------------------
