@@ -146,9 +146,10 @@ def _np_read(t: Tensor) -> np.ndarray:
     """A float32 or float64 tensor as it is (a view), any other float as float64.
 
     For the inputs that the projection kernels only ever meet with a float64 operand (means and SH
-    coefficients: camera transform, view direction, SH sums): numba promotes a float32 element to
-    float64 there, so reading the float32 array gives the results of a float64 copy bit for bit,
-    without the copy (the SH coefficients are most of the per-Gaussian data).
+    coefficients: camera transform, view direction, SH sums) or cast to float64 first (quaternions):
+    numba promotes a float32 element to float64 there, so reading the float32 array gives the
+    results of a float64 copy bit for bit, without the copy (the SH coefficients are most of the
+    per-Gaussian data).
     """
     return _np(t, np.float32 if t.dtype == torch.float32 else np.float64)
 
@@ -156,7 +157,7 @@ def _np_read(t: Tensor) -> np.ndarray:
 def _inputs(means, quats, scales, opacities, sh, covariances):
     return (
         _np_read(means),
-        _np64(quats),
+        _np_read(quats),
         _np64(scales),
         _np64(opacities),
         _np_read(sh),
@@ -432,7 +433,7 @@ class _Rasterize(torch.autograd.Function):
                 )
         g_quats = np.empty((n, 4))
         if wanted[1]:
-            kernels.quats_backward(q, g_rot, g_quats)
+            kernels.quats_backward(np.asarray(q, dtype=np.float64), g_rot, g_quats)  # its products in float64
 
         grads = (g_means, g_quats, g_scales, g_opac, g_sh, g_cov)
         return (

@@ -253,8 +253,9 @@ def _release_tile_range(p, radius, size):
 
 @njit(cache=True, error_model="numpy")
 def _quat_rotation(q, R):
-    """R [3, 3] = rotation of the normalized quaternion q = (w, x, y, z) (geometry/rotations.py)."""
-    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    """R [3, 3] = rotation of the normalized quaternion q = (w, x, y, z) (geometry/rotations.py),
+    in float64 whatever q's float type (a float32 q gives the bits of its float64 copy)."""
+    q0, q1, q2, q3 = float(q[0]), float(q[1]), float(q[2]), float(q[3])
     norm = max(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3), _QUAT_NORM_MIN)
     w, x, y, z = q0 / norm, q1 / norm, q2 / norm, q3 / norm
     R[0, 0], R[0, 1], R[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
