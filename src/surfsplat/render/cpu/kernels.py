@@ -601,9 +601,12 @@ def project(
             bin_box[i, 0], bin_box[i, 1] = _release_tile_range(cx - 0.5, radius, width)
             bin_box[i, 2], bin_box[i, 3] = _release_tile_range(cy - 0.5, radius, height)
             # Those tiles list it; inside them only the ellipse's box (a pixel wider, against
-            # rounding) is composited: the release support is whole tiles, mostly of alpha 0.
-            box[i, 0], box[i, 1] = _pixel_range(xmin - 1.0, xmax + 1.0, width)
-            box[i, 2], box[i, 3] = _pixel_range(ymin - 1.0, ymax + 1.0, height)
+            # rounding) is composited: the release support is whole tiles, mostly of alpha 0. The
+            # box is cut to those tiles too, as the compositing's own tiles may be larger.
+            x0, x1 = _pixel_range(xmin - 1.0, xmax + 1.0, width)
+            y0, y1 = _pixel_range(ymin - 1.0, ymax + 1.0, height)
+            box[i, 0], box[i, 1] = max(x0, bin_box[i, 0]), min(x1, bin_box[i, 1])
+            box[i, 2], box[i, 3] = max(y0, bin_box[i, 2]), min(y1, bin_box[i, 3])
         keep[i] = (
             z > near
             and z < far

@@ -13,7 +13,7 @@ Precision = Literal["auto", "float32", "float64"]
 
 @dataclass
 class CpuRenderSettings(RenderConventions):
-    tile_size: int = 16  # tile edge in pixels: the unit of parallel work and of early termination
+    tile_size: int = 32  # tile edge in pixels: the unit of parallel work and of early termination
     near_plane: float = 0.01  # Gaussians closer than this (camera z) are culled, as in the torch backend
     far_plane: float = 1e10  # Gaussians farther than this are culled
     parallel_chunk: int = 4  # tiles a thread takes at a time (small chunks balance uneven tiles)
