@@ -988,7 +988,8 @@ def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, 
                 total += _take(state, last, (b, lo, b2, hi), a, d, ok, f, g[GEOM_DEPTH], position, distortion)
     else:
         # Whole rows, a column of chunks at a time (each pixel is one step's alone, so their order
-        # is free): what the step computes from the columns alone is then computed once a column.
+        # is free), so that what the step computes from the columns alone can be hoisted out of the
+        # loop over rows.
         for ch in range(ch0, ch1 + 1):
             for r in range(r0, r1 + 1):
                 b, _, _, _, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, False)
