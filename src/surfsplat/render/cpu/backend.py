@@ -368,9 +368,8 @@ class _Rasterize(torch.autograd.Function):
             distortion = np.stack((_np(g_distortion, ft)[:, 0], ctx.moments[:, 1]), axis=1)
         g_opac, g_sh, g_cov = np.zeros(n), np.zeros(shc.shape, dtype=sh_dtype), np.zeros(cov.shape)
         scratch, cov_scratch = np.empty((threads, _SCRATCH)), np.empty((threads, 2, 3, 3))
-        rows = _held_empty(
-            "rows", (n, kernels.GRAD_SIZE), np.float64
-        )  # each survivor's compositing gradient, per camera
+        # each survivor's compositing gradient, per camera
+        rows = _held_empty("rows", (n, kernels.GRAD_SIZE), np.float64)
         wanted = ctx.needs_input_grad
         geometry = wanted[0] or wanted[1]  # means or rotations
         shape = wanted[2] or wanted[5]  # scales or explicit covariances

@@ -654,9 +654,10 @@ def depth_order(keep, depth):
     orders by depth and then by index. Depths equal in all but those lowest bits are put in exact
     order afterwards (`_order_from_keys`): the result is the stable sort's exactly.
     """
-    keys, bits = _depth_keys(keep, depth.view(np.int64))
+    depth_bits = depth.view(np.int64)
+    keys, bits = _depth_keys(keep, depth_bits)
     keys.sort()
-    return _order_from_keys(keys, bits, depth.view(np.int64))
+    return _order_from_keys(keys, bits, depth_bits)
 
 
 @njit(cache=True, error_model="numpy")
@@ -700,11 +701,9 @@ def _order_from_keys(keys, bits, depth_bits):
             e += 1
         for t in range(j + 1, e):
             i = out[t]
-            d = _ordered(depth_bits[i])
+            key = (_ordered(depth_bits[i]), i)
             u = t
-            while u > j and (
-                _ordered(depth_bits[out[u - 1]]) > d or (_ordered(depth_bits[out[u - 1]]) == d and out[u - 1] > i)
-            ):
+            while u > j and (_ordered(depth_bits[out[u - 1]]), out[u - 1]) > key:
                 out[u] = out[u - 1]
                 u -= 1
             out[u] = i
@@ -770,12 +769,17 @@ def bin_tiles(box, order, tile, tiles_x, tiles_y, parts, rank):
 
 
 @njit(cache=True, error_model="numpy")
+def _run_bounds(j, parts, n):
+    """First and end of run j when n items are cut into `parts` runs of consecutive ones."""
+    return j * n // parts, (j + 1) * n // parts
+
+
+@njit(cache=True, error_model="numpy")
 def _count_run(box, order, tile, tiles_x, shift, pow2, j, parts, tiles, cursor, pair_start, rank):
     """`bin_tiles`' first pass over run j of `parts`: its entries per tile, each survivor's tile
     range, entry count and rank."""
-    n = order.shape[0]
-    m1 = (j + 1) * n // parts
-    for m in range(j * n // parts, m1):
+    m0, m1 = _run_bounds(j, parts, order.shape[0])
+    for m in range(m0, m1):
         if m + _AHEAD < m1:
             _prefetch(box, order[m + _AHEAD])
         i = order[m]
@@ -794,10 +798,9 @@ def _count_run(box, order, tile, tiles_x, shift, pow2, j, parts, tiles, cursor, 
 @njit(cache=True, error_model="numpy")
 def _fill_run(order, tiles_x, j, parts, tiles, cursor, pair_start, tile_ids, pair_of):
     """`bin_tiles`' second pass over run j of `parts`: its entries written at its own cursors."""
-    n = order.shape[0]
-    m1 = (j + 1) * n // parts
-    q = pair_start[j * n // parts]
-    for m in range(j * n // parts, m1):
+    m0, m1 = _run_bounds(j, parts, order.shape[0])
+    q = pair_start[m0]
+    for m in range(m0, m1):
         i = order[m]
         for ty in range(tiles[m, 2], tiles[m, 3] + 1):
             for tx in range(tiles[m, 0], tiles[m, 1] + 1):
@@ -931,8 +934,8 @@ def _alpha(surfel, g, px, py, inside):
     if surfel:
         ey = py - g[GEOM_LP + 1]
         dx = px - g[GEOM_CX]
-        # Terms in px alone first: they are the same on every row of a column of steps, where the
-        # compiler computes them once (`_blend`).
+        # Terms in px alone first: they are the same on every row of a column of steps, so the
+        # compiler can compute them once a column (`_blend`).
         hx = fma(dy, g[GEOM_C], fma(dx, g[GEOM_B], g[GEOM_A]))
         hy = fma(dy, g[GEOM_C + 1], fma(dx, g[GEOM_B + 1], g[GEOM_A + 1]))
         hz = fma(dy, g[GEOM_C + 2], fma(dx, g[GEOM_B + 2], g[GEOM_A + 2]))
@@ -1794,7 +1797,7 @@ def normalize_forward(color, alpha, depth, normal, threshold, background, out_co
         _normalize_forward_rows(*views, threshold, background, height, 0, rows)
     else:
         for j in prange(parts):
-            _normalize_forward_rows(*views, threshold, background, height, j * rows // parts, (j + 1) * rows // parts)
+            _normalize_forward_rows(*views, threshold, background, height, *_run_bounds(j, parts, rows))
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
@@ -1863,7 +1866,7 @@ def normalize_backward(
         _normalize_backward_rows(*views, threshold, background, height, 0, rows)
     else:
         for j in prange(parts):
-            _normalize_backward_rows(*views, threshold, background, height, j * rows // parts, (j + 1) * rows // parts)
+            _normalize_backward_rows(*views, threshold, background, height, *_run_bounds(j, parts, rows))
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")

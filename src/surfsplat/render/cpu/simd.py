@@ -90,6 +90,19 @@ def _check_rows(array):
         raise TypingError(f"simd loads and stores take C-contiguous 2D arrays, not {array}")
 
 
+def _load_lanes(context, builder, dtype, pointer, lanes):
+    """`lanes` consecutive elements of dtype at pointer as one LLVM vector (aligned as one element)."""
+    vector_type = ir.VectorType(context.get_value_type(dtype), lanes)
+    align = context.get_abi_sizeof(context.get_value_type(dtype))
+    return builder.load(builder.bitcast(pointer, vector_type.as_pointer()), align=align)
+
+
+def _store_lanes(context, builder, dtype, pointer, value):
+    """The inverse of `_load_lanes`: the LLVM vector value to consecutive elements at pointer."""
+    align = context.get_abi_sizeof(context.get_value_type(dtype))
+    builder.store(value, builder.bitcast(pointer, value.type.as_pointer()), align=align)
+
+
 @intrinsic
 def load(typingctx, array, row, col):
     """array[row, col:col + LANES] as one Vec (no bounds check)."""
@@ -97,10 +110,8 @@ def load(typingctx, array, row, col):
     vec = Vec(array.dtype)
 
     def codegen(context, builder, signature, args):
-        vector_type = _vector_type(context, array.dtype)
         pointer = _pointer(context, builder, array, args[0], args[1], args[2])
-        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
-        return builder.load(builder.bitcast(pointer, vector_type.as_pointer()), align=element_bytes)
+        return _load_lanes(context, builder, array.dtype, pointer, LANES)
 
     return vec(array, row, col), codegen
 
@@ -113,10 +124,8 @@ def store(typingctx, array, row, col, value):
         raise TypingError(f"cannot store {value} into {array}")
 
     def codegen(context, builder, signature, args):
-        vector_type = _vector_type(context, array.dtype)
         pointer = _pointer(context, builder, array, args[0], args[1], args[2])
-        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
-        builder.store(args[3], builder.bitcast(pointer, vector_type.as_pointer()), align=element_bytes)
+        _store_lanes(context, builder, array.dtype, pointer, args[3])
         return context.get_dummy_value()
 
     return types.void(array, row, col, value), codegen
@@ -403,12 +412,9 @@ def load_at(typingctx, array, at, col):
     def codegen(context, builder, signature, args):
         col = context.cast(builder, args[2], signature.args[2], signature.args[1].dtype)
         pointers = _at_pointers(context, builder, array, args[0], signature.args[1], args[1], col)
-        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
         if len(pointers) == 1:
-            vector_type = _vector_type(context, array.dtype)
-            return builder.load(builder.bitcast(pointers[0], vector_type.as_pointer()), align=element_bytes)
-        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
-        halves = [builder.load(builder.bitcast(p, half_type.as_pointer()), align=element_bytes) for p in pointers]
+            return _load_lanes(context, builder, array.dtype, pointers[0], LANES)
+        halves = [_load_lanes(context, builder, array.dtype, p, LANES // 2) for p in pointers]
         both = ir.Constant(ir.VectorType(ir.IntType(32), LANES), list(range(LANES)))
         return builder.shuffle_vector(halves[0], halves[1], both)
 
@@ -426,17 +432,14 @@ def store_at(typingctx, array, at, col, value):
     def codegen(context, builder, signature, args):
         col = context.cast(builder, args[2], signature.args[2], signature.args[1].dtype)
         pointers = _at_pointers(context, builder, array, args[0], signature.args[1], args[1], col)
-        element_bytes = context.get_abi_sizeof(context.get_value_type(array.dtype))
         if len(pointers) == 1:
-            vector_type = _vector_type(context, array.dtype)
-            builder.store(args[3], builder.bitcast(pointers[0], vector_type.as_pointer()), align=element_bytes)
+            _store_lanes(context, builder, array.dtype, pointers[0], args[3])
             return context.get_dummy_value()
-        half_type = ir.VectorType(context.get_value_type(array.dtype), LANES // 2)
         i32 = ir.IntType(32)
         for k, pointer in enumerate(pointers):
             lanes = ir.Constant(ir.VectorType(i32, LANES // 2), list(range(k * LANES // 2, (k + 1) * LANES // 2)))
             part = builder.shuffle_vector(args[3], ir.Constant(args[3].type, ir.Undefined), lanes)
-            builder.store(part, builder.bitcast(pointer, half_type.as_pointer()), align=element_bytes)
+            _store_lanes(context, builder, array.dtype, pointer, part)
         return context.get_dummy_value()
 
     return types.void(array, at, col, value), codegen
