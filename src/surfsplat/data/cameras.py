@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.cameras import Cameras
+from ..geometry.lens import Lens
 from ..geometry.rotations import quat_to_matrix
 from ..utils.checks import SurfSplatInputError, read_json
 
@@ -34,6 +35,9 @@ class CameraSet:
     names: list[str]
     near: float | None = None  # smallest near bound of the views, where the source gives one
     far: float | None = None  # largest far bound
+    # the lens of each view as the source states it (None: the views are pinhole, K says it all);
+    # a reader undistorts such views to the pinhole K before any stage after it sees a pixel
+    lenses: list[Lens] | None = None
 
     def select(self, wanted: list[str], source: str) -> CameraSet:
         """The cameras of the named images, in that order (matched by file name or stem)."""
@@ -57,6 +61,7 @@ class CameraSet:
             [self.names[i] for i in picked],
             self.near,
             self.far,
+            None if self.lenses is None else [self.lenses[i] for i in picked],
         )
 
     def resized(self, width: int, height: int, source: str) -> Cameras:
