@@ -161,7 +161,7 @@ def test_only_the_chosen_parameters_move_and_the_sh_degree_rises_during_the_fit(
     )
     assert torch.equal(fitted.means, start.means) and torch.equal(fitted.quats, start.quats)
     assert torch.equal(fitted.scales, start.scales) and not torch.equal(fitted.sh, start.sh)
-    plan = OptimizeConfig(steps=90, sh_degree_share=1 / 30).plan(1.0, views=3)
+    plan = OptimizeConfig(steps=90, sh_degree_share=1 / 30).plan(1.0, views=3, pixels=SIZE * SIZE)
     assert plan.sh_degree_share == pytest.approx(1 / 30)  # as 3DGS's 1,000 of 30,000 steps
     assert plan.rates["sh_rest"] == pytest.approx(plan.rates["sh_dc"] / 20)
     assert plan.means_final_rate == pytest.approx(plan.rates["means"] / 100)
@@ -334,7 +334,7 @@ def test_the_distortion_term_gathers_the_surfels_a_ray_meets_into_one_layer():
     plain, _ = optimize_on_views(start, cameras, photos, SIZE, SIZE, _from_network(steps=40, views_per_step=2))
     config = _from_network(steps=40, views_per_step=2, distortion_weight=10.0, distortion_from=0.0)
     gathered, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, config)
-    assert stats["kept"] == 1.0 and config.plan(1.0, 2).distortion_weight == 10.0
+    assert stats["kept"] == 1.0 and config.plan(1.0, 2, SIZE * SIZE).distortion_weight == 10.0
     assert spread(gathered) < 0.7 * spread(plain), (spread(gathered), spread(plain), spread(start))
 
 
