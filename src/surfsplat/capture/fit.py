@@ -32,6 +32,7 @@ from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from ..utils.heap import reuse_freed_memory
+from .adam import SelectiveAdam, visible_rows
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
 
@@ -79,6 +80,8 @@ class FitPlan:
     patience: int | None = None  # steps per window of the early stop (None: every step runs)
     min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
     extra: dict = field(default_factory=dict)  # figures the plan's owner adds to the stats
+    # "selective": a step's Adam updates only the rows of the surfels its views saw (`adam.SelectiveAdam`)
+    adam: Literal["dense", "selective"] = "dense"
 
     def __post_init__(self) -> None:
         unknown = set(self.rates) - set(TENSORS)
@@ -160,7 +163,7 @@ def fit_on_views(
         return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
 
     free = _Free(g0, plan)
-    optimizer = adam(free.groups(), g0.means.device)
+    optimizer = adam(free.groups(), g0.means.device, selective=plan.adam == "selective")
     densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
@@ -227,7 +230,10 @@ def fit_on_views(
             if densify is not None:
                 means = free.tensors["means"]
                 densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
-            optimizer.step()
+            if plan.adam == "selective":
+                optimizer.step(visible_rows(list(free.tensors.values())))
+            else:
+                optimizer.step()
             pending.append(loss.detach())
             if progress:
                 errors.append((out.color.detach() - fit_images[which]).square().mean())
@@ -296,10 +302,12 @@ def step_threads(device: torch.device) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def adam(groups: list[dict], device: torch.device) -> torch.optim.Adam:
+def adam(groups: list[dict], device: torch.device, selective: bool = False) -> torch.optim.Optimizer:
     """The fit's Adam: on the CPU torch's fused step, one pass over each tensor (the default
     for-each step makes some ten whole-tensor passes, each a parallel region; it took 7x longer at
-    100k surfels beside another busy process)."""
+    100k surfels beside another busy process); `selective`: `adam.SelectiveAdam`."""
+    if selective:
+        return SelectiveAdam(groups)
     return torch.optim.Adam(groups, fused=True if device.type == "cpu" else None)
 
 

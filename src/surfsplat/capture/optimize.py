@@ -102,6 +102,9 @@ class OptimizeConfig:
     prunings: int = 0  # times faint surfels are pruned, evenly over the fit, besides the densification's (0: never)
     prune_opacity: float = 0.005  # ... those below this opacity (3DGS's min_opacity)
     seed: int = 0  # which views each step renders, the splits' samples
+    # "selective": each step's Adam updates only the surfels its view saw (Taming 3DGS, gsplat's
+    # SelectiveAdam; `adam.py`); "dense" (torch's fused Adam) measured faster on the CPU (docs/optimize.md)
+    adam: Literal["dense", "selective"] = "dense"
     # forced alpha blending of the fitted scene (SurfSplat's tau_alpha), None for plain 2DGS compositing,
     # or "auto": plain from COLMAP's points, as the per-scene methods fit (fern at 184x248, 1,000 steps:
     # held out 23.69 dB plain, 22.86 dB with tau_alpha 0.001), and the network's own from its surfels,
@@ -162,6 +165,8 @@ class OptimizeConfig:
             raise SurfSplatInputError(
                 f"optimize.alpha_threshold: expected a threshold in (0, 1] or None, got {self.alpha_threshold}"
             )
+        if self.adam not in ("dense", "selective"):
+            raise SurfSplatInputError(f"optimize.adam: expected 'dense' or 'selective', got {self.adam!r}")
         if self.prunings < 0:
             raise SurfSplatInputError(f"optimize.prunings: expected >= 0, got {self.prunings}")
         if not 0 <= self.prune_opacity < 1:
@@ -224,6 +229,7 @@ class OptimizeConfig:
             densify=self.densify,
             extent=extent,
             seconds=self.seconds,
+            adam=self.adam,
         )
 
 
