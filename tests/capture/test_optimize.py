@@ -358,3 +358,17 @@ def test_optimizing_a_saved_reconstruction_scores_its_held_out_views_again(five_
     scene, photos = load_reconstruction(tmp_path / "first")
     assert scene.holdout.names == ["v0.png", "v4.png"] and len(photos) == len(scene.names) == 3
     assert not set(scene.names) & set(scene.holdout.names)  # the fit is given the context photos only
+
+
+def test_the_default_budget_scales_with_the_views_and_their_pixels():
+    config = OptimizeConfig()
+    fern, dtu, clip = config.steps_for(17, 368 * 496), config.steps_for(10, 288 * 400), config.steps_for(7, 288 * 400)
+    assert (fern, dtu, clip) == (3000, 1500, 1050)  # docs/optimize.md, "The budget"
+    # proportional to views x pixels between the floor and the ceiling
+    assert config.steps_for(14, 288 * 400) == 2 * clip and config.steps_for(7, 2 * 288 * 400) == 2 * clip
+    assert config.steps_for(3, 64 * 64) == 1000 and config.steps_for(100, 1920 * 1080) == 3000
+    assert config.steps_for(2, 288 * 400) == 0 and not config.runs_for(2) and config.runs_for(3)
+    assert OptimizeConfig(steps=7).steps_for(2, 1) == 7 and OptimizeConfig(steps=0).steps_for(9, 10**6) == 0
+    assert not OptimizeConfig(steps=0).runs_for(9) and OptimizeConfig(steps=4).runs_for(2)
+    assert OptimizeConfig(seconds=20.0).steps_for(9, 1) == 1_000_000  # the time budget ends the fit
+    assert config.plan(1.0, 10, 288 * 400).steps == 1500

@@ -46,7 +46,7 @@ NETWORK_NORMAL_WEIGHT = 0.05  # the depth-normal term's weight from the network'
 # The fit's length where none is given: one step per VIEW_PIXELS_PER_STEP pixels of the context views
 # (their number times the working size's pixels), between MIN_STEPS and MAX_STEPS (`steps_for`;
 # the curves it comes from are in docs/optimize.md, "The budget").
-VIEW_PIXELS_PER_STEP = 1000
+VIEW_PIXELS_PER_STEP = 768
 MIN_STEPS = 1000
 MAX_STEPS = 3000
 
@@ -181,13 +181,17 @@ class OptimizeConfig:
     def steps_for(self, views: int, pixels: int) -> int:
         """The steps the fit of `views` context views of `pixels` pixels each runs at most (0: none):
         `steps` where given; else with a time budget a bound it never reaches, and without one, for
-        three views or more, one step per VIEW_PIXELS_PER_STEP of their pixels, between MIN_STEPS and
-        MAX_STEPS. Measured (docs/optimize.md, "The budget"): LLFF fern's 17 views at 368x496 (3.1
-        million view-pixels) still gained 0.3 dB held out from step 2,100 to 3,000, so it keeps
-        MAX_STEPS; DTU scan 24's 10 views at 288x400 (1.15 million) scored within the spread of its
-        seeds at 1,000 to 2,000 steps as at 3,000 (the held-out curves of `benchmarks/optimize.py`), in
-        a third to a half of the seconds; below MIN_STEPS the densification (a quarter to half of the
-        fit, every 100 steps) has too few rounds to grow the surfels."""
+        three views or more, one step per VIEW_PIXELS_PER_STEP of their pixels (views x pixels / 768),
+        between MIN_STEPS and MAX_STEPS: LLFF fern's 17 views at 368x496 -> 3,000 (the ceiling), DTU
+        scan 24's 10 views at 288x400 -> 1,500, a 7-view clip at 288x400 -> 1,050.
+
+        From the held-out curves of `benchmarks/optimize.py` (docs/optimize.md, "The budget"): fern
+        still gained 0.3 dB held out from step 2,100 to 3,000 of its fit (24.09 -> 24.39 dB), so it
+        keeps 3,000; DTU scan 24 scored 19.57 / 20.20 / 20.54 dB at 1,000 / 1,500 / 2,000 steps
+        (fits of 31, 31 and 52 s on a busy machine) against 19.27 dB (the benchmark's run) and 20.25 to
+        21.87 dB (four seeds end to end) at 3,000 (fits of 267 s alone): 1,500 is inside that spread
+        at an eighth of the time; 1,000 (the floor) is 0.6 dB below 1,500. Below the floor the
+        densification (a quarter to half of the fit, every 100 steps) has fewer than three rounds."""
         if self.steps is not None or not self.runs_for(views):
             return self.steps or 0
         if self.seconds is not None:
