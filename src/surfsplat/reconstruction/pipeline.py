@@ -12,7 +12,10 @@ Steps:
    video's chosen frames, and each view with the views 1, 2, 4, ... ahead above that).
 3. the network: every `holdout_every`-th view is kept out (to look at the scene from there); the
    others are split into context sets (`surfsplat.capture.context_sets`), one forward pass each,
-   with the photos read and resized for that pass only.
+   with the photos read and resized for that pass only. Where the optimizer runs, its start is
+   decided first from the context photos (`surfsplat.capture.starts.choose_start`): a start of
+   COLMAP's points ("points", and "auto" where COLMAP finds enough) needs no network, so the model
+   is not loaded and steps 3 and 4 do not run (`Scene.network` says so).
 4. fusion: one pass is the scene as the model made it (one surfel per pixel); several are fused
    into one scene as they stream by (`surfsplat.capture.SurfelFusion`), optionally each compacted
    first (`compact`), so memory holds the fused surfels and one pass.
@@ -181,21 +184,24 @@ def reconstruct(
         return stack.clamp(0, 1).to(device), K_net.to(device)
 
     # ---- the optimizer's start, decided from the context photos before any pass
-    choice = None
+    choice, context_images = None, None
     if may_skip:
         from ..capture.starts import choose_start
 
         tick = time.perf_counter()
-        images_c, K_c = network_views(context)
-        choice = choose_start(capture.optimize.start, images_c, Cameras(ctx_c2w.to(device, torch.float32), K_c))
+        context_images, K_c = network_views(context)
+        cameras_c = Cameras(ctx_c2w.to(device, torch.float32), K_c)
+        choice = choose_start(capture.optimize.start, context_images, cameras_c)
         seconds["start"] = time.perf_counter() - tick
     skipped = choice is not None and not choice.needs_network
     if skipped:
-        built = _without_network(capture, choice, network_views, context, ctx_c2w, device)
+        built = _without_network(capture.optimize, choice, context_images, cameras_c)
     else:
         if model is None:  # "auto" found too few points: the network's surfels start
             model, label = _load_for_inference(checkpoint, preset, trust_pickle, device, compile)
-            shape = _working_shape(views, size, max_working_size, _size_multiple(model))
+            resized = _working_shape(views, size, max_working_size, _size_multiple(model))
+            context_images = None if resized != shape else context_images
+            shape = resized
         built = _network_passes(
             model, label, capture, views, context, ctx_c2w, c2w, shape, network_views, near, far, compact,
             precision, compile, progress, optimizing, seconds, device,
@@ -239,7 +245,8 @@ def reconstruct(
     if optimizing:  # scores the held-out views before and after it
         from .scene_fit import optimize_scene
 
-        optimize_scene(scene, network_views(context)[0], capture.optimize, progress=progress, choice=choice)
+        images_c = context_images if context_images is not None else network_views(context)[0]
+        optimize_scene(scene, images_c, capture.optimize, progress=progress, choice=choice)
     elif holdout is not None:
         scene.score_holdout()
     seconds["total"] = time.perf_counter() - start
@@ -302,15 +309,12 @@ def _load_for_inference(checkpoint, preset, trust_pickle, device, compile):
     return model, label
 
 
-def _without_network(capture: CaptureOptions, choice, network_views, context, ctx_c2w, device) -> _Built:
+def _without_network(config: OptimizeConfig, choice, images: torch.Tensor, cameras: Cameras) -> _Built:
     """The optimizer's start of COLMAP's points as the scene before the fit: no pass, no fusion, no model.
     It renders as the fit from points does (surfels, plain compositing where `alpha_threshold` is "auto")."""
     from ..capture.starts import make_start
 
-    images_c, K_c = network_views(context)
-    cameras = Cameras(ctx_c2w.to(device, torch.float32), K_c)
-    config = capture.optimize
-    start, _ = make_start(config.start, None, images_c, cameras, config.sh_degree, choice)
+    start, _ = make_start(config.start, None, images, cameras, config.sh_degree, choice)
     threshold = None if config.alpha_threshold == "auto" else config.alpha_threshold
     logger.info(f"network: {NETWORK_SKIPPED}; {len(start):,} COLMAP points start the optimizer")
     return _Built(start, cameras, "surfel", threshold, "", [], "none")
