@@ -163,7 +163,8 @@ def fit_on_views(
         return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
 
     free = _Free(g0, plan)
-    optimizer = adam(free.groups(), g0.means.device, selective=plan.adam == "selective")
+    selective = plan.adam == "selective"
+    optimizer = SelectiveAdam(free.groups()) if selective else adam(free.groups(), g0.means.device)
     densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
@@ -230,7 +231,7 @@ def fit_on_views(
             if densify is not None:
                 means = free.tensors["means"]
                 densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
-            if plan.adam == "selective":
+            if selective:
                 optimizer.step(visible_rows(list(free.tensors.values())))
             else:
                 optimizer.step()
@@ -302,12 +303,10 @@ def step_threads(device: torch.device) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def adam(groups: list[dict], device: torch.device, selective: bool = False) -> torch.optim.Optimizer:
+def adam(groups: list[dict], device: torch.device) -> torch.optim.Adam:
     """The fit's Adam: on the CPU torch's fused step, one pass over each tensor (the default
     for-each step makes some ten whole-tensor passes, each a parallel region; it took 7x longer at
-    100k surfels beside another busy process); `selective`: `adam.SelectiveAdam`."""
-    if selective:
-        return SelectiveAdam(groups)
+    100k surfels beside another busy process). `FitPlan.adam` "selective" takes `adam.SelectiveAdam`."""
     return torch.optim.Adam(groups, fused=True if device.type == "cpu" else None)
 
 
