@@ -161,7 +161,7 @@ def test_only_the_chosen_parameters_move_and_the_sh_degree_rises_during_the_fit(
     )
     assert torch.equal(fitted.means, start.means) and torch.equal(fitted.quats, start.quats)
     assert torch.equal(fitted.scales, start.scales) and not torch.equal(fitted.sh, start.sh)
-    plan = OptimizeConfig(steps=90, sh_degree_share=1 / 30).plan(1.0, views=3)
+    plan = OptimizeConfig(steps=90, sh_degree_share=1 / 30).plan(1.0, views=3, pixels=SIZE * SIZE)
     assert plan.sh_degree_share == pytest.approx(1 / 30)  # as 3DGS's 1,000 of 30,000 steps
     assert plan.rates["sh_rest"] == pytest.approx(plan.rates["sh_dc"] / 20)
     assert plan.means_final_rate == pytest.approx(plan.rates["means"] / 100)
@@ -334,7 +334,7 @@ def test_the_distortion_term_gathers_the_surfels_a_ray_meets_into_one_layer():
     plain, _ = optimize_on_views(start, cameras, photos, SIZE, SIZE, _from_network(steps=40, views_per_step=2))
     config = _from_network(steps=40, views_per_step=2, distortion_weight=10.0, distortion_from=0.0)
     gathered, stats = optimize_on_views(start, cameras, photos, SIZE, SIZE, config)
-    assert stats["kept"] == 1.0 and config.plan(1.0, 2).distortion_weight == 10.0
+    assert stats["kept"] == 1.0 and config.plan(1.0, 2, SIZE * SIZE).distortion_weight == 10.0
     assert spread(gathered) < 0.7 * spread(plain), (spread(gathered), spread(plain), spread(start))
 
 
@@ -358,3 +358,17 @@ def test_optimizing_a_saved_reconstruction_scores_its_held_out_views_again(five_
     scene, photos = load_reconstruction(tmp_path / "first")
     assert scene.holdout.names == ["v0.png", "v4.png"] and len(photos) == len(scene.names) == 3
     assert not set(scene.names) & set(scene.holdout.names)  # the fit is given the context photos only
+
+
+def test_the_default_budget_scales_with_the_views_and_their_pixels():
+    config = OptimizeConfig()
+    fern, dtu, clip = config.steps_for(17, 368 * 496), config.steps_for(10, 288 * 400), config.steps_for(7, 288 * 400)
+    assert (fern, dtu, clip) == (3000, 1500, 1050)  # docs/optimize.md, "The budget"
+    # proportional to views x pixels between the floor and the ceiling
+    assert config.steps_for(14, 288 * 400) == 2 * clip and config.steps_for(7, 2 * 288 * 400) == 2 * clip
+    assert config.steps_for(3, 64 * 64) == 1000 and config.steps_for(100, 1920 * 1080) == 3000
+    assert config.steps_for(2, 288 * 400) == 0 and not config.runs_for(2) and config.runs_for(3)
+    assert OptimizeConfig(steps=7).steps_for(2, 1) == 7 and OptimizeConfig(steps=0).steps_for(9, 10**6) == 0
+    assert not OptimizeConfig(steps=0).runs_for(9) and OptimizeConfig(steps=4).runs_for(2)
+    assert OptimizeConfig(seconds=20.0).steps_for(9, 1) == 1_000_000  # the time budget ends the fit
+    assert config.plan(1.0, 10, 288 * 400).steps == 1500

@@ -11,6 +11,7 @@ import surfsplat
 from surfsplat.capture.starts import (
     Points,
     StartConfig,
+    choose_start,
     make_start,
     nearest_neighbour_scale,
     points_to_surfels,
@@ -123,3 +124,20 @@ def test_photos_that_share_nothing_give_a_clear_error(room):
         triangulate(noise, cameras)
     with pytest.raises(SurfSplatInputError, match="--optimize-start"):
         StartConfig(kind="colmap")
+
+
+def test_a_continued_start_is_the_given_surfels_as_they_are(monkeypatch):
+    """ "continue" (a saved fit) and "network" are decided without COLMAP; "continue" keeps every surfel."""
+    import surfsplat.capture.starts as starts
+
+    monkeypatch.setattr(starts, "triangulate", lambda *a, **k: pytest.fail("COLMAP ran for a start without points"))
+    K = torch.tensor([[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]])
+    surfels, cameras = _surfels(500), surfsplat.Cameras(torch.eye(4)[None], K)
+    images = torch.zeros(1, 3, 8, 8)
+    assert choose_start(StartConfig(kind="network"), images, cameras).needs_network
+    continued, figures = make_start(StartConfig(kind="continue", budget=100), surfels, images, cameras, sh_degree=1)
+    assert figures["start"] == "continue" and figures["start_surfels"] == 500  # the budget does not thin it
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        assert torch.equal(getattr(continued, name), getattr(surfels, name)), name
+    with pytest.raises(SurfSplatInputError, match="no saved surfels"):
+        make_start(StartConfig(kind="continue"), None, images, cameras)

@@ -32,6 +32,7 @@ from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from ..utils.heap import reuse_freed_memory
+from .adam import SelectiveAdam, visible_rows
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
 
@@ -79,6 +80,8 @@ class FitPlan:
     patience: int | None = None  # steps per window of the early stop (None: every step runs)
     min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
     extra: dict = field(default_factory=dict)  # figures the plan's owner adds to the stats
+    # "selective": a step's Adam updates only the rows of the surfels its views saw (`adam.SelectiveAdam`)
+    adam: Literal["dense", "selective"] = "dense"
 
     def __post_init__(self) -> None:
         unknown = set(self.rates) - set(TENSORS)
@@ -160,7 +163,8 @@ def fit_on_views(
         return g0, {"steps": 0, "mse_before": before, "mse_after": before, "kept": 1.0, **figures, "seconds": seconds}
 
     free = _Free(g0, plan)
-    optimizer = adam(free.groups(), g0.means.device)
+    selective = plan.adam == "selective"
+    optimizer = SelectiveAdam(free.groups()) if selective else adam(free.groups(), g0.means.device)
     densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
@@ -227,7 +231,10 @@ def fit_on_views(
             if densify is not None:
                 means = free.tensors["means"]
                 densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
-            optimizer.step()
+            if selective:
+                optimizer.step(visible_rows(list(free.tensors.values())))
+            else:
+                optimizer.step()
             pending.append(loss.detach())
             if progress:
                 errors.append((out.color.detach() - fit_images[which]).square().mean())
@@ -299,7 +306,7 @@ def step_threads(device: torch.device) -> Iterator[None]:
 def adam(groups: list[dict], device: torch.device) -> torch.optim.Adam:
     """The fit's Adam: on the CPU torch's fused step, one pass over each tensor (the default
     for-each step makes some ten whole-tensor passes, each a parallel region; it took 7x longer at
-    100k surfels beside another busy process)."""
+    100k surfels beside another busy process). `FitPlan.adam` "selective" takes `adam.SelectiveAdam`."""
     return torch.optim.Adam(groups, fused=True if device.type == "cpu" else None)
 
 

@@ -7,7 +7,8 @@ Its parts are modules of their own beside that loop, each named for what it is:
 
 * the start (`starts.py`): COLMAP's points triangulated from the context photos with the cameras held
   fixed (3DGS's start), the network's fused surfels thinned to a budget, or both; "auto" takes the
-  points and falls back to the network's surfels where COLMAP finds too few;
+  points and falls back to the network's surfels where COLMAP finds too few; "continue" takes the
+  given surfels as they are (a saved fit continued);
 * densification (`densify.py`): 3DGS's clone / split by the screen-space gradient, pruning by opacity
   and size, opacity resets, under a surfel budget;
 * the losses (`losses.py`): (1 - 0.2) L1 + 0.2 D-SSIM, 2DGS's depth-normal consistency and its depth
@@ -39,10 +40,15 @@ from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
-from .starts import StartConfig, make_start
+from .starts import StartChoice, StartConfig, make_start
 
 NETWORK_NORMAL_WEIGHT = 0.05  # the depth-normal term's weight from the network's surfels (2DGS's)
-DEFAULT_STEPS = 3000  # the fit's length where none is given (benchmarks/optimize.py, docs/optimize.md)
+# The fit's length where none is given: one step per VIEW_PIXELS_PER_STEP pixels of the context views
+# (their number times the working size's pixels), between MIN_STEPS and MAX_STEPS (`steps_for`;
+# the curves it comes from are in docs/optimize.md, "The budget").
+VIEW_PIXELS_PER_STEP = 768
+MIN_STEPS = 1000
+MAX_STEPS = 3000
 
 # OptimizeConfig.parameters names -> the fit's tensors (`fit.TENSORS`)
 PARAMETERS = {
@@ -61,8 +67,8 @@ class OptimizeConfig:
     The defaults come from `benchmarks/optimize.py` (docs/optimize.md has its curves).
     """
 
-    # Adam steps at most (0: no optimization; None: DEFAULT_STEPS where there are more than two context
-    # views, none for two, whose pass the network alone makes best)
+    # Adam steps at most (0: no optimization; None: `steps_for` the context views and their pixels where
+    # there are more than two context views, none for two, whose pass the network alone makes best)
     steps: int | None = None
     seconds: float | None = None  # a time budget: the fit runs this long (at most `steps`), its schedules follow it
     start: StartConfig = field(default_factory=StartConfig)  # the network's surfels, SfM points, or both
@@ -96,6 +102,10 @@ class OptimizeConfig:
     prunings: int = 0  # times faint surfels are pruned, evenly over the fit, besides the densification's (0: never)
     prune_opacity: float = 0.005  # ... those below this opacity (3DGS's min_opacity)
     seed: int = 0  # which views each step renders, the splits' samples
+    # "selective": each step's Adam updates only the surfels its view saw (Taming 3DGS, gsplat's
+    # SelectiveAdam; `adam.py`); "dense", torch's fused Adam: a 300-step fern fit took 1.16x its seconds
+    # with "selective" for 0.07 dB less held out (docs/optimize.md)
+    adam: Literal["dense", "selective"] = "dense"
     # forced alpha blending of the fitted scene (SurfSplat's tau_alpha), None for plain 2DGS compositing,
     # or "auto": plain from COLMAP's points, as the per-scene methods fit (fern at 184x248, 1,000 steps:
     # held out 23.69 dB plain, 22.86 dB with tau_alpha 0.001), and the network's own from its surfels,
@@ -156,6 +166,8 @@ class OptimizeConfig:
             raise SurfSplatInputError(
                 f"optimize.alpha_threshold: expected a threshold in (0, 1] or None, got {self.alpha_threshold}"
             )
+        if self.adam not in ("dense", "selective"):
+            raise SurfSplatInputError(f"optimize.adam: expected 'dense' or 'selective', got {self.adam!r}")
         if self.prunings < 0:
             raise SurfSplatInputError(f"optimize.prunings: expected >= 0, got {self.prunings}")
         if not 0 <= self.prune_opacity < 1:
@@ -163,17 +175,33 @@ class OptimizeConfig:
                 f"optimize.prune_opacity: expected an opacity in [0, 1), got {self.prune_opacity}"
             )
 
-    def steps_for(self, views: int) -> int:
-        """The steps the fit of `views` context views runs at most (0: none): `steps` where given; else
-        with a time budget a bound it never reaches, and without one DEFAULT_STEPS for three views or more."""
-        if self.steps is not None:
-            return self.steps
-        if views <= 2:
-            return 0
-        return 1_000_000 if self.seconds is not None else DEFAULT_STEPS
+    def runs_for(self, views: int) -> bool:
+        """Whether a fit of `views` context views runs at all (`steps_for` is positive, whatever the pixels)."""
+        return self.steps != 0 if self.steps is not None else views > 2
 
-    def plan(self, extent: float, views: int) -> FitPlan:
-        """The shared loop's plan for a scene of `extent` (3DGS's camera extent, scaling the position rate)."""
+    def steps_for(self, views: int, pixels: int) -> int:
+        """The steps the fit of `views` context views of `pixels` pixels each runs at most (0: none):
+        `steps` where given; else with a time budget a bound it never reaches, and without one, for
+        three views or more, one step per VIEW_PIXELS_PER_STEP of their pixels (views x pixels / 768),
+        between MIN_STEPS and MAX_STEPS: LLFF fern's 17 views at 368x496 -> 3,000 (the ceiling), DTU
+        scan 24's 10 views at 288x400 -> 1,500, a 7-view clip at 288x400 -> 1,050.
+
+        From the held-out curves of `benchmarks/optimize.py` (docs/optimize.md, "The budget"): fern
+        still gained 0.3 dB held out from step 2,100 to 3,000 of its fit (24.09 -> 24.39 dB), so it
+        keeps 3,000; DTU scan 24 scored 19.57 / 20.20 / 20.54 dB at 1,000 / 1,500 / 2,000 steps
+        (fits of 31, 31 and 52 s on a busy machine) against 19.27 dB (the benchmark's run) and 20.25 to
+        21.87 dB (four seeds end to end) at 3,000 (fits of 267 s alone): 1,500 is inside that spread
+        at an eighth of the time; 1,000 (the floor) is 0.6 dB below 1,500. Below the floor the
+        densification (a quarter to half of the fit, every 100 steps) has fewer than three rounds."""
+        if self.steps is not None or not self.runs_for(views):
+            return self.steps or 0
+        if self.seconds is not None:
+            return 1_000_000
+        return min(MAX_STEPS, max(MIN_STEPS, round(views * pixels / VIEW_PIXELS_PER_STEP)))
+
+    def plan(self, extent: float, views: int, pixels: int) -> FitPlan:
+        """The shared loop's plan for a scene of `extent` (3DGS's camera extent, scaling the position rate)
+        fitted to `views` context views of `pixels` pixels each."""
         base = {
             "means": self.means_lr * extent,
             "quats": self.quats_lr,
@@ -184,7 +212,7 @@ class OptimizeConfig:
         }
         fitted = {t for p in self.parameters for t in PARAMETERS[p]}
         rates = {k: r * self.lr_scale for k, r in base.items() if k in fitted}
-        steps = self.steps_for(views)
+        steps = self.steps_for(views, pixels)
         return FitPlan(
             name="optimize",
             steps=steps,
@@ -206,6 +234,7 @@ class OptimizeConfig:
             densify=self.densify,
             extent=extent,
             seconds=self.seconds,
+            adam=self.adam,
         )
 
 
@@ -218,7 +247,7 @@ def scene_extent(cameras: Cameras) -> float:
 
 
 def optimize_on_views(
-    gaussians: Gaussians | None,  # [N] unbatched: the network's surfels (None: none, for a start of points)
+    gaussians: Gaussians | None,  # [N] unbatched: the network's surfels or a saved fit's (None: none, for points)
     cameras: Cameras,  # [V] the context views, K in pixels of height x width
     images: Tensor,  # [V, 3, H, W] in [0, 1]
     width: int,
@@ -230,25 +259,38 @@ def optimize_on_views(
     backend: str = "auto",
     progress: bool = False,
     monitor=None,
+    choice: StartChoice | None = None,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels optimized on the photos and the fit's figures: those of the loop
     (`fit.fit_on_views`), the start's (`starts.make_start`: "start", "start_surfels", "points") and
-    "surfels_before" (the network's), "surfels_after", "extent".
+    "surfels_before" (the given ones), "surfels_after", "extent".
     `alpha_threshold`: the given surfels' forced-alpha threshold. The fit renders with the one
     `config.alpha_threshold` names, returned as stats["alpha_threshold"]: whatever renders the result
     should use it.
     `backend`: the renderer ("auto": the one `render` picks for the surfels' device); `monitor`: see
-    `fit.fit_on_views` (held-out scores along the fit)."""
+    `fit.fit_on_views` (held-out scores along the fit); `choice`: the start decided already
+    (`starts.choose_start`, as `reconstruct` does before the network's passes).
+
+    A start of "continue" goes on where a fit stopped: the given surfels as they are, at the full size
+    from the first step, the position rate at its final value throughout (3DGS's schedule past its end)
+    and no densification (the saved fit grew them); the forced-alpha threshold and the depth-normal
+    term are the given surfels' (`alpha_threshold`, and 2DGS's term where they render with one: the
+    network's, as from its start)."""
     config = config or OptimizeConfig()
     extent = scene_extent(cameras)
-    start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree)
+    start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree, choice)
     threshold = config.alpha_threshold
-    from_network = start_figures["start"] == "network"
+    kind = start_figures["start"]
+    keeps_threshold = kind == "network" or (kind == "continue" and alpha_threshold is not None)
     if threshold == "auto":
-        threshold = alpha_threshold if from_network else None
-    plan = config.plan(extent, len(cameras))
-    if config.normal_weight == "auto" and from_network:
+        threshold = alpha_threshold if kind in ("network", "continue") else None
+    plan = config.plan(extent, len(cameras), width * height)
+    if config.normal_weight == "auto" and keeps_threshold:
         plan = replace(plan, normal_weight=NETWORK_NORMAL_WEIGHT)
+    if kind == "continue":
+        final = plan.means_final_rate
+        rates = {**plan.rates, "means": final} if final is not None and "means" in plan.rates else plan.rates
+        plan = replace(plan, rates=rates, means_final_rate=None, levels=(), densify=None)
     fitted, stats = fit_on_views(
         start,
         cameras,
@@ -264,7 +306,7 @@ def optimize_on_views(
     )
     stats["alpha_threshold"] = threshold
     stats["normal_weight"] = plan.normal_weight
-    if not stats["kept"] and gaussians is not None:  # the fit raised its error: the network's surfels stay
+    if not stats["kept"] and gaussians is not None:  # the fit raised its error: the given surfels stay
         fitted, stats["alpha_threshold"] = gaussians, alpha_threshold
     stats.update(start_figures)
     stats.update(
@@ -285,6 +327,7 @@ def optimize_summary(stats: dict) -> str:
         "points": f"{int(stats.get('points', 0)):,} COLMAP points",
         "network": "the network's surfels",
         "both": f"{int(stats.get('points', 0)):,} COLMAP points and the network's surfels",
+        "continue": "the saved surfels (continued)",
     }.get(start, start)
     if stats.get("start_reason"):
         origin += f" ({stats['start_reason']})"

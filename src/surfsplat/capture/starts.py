@@ -22,6 +22,12 @@ reconstruction records which it used.
 * "both": the union of the two.
 * "auto" (the default): the points, unless COLMAP finds fewer than `min_points` (photos too small or
   too plain for SIFT), then the network's surfels; the figures say which and why.
+* "continue": the given surfels as they are, nothing thinned or grown (a saved fit continued: `surfsplat
+  optimize FOLDER`'s default).
+
+Which start a configuration makes is decided by `choose_start` from the photos alone (COLMAP's points
+need no network), so `reconstruct` decides before the network's passes and runs them only where the
+start uses their surfels.
 
 Why pycolmap and not our own matcher: COLMAP's SIFT, matching and multi-view triangulation (with
 its track merging, completion and reprojection filter) are what every per-scene method starts from.
@@ -48,16 +54,18 @@ from ..utils.checks import SurfSplatInputError
 
 logger = logging.getLogger(__name__)
 
-StartKind = Literal["auto", "network", "points", "both"]
-START_KINDS = ("auto", "network", "points", "both")
+StartKind = Literal["auto", "network", "points", "both", "continue"]
+START_KINDS = ("auto", "network", "points", "both", "continue")
+NETWORK_KINDS = ("network", "both")  # the starts made (in part) of the network's surfels
 
 
 @dataclass(frozen=True)
 class StartConfig:
     """The optimization's start."""
 
-    # "points" (COLMAP's triangulated points), "network", "both", or "auto": the points where COLMAP
-    # triangulates at least `min_points` of them, else the network's surfels (and the reason is recorded)
+    # "points" (COLMAP's triangulated points), "network", "both", "auto": the points where COLMAP
+    # triangulates at least `min_points` of them, else the network's surfels (and the reason is recorded),
+    # or "continue": the given surfels as they are (a saved fit continued)
     kind: StartKind = "auto"
     min_points: int = 100  # "auto": fewer points than this start from the network instead
     budget: int = 30_000  # "network"/"both": the network's surfels kept at most
@@ -272,43 +280,83 @@ def with_sh_degree(gaussians: Gaussians, degree: int) -> Gaussians:
     return Gaussians(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, sh)
 
 
+@dataclass
+class StartChoice:
+    """What a start is made of, decided before any surfel is: `choose_start`."""
+
+    kind: str  # "points", "network", "both" or "continue" ("auto" resolved)
+    points: Points | None = None  # COLMAP's points where the start uses them
+    reason: str | None = None  # why "auto" took the network's surfels (None: it did not)
+    seconds: float = 0.0  # the triangulation's
+
+    @property
+    def needs_network(self) -> bool:
+        """Whether the start is made (in part) of the network's surfels."""
+        return self.kind in NETWORK_KINDS
+
+    def figures(self) -> dict:
+        out: dict = {"start": self.kind}
+        if self.points is not None:
+            out["points"] = len(self.points.xyz)
+            out["points_seconds"] = self.points.seconds
+        if self.reason is not None:
+            out["start_reason"] = self.reason
+        return out
+
+
+def choose_start(
+    config: StartConfig,
+    images: Tensor,  # [V, 3, H, W] the context photos
+    cameras: Cameras,  # [V]
+    *,
+    network_available: bool = True,
+) -> StartChoice:
+    """The start `config` names, resolved from the photos alone: COLMAP's points are triangulated for
+    "points", "both" and "auto", and "auto" becomes "network" where they are too few (or none pass the
+    filters). Without network surfels to fall back on (`network_available` False) "auto" keeps the
+    points it found and raises where there are none."""
+    tick = time.perf_counter()
+    kind = config.kind
+    if kind in ("network", "continue"):
+        return StartChoice(kind)
+    try:
+        points = triangulate(images, cameras, config)
+    except SurfSplatInputError as error:
+        if kind != "auto" or not network_available:
+            raise
+        return StartChoice("network", reason=str(error), seconds=time.perf_counter() - tick)
+    if kind == "auto" and len(points.xyz) < config.min_points and network_available:
+        reason = f"COLMAP triangulated {len(points.xyz)} points, fewer than {config.min_points}"
+        return StartChoice("network", reason=reason, seconds=time.perf_counter() - tick)
+    return StartChoice("points" if kind == "auto" else kind, points, seconds=time.perf_counter() - tick)
+
+
 def make_start(
     config: StartConfig,
-    network: Gaussians | None,  # [N] the network's fused surfels (None where there are none)
+    network: Gaussians | None,  # [N] the network's fused surfels, or a saved fit's (None where there are none)
     images: Tensor,  # [V, 3, H, W] the context photos
     cameras: Cameras,  # [V]
     sh_degree: int = 3,
+    choice: StartChoice | None = None,  # decided already (`choose_start`); None: decided here
 ) -> tuple[Gaussians, dict]:
     """The start `config` names, with its figures {"start" (the kind used), "start_surfels", "points",
     "start_seconds", and "start_reason" where "auto" fell back to the network's surfels}."""
     tick = time.perf_counter()
-    kind = config.kind
-    parts, figures = [], {}
+    if choice is None:
+        choice = choose_start(config, images, cameras, network_available=network is not None)
+    parts, figures = [], choice.figures()
     device = images.device
-    if kind in ("points", "both", "auto"):
-        try:
-            points = triangulate(images, cameras, config)
-        except SurfSplatInputError as error:
-            if kind != "auto" or network is None:
-                raise
-            points, figures["start_reason"] = None, str(error)
-        if points is not None and kind == "auto" and len(points.xyz) < config.min_points and network is not None:
-            figures["start_reason"] = f"COLMAP triangulated {len(points.xyz)} points, fewer than {config.min_points}"
-            points = None
-        if points is not None:
-            parts.append(points_to_surfels(points, config.initial_opacity, sh_degree, config.seed).to(device))
-            figures["points"] = len(points.xyz)
-            figures["points_seconds"] = points.seconds
-        if kind == "auto":
-            kind = "points" if points is not None else "network"
-            if points is None:
-                logger.warning("optimize: starting from the network's surfels (%s)", figures["start_reason"])
-    figures["start"] = kind
-    if kind in ("network", "both"):
+    if choice.points is not None:
+        parts.append(points_to_surfels(choice.points, config.initial_opacity, sh_degree, config.seed).to(device))
+    if choice.reason is not None:
+        logger.warning("optimize: starting from the network's surfels (%s)", choice.reason)
+    if choice.kind in ("network", "both", "continue"):
         if network is None:
-            raise SurfSplatInputError(f"optimize start {config.kind!r}: there are no network surfels to start from")
-        parts.append(with_sh_degree(thin(network.detach(), config.budget, config.seed), sh_degree).to(device))
+            what = "saved" if choice.kind == "continue" else "network"
+            raise SurfSplatInputError(f"optimize start {config.kind!r}: there are no {what} surfels to start from")
+        given = network.detach() if choice.kind == "continue" else thin(network.detach(), config.budget, config.seed)
+        parts.append(with_sh_degree(given, sh_degree).to(device))
     start = parts[0] if len(parts) == 1 else Gaussians.cat([p.to(torch.float32) for p in parts])
     figures["start_surfels"] = len(start)
-    figures["start_seconds"] = time.perf_counter() - tick
+    figures["start_seconds"] = choice.seconds + time.perf_counter() - tick
     return start.to(torch.float32), figures

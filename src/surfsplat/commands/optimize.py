@@ -1,12 +1,17 @@
 """`surfsplat optimize OUTPUT_DIR`: the per-scene optimization of a reconstruction saved earlier.
 
     surfsplat reconstruct --images photos/ --cameras cams.json --out out/ --formats ply
-    surfsplat optimize out/ --optimize-seconds 300 --out out_optimized/
+    surfsplat optimize out/ --optimize-seconds 300 --out out_optimized/     # the saved surfels, continued
+    surfsplat optimize out/ --optimize-start points                          # restarted from COLMAP's points
 
 It reads what `reconstruct` saved (surfels.ply, cameras.json, reconstruction.json and the context
-photos it names), optimizes every surfel on those photos (`surfsplat.capture.OptimizeConfig`) and
-writes a reconstruction folder again, which `optimize`, `export` and `view` read like any other.
-This module only parses arguments: the work is `surfsplat.reconstruction.optimize_saved`.
+photos it names), optimizes every surfel on those photos (`surfsplat.capture.OptimizeConfig`),
+continuing from the saved surfels unless another start is asked for, and writes a reconstruction
+folder again, which `optimize`, `export` and `view` read like any other. The result is compared
+with its input (held-out PSNR where the reconstruction kept views out, else the context views'):
+one line says which is better, and a worse result says so in its reconstruction.json
+(`worse_than_input`); it never replaces its input. This module only parses arguments: the work is
+`surfsplat.reconstruction.optimize_saved`.
 """
 
 from __future__ import annotations
@@ -32,12 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-progress", action="store_true")
     add_device(parser, "the optimization, bake and renders")
-    add_optimize_arguments(parser)
+    add_optimize_arguments(parser, continuing=True)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..capture import optimize_summary
-    from ..reconstruction.scene_fit import optimize_saved
+    from ..reconstruction.scene_fit import optimize_saved, versus_input_line
 
     if not args.folder.is_dir():
         raise FileNotFoundError(f"{args.folder}: no such reconstruction folder")
@@ -55,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
     )
     print(optimize_summary(scene.optimize_stats))
+    print(versus_input_line(scene.optimize_stats))
     print(f"wrote {out}/:")
     print_written(written)
     return 0

@@ -106,11 +106,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_optimize_arguments(group)
 
 
-def add_optimize_arguments(group) -> None:
+def add_optimize_arguments(group, continuing: bool = False) -> None:
     """--optimize-steps, --optimize-seconds, --optimize-start and --optimize-scale: the per-scene
-    optimization (reconstruct, and optimize)."""
+    optimization (reconstruct, and optimize, whose default start continues the saved fit)."""
     from ..capture import OptimizeConfig
-    from ..capture.optimize import DEFAULT_STEPS
+    from ..capture.optimize import MAX_STEPS, MIN_STEPS, VIEW_PIXELS_PER_STEP
     from ..capture.starts import START_KINDS, StartConfig
 
     optimize = OptimizeConfig()
@@ -121,8 +121,9 @@ def add_optimize_arguments(group) -> None:
         metavar="N",
         help="steps of the per-scene optimization (every surfel's position, rotation, size, opacity and colour "
         "fitted to the context photos, the surfels grown and pruned as 3DGS does; it replaces the refinement); "
-        f"0: none (the network's pass and the refinement alone); default {DEFAULT_STEPS} for three context "
-        "views or more, none for two",
+        f"0: none (the network's pass and the refinement alone); default for three context views or more one "
+        f"step per {VIEW_PIXELS_PER_STEP:,} pixels of the context views (their number times the working size), "
+        f"{MIN_STEPS:,} to {MAX_STEPS:,}; none for two",
     )
     group.add_argument(
         "--optimize-seconds",
@@ -132,13 +133,23 @@ def add_optimize_arguments(group) -> None:
         help="a time budget for the optimization instead of a step count: it runs S seconds, its schedules "
         "(resolution, rates, growth) following the time spent",
     )
-    group.add_argument(
-        "--optimize-start",
-        choices=START_KINDS,
-        default=StartConfig().kind,
-        help="what the optimization starts from: points COLMAP triangulates from the photos, the network's "
-        f"surfels, or both (default {StartConfig().kind})",
-    )
+    if continuing:
+        group.add_argument(
+            "--optimize-start",
+            choices=START_KINDS,
+            default="continue",
+            help="continue from the saved surfels (the default), or restart from points COLMAP triangulates "
+            "from the photos, the saved surfels thinned as the network's are (network), both, or auto",
+        )
+    else:
+        group.add_argument(
+            "--optimize-start",
+            choices=tuple(k for k in START_KINDS if k != "continue"),
+            default=StartConfig().kind,
+            help="what the optimization starts from: points COLMAP triangulates from the photos, the network's "
+            f"surfels, or both (default {StartConfig().kind}: the points where COLMAP finds enough; the "
+            "network's passes run only where its surfels start the optimization)",
+        )
     group.add_argument(
         "--optimize-scale",
         type=float,
@@ -209,6 +220,8 @@ def run(args: argparse.Namespace) -> int:
         print("\n".join(scene.video.lines()))
     if scene.poses is not None:
         print("\n".join(scene.poses.lines()))
+    if scene.network != "ran":
+        print(f"network: {scene.network}")
     if scene.compact_stats:
         s = scene.compact_stats
         print(

@@ -12,7 +12,10 @@ Steps:
    video's chosen frames, and each view with the views 1, 2, 4, ... ahead above that).
 3. the network: every `holdout_every`-th view is kept out (to look at the scene from there); the
    others are split into context sets (`surfsplat.capture.context_sets`), one forward pass each,
-   with the photos read and resized for that pass only.
+   with the photos read and resized for that pass only. Where the optimizer runs, its start is
+   decided first from the context photos (`surfsplat.capture.starts.choose_start`): a start of
+   COLMAP's points ("points", and "auto" where COLMAP finds enough) needs no network, so the model
+   is not loaded and steps 3 and 4 do not run (`Scene.network` says so).
 4. fusion: one pass is the scene as the model made it (one surfel per pixel); several are fused
    into one scene as they stream by (`surfsplat.capture.SurfelFusion`), optionally each compacted
    first (`compact`), so memory holds the fused surfels and one pass.
@@ -123,7 +126,7 @@ def reconstruct(
     # ---- every input is checked here, before anything heavy runs
     capture = capture or CaptureOptions()
     device = _check_options(capture, device, size, near, far, compact, max_size, max_working_size)
-    from ..utils.precision import autocast, parse_precision
+    from ..utils.precision import parse_precision
 
     parse_precision(precision)
     if focal is not None and cameras is not None:
@@ -151,12 +154,136 @@ def reconstruct(
     c2w = given.cameras.c2w
     near, far = _depth_range(near, far, given)
 
-    # ---- the model
-    model, label = _load(checkpoint, preset, trust_pickle, device)
-    from ..model.loading import prepare_for_inference
+    # ---- held-out views and context sets
+    everything = list(range(len(views)))
+    k = capture.holdout_every
+    held = [i for i in everything if k is not None and i % k == 0]
+    context = [i for i in everything if i not in held]
+    if len(context) < 2:
+        raise SurfSplatInputError(
+            f"holdout_every (--holdout-every): {len(views)} views leave {len(context)} context views; 2 are needed"
+        )
+    ctx_c2w = c2w[context]
 
-    prepare_for_inference(model, compile=compile)
-    m = model.cfg.encoder.size_multiple
+    # ---- the model, where the optimizer's start may need its surfels: a start of COLMAP's points
+    # ("points", and "auto" where COLMAP finds enough of them) never runs it
+    optimizing = capture.optimize.runs_for(len(context))
+    may_skip = optimizing and capture.optimize.start.kind in ("points", "auto")
+    model = label = None
+    if not may_skip:
+        model, label = _load_for_inference(checkpoint, preset, trust_pickle, device, compile)
+    shape = _working_shape(views, size, max_working_size, _size_multiple(model))
+
+    def network_views(indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The photos [V, 3, H, W] at the network's size and their K [V, 3, 3], on the device: the
+        photos are read on the host, and every stage after the network runs where it ran."""
+        from ..data.transforms import rescale_and_crop
+
+        stack = torch.stack([views.image(i) for i in indices])
+        stack, K_net, _ = rescale_and_crop(stack, K[indices].to(torch.float32), shape)
+        return stack.clamp(0, 1).to(device), K_net.to(device)
+
+    # ---- the optimizer's start, decided from the context photos before any pass
+    choice, context_images = None, None
+    if may_skip:
+        from ..capture.starts import choose_start
+
+        tick = time.perf_counter()
+        context_images, K_c = network_views(context)
+        cameras_c = Cameras(ctx_c2w.to(device, torch.float32), K_c)
+        choice = choose_start(capture.optimize.start, context_images, cameras_c)
+        seconds["start"] = time.perf_counter() - tick
+    skipped = choice is not None and not choice.needs_network
+    if skipped:
+        built = _without_network(capture.optimize, choice, context_images, cameras_c)
+    else:
+        if model is None:  # "auto" found too few points: the network's surfels start
+            model, label = _load_for_inference(checkpoint, preset, trust_pickle, device, compile)
+            resized = _working_shape(views, size, max_working_size, _size_multiple(model))
+            context_images = None if resized != shape else context_images
+            shape = resized
+        built = _network_passes(
+            model, label, capture, views, context, ctx_c2w, c2w, shape, network_views, near, far, compact,
+            precision, compile, progress, optimizing, seconds, device,
+        )  # fmt: skip
+    holdout = None
+    if held:
+        images_h, K_h = network_views(held)
+        holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(device, torch.float32), K_h), images_h)
+        files = [views.sources[i] for i in held]
+        holdout.sources = [str(f) for f in files] if all(isinstance(f, (str, Path)) for f in files) else []
+    scene = Scene(
+        gaussians=built.gaussians,
+        cameras=built.cameras,
+        width=shape[1],
+        height=shape[0],
+        names=[views.names[i] for i in context],
+        near=near,
+        far=far,
+        mode=built.mode,
+        alpha_threshold=built.alpha_threshold,
+        model=built.label,
+        checkpoint=_checkpoint_name(checkpoint, label),
+        sources=[views.sources[i] for i in context],
+        cameras_source=source,
+        passes=[[views.names[context[j]] for j in members] for members in built.passes],
+        seconds=seconds,
+        compact_level=compact if not skipped else None,
+        compact_stats=built.compact_stats,
+        fusion_stats=built.fusion_stats,
+        refine_stats=built.refine_stats,
+        poses=poses,
+        pose_cameras=pose_cameras,
+        photos=photos,
+        video=views.video,
+        holdout=holdout,
+        precision=built.precision,
+        scale_multipliers=built.multipliers,
+        multiplier_range=model.cfg.adapter.scale_multiplier_range if built.multipliers is not None else None,
+        network=NETWORK_SKIPPED if skipped else "ran",
+    )
+    if optimizing:  # scores the held-out views before and after it
+        from .scene_fit import optimize_scene
+
+        images_c = context_images if context_images is not None else network_views(context)[0]
+        optimize_scene(scene, images_c, capture.optimize, progress=progress, choice=choice)
+    elif holdout is not None:
+        scene.score_holdout()
+    seconds["total"] = time.perf_counter() - start
+    return scene
+
+
+# ----------------------------------------------------------------------------------------- stages
+NETWORK_SKIPPED = "skipped (the optimizer starts from the SfM points)"  # Scene.network where no pass ran
+# the working size's multiple where no model is loaded: every preset's `EncoderConfig.size_multiple`, so
+# the size is the one the network would have run at
+DEFAULT_SIZE_MULTIPLE = 16
+
+
+@dataclass
+class _Built:
+    """What the network's passes (or, without them, the optimizer's start) made of the context views."""
+
+    gaussians: object  # Gaussians [N]
+    cameras: Cameras  # the context cameras, K in pixels of the working size
+    mode: str
+    alpha_threshold: float | None
+    label: str  # the network's ("" where none ran)
+    passes: list[list[int]]  # context indices of each pass (none without the network)
+    precision: str  # what the passes ran in ("none" without them)
+    multipliers: torch.Tensor | None = None
+    compact_stats: dict = field(default_factory=dict)
+    fusion_stats: dict = field(default_factory=dict)
+    refine_stats: dict = field(default_factory=dict)
+
+
+def _size_multiple(model) -> int:
+    return model.cfg.encoder.size_multiple if model is not None else DEFAULT_SIZE_MULTIPLE
+
+
+def _working_shape(views: CaptureInput, size, max_working_size: int | None, m: int) -> tuple[int, int]:
+    """(height, width) of every later stage: `size` where given, else the views downscaled to a long
+    side of `max_working_size` and cropped to multiples of `m`."""
     if size is None and (views.height < m or views.width < m):  # the user gave images, not a size: name them
         raise SurfSplatInputError(
             f"--images: {views.sources[0]} is {views.width}x{views.height} pixels; the network needs at least {m}x{m}"
@@ -171,36 +298,42 @@ def reconstruct(
         raise SurfSplatInputError(
             f"size (--size): expected multiples of {m} of at least {m}, got {shape[0]}x{shape[1]}"
         )
+    return shape
+
+
+def _load_for_inference(checkpoint, preset, trust_pickle, device, compile):
+    from ..model.loading import prepare_for_inference
+
+    model, label = _load(checkpoint, preset, trust_pickle, device)
+    prepare_for_inference(model, compile=compile)
+    return model, label
+
+
+def _without_network(config: OptimizeConfig, choice, images: torch.Tensor, cameras: Cameras) -> _Built:
+    """The optimizer's start of COLMAP's points as the scene before the fit: no pass, no fusion, no model.
+    It renders as the fit from points does (surfels, plain compositing where `alpha_threshold` is "auto")."""
+    from ..capture.starts import make_start
+
+    start, _ = make_start(config.start, None, images, cameras, config.sh_degree, choice)
+    threshold = None if config.alpha_threshold == "auto" else config.alpha_threshold
+    logger.info(f"network: {NETWORK_SKIPPED}; {len(start):,} COLMAP points start the optimizer")
+    return _Built(start, cameras, "surfel", threshold, "", [], "none")
+
+
+def _network_passes(
+    model, label, capture, views, context, ctx_c2w, c2w, shape, network_views, near, far, compact,
+    precision, compile, progress, optimizing, seconds, device,
+) -> _Built:  # fmt: skip
+    """The network's forward passes over the context sets, fused as they stream by (and refined where
+    the optimizer does not run)."""
     from ..model.decoder import decoder_mode
     from ..model.pretrained import check_resolution
+    from ..utils.log import progress as progress_bar
+    from ..utils.precision import autocast
 
     check_resolution(model, *shape)  # named weights know the resolution they were trained at
     mode = decoder_mode(model.cfg.adapter)
-
-    # ---- held-out views and context sets
-    everything = list(range(len(views)))
-    k = capture.holdout_every
-    held = [i for i in everything if k is not None and i % k == 0]
-    context = [i for i in everything if i not in held]
-    if len(context) < 2:
-        raise SurfSplatInputError(
-            f"holdout_every (--holdout-every): {len(views)} views leave {len(context)} context views; 2 are needed"
-        )
-    ctx_c2w = c2w[context]
     passes = context_sets(ctx_c2w[:, :3, 3], capture.views_per_pass, views.ordered)
-
-    def network_views(indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """The photos [V, 3, H, W] at the network's size and their K [V, 3, 3], on the device: the
-        photos are read on the host, and every stage after the network runs where it ran."""
-        from ..data.transforms import rescale_and_crop
-
-        stack = torch.stack([views.image(i) for i in indices])
-        stack, K_net, _ = rescale_and_crop(stack, K[indices].to(torch.float32), shape)
-        return stack.clamp(0, 1).to(device), K_net.to(device)
-
-    # ---- forward passes, fused as they stream by
-    from ..utils.log import progress as progress_bar
-
     fusion = SurfelFusion(capture.fusion, mode=mode) if len(passes) > 1 else None
     seconds["forward"] = 0.0  # the stages that run: fusion and compaction only where asked for
     if fusion is not None:
@@ -246,7 +379,6 @@ def reconstruct(
     scene_cameras = Cameras(ctx_c2w.to(device, torch.float32), torch.stack(ctx_K))
     refine_stats: dict[str, float] = {}
     # the optimization frees what the refinement fits and more: where it runs, the refinement does not
-    optimizing = capture.optimize.steps_for(len(context)) > 0
     if fusion is not None and capture.refine.steps_for(len(context)) > 0 and not optimizing:
         tick = time.perf_counter()
         images_c, _ = network_views(context)
@@ -266,49 +398,19 @@ def reconstruct(
         f"{label}: {len(gaussians):,} surfels from {len(context)} views in {len(passes)} "
         f"pass{'es' if len(passes) > 1 else ''} at {shape[1]}x{shape[0]} in {seconds['forward']:.2f} s"
     )
-    holdout = None
-    if held:
-        images_h, K_h = network_views(held)
-        holdout = HeldOut([views.names[i] for i in held], Cameras(c2w[held].to(device, torch.float32), K_h), images_h)
-        files = [views.sources[i] for i in held]
-        holdout.sources = [str(f) for f in files] if all(isinstance(f, (str, Path)) for f in files) else []
-    scene = Scene(
-        gaussians=gaussians,
-        cameras=scene_cameras,
-        width=shape[1],
-        height=shape[0],
-        names=[views.names[i] for i in context],
-        near=near,
-        far=far,
-        mode=mode,
-        alpha_threshold=alpha_threshold,
-        model=label,
-        checkpoint=str(checkpoint if checkpoint is not None and not _is_model(checkpoint) else label),
-        sources=[views.sources[i] for i in context],
-        cameras_source=source,
-        passes=[[views.names[context[j]] for j in members] for members in passes],
-        seconds=seconds,
-        compact_level=compact,
-        compact_stats=compact_stats,
-        fusion_stats=dict(fusion.stats) if fusion is not None else {},
-        refine_stats=refine_stats,
-        poses=poses,
-        pose_cameras=pose_cameras,
-        photos=photos,
-        video=views.video,
-        holdout=holdout,
-        precision=ran,
-        scale_multipliers=multipliers,
-        multiplier_range=model.cfg.adapter.scale_multiplier_range if multipliers is not None else None,
+    return _Built(
+        gaussians,
+        scene_cameras,
+        mode,
+        alpha_threshold,
+        label,
+        passes,
+        ran,
+        multipliers,
+        compact_stats,
+        dict(fusion.stats) if fusion is not None else {},
+        refine_stats,
     )
-    if optimizing:  # scores the held-out views before and after it
-        from .scene_fit import optimize_scene
-
-        optimize_scene(scene, network_views(context)[0], capture.optimize, progress=progress)
-    elif holdout is not None:
-        scene.score_holdout()
-    seconds["total"] = time.perf_counter() - start
-    return scene
 
 
 # ----------------------------------------------------------------------------------------- checks
@@ -394,6 +496,16 @@ def _is_model(checkpoint) -> bool:
     from ..model import SurfSplat
 
     return isinstance(checkpoint, SurfSplat)
+
+
+def _checkpoint_name(checkpoint, label: str | None) -> str:
+    """The checkpoint as the user named it (a loaded model: its label; loaded or not, see Scene.network)."""
+    if checkpoint is None:
+        return "tiny-synthetic"  # `_load`'s default
+    if _is_model(checkpoint):
+        info = getattr(checkpoint, "pretrained_info", None)
+        return label or (info.name if info is not None else "SurfSplat model")
+    return str(checkpoint)
 
 
 def _load(checkpoint, preset, trust_pickle, device):

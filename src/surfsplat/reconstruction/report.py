@@ -45,9 +45,9 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
     report = HtmlReport("SurfSplat reconstruction of a capture")
     report.heading("The capture")
     fusion = scene.fusion_stats
+    passes = f"in {len(scene.passes)} forward passes" if scene.network == "ran" else f"(network: {scene.network})"
     lines = [
-        f"{len(scene.names)} context views at {scene.width}x{scene.height} in {len(scene.passes)} forward passes; "
-        f"{len(scene.gaussians):,} surfels",
+        f"{len(scene.names)} context views at {scene.width}x{scene.height} {passes}; {len(scene.gaussians):,} surfels"
     ]
     if fusion:
         lines.append(

@@ -146,6 +146,10 @@ class Scene:
     precision: str = "fp32"  # what the forward passes ran in (surfels and rendering are float32)
     scale_multipliers: Tensor | None = None  # [N, 2] Eq. 9 multipliers (one uncompacted pass only)
     multiplier_range: float | None = None  # the clamp's r of those multipliers
+    # "ran", or "skipped (why)" where no forward pass ran (the optimizer started from COLMAP's points:
+    # then `model` is "", `passes` empty, `precision` "none", `mode` "surfel", and the surfels before the
+    # optimization, which the held-out views' `before` figures score, are that start)
+    network: str = "ran"
 
     @property
     def device(self) -> torch.device:
@@ -228,9 +232,12 @@ class Scene:
             "alpha_threshold": self.alpha_threshold,
             "cameras": self.cameras_source,
             "precision": self.precision,
+            "network": self.network,
         }
         if self.optimize_stats:
             out["optimize"] = self.optimize_stats
+            if "versus_input" in self.optimize_stats:  # a saved scene optimized again: is it the better one?
+                out["worse_than_input"] = bool(self.optimize_stats["versus_input"]["worse"])
         if self.is_capture:
             out["capture"] = self.capture_summary()
         return out
@@ -243,8 +250,10 @@ class Scene:
 
     @property
     def is_capture(self) -> bool:
-        """More than one forward pass, a video or held-out views: the capture outputs are written."""
-        return len(self.passes) > 1 or self.video is not None or self.holdout is not None
+        """More than one forward pass (or none: the optimizer started from points), a video or held-out
+        views: the capture outputs are written."""
+        many = len(self.passes) > 1 or self.network != "ran"
+        return many or self.video is not None or self.holdout is not None
 
     def capture_summary(self) -> dict:
         return {

@@ -2,10 +2,17 @@
 
     scene = optimize_scene(scene, context_images, OptimizeConfig(steps=300))   # in place
     scene, images = load_reconstruction("out/")                                # what reconstruct saved
-    written = optimize_saved("out/", "out_optimized/", OptimizeConfig(steps=300))
+    scene, written = optimize_saved("out/", "out_optimized/")                  # the saved fit continued
 
 The held-out views (`CaptureOptions.holdout_every`) are scored before and after and never enter
 the fit: it is given the context cameras and photos only.
+
+A saved scene is continued by default (the start "continue": its surfels as they were saved), or
+restarted from another start (`StartConfig.kind`). Either way the result is compared with what was
+read, on the held-out views where the reconstruction kept some (else on the context views), and
+`optimize_stats["versus_input"]` says which scored better: a result worse than its input is still
+written where asked (so it can be looked at), never over its input, and it says so in its
+reconstruction.json (`worse_than_input`) and on the terminal.
 """
 
 from __future__ import annotations
@@ -28,11 +35,13 @@ def optimize_scene(
     *,
     progress: bool = False,
     backend: str = "auto",
+    choice=None,
 ) -> Scene:
     """`scene` with its surfels optimized on its context views (changed in place and returned):
     `optimize_stats`, `seconds["optimize"]`, the forced-alpha threshold the fit rendered with, and, with
     held-out views, their figures and renders before the fit in `holdout.before` /
-    `holdout.before_renders`, after it in `holdout`, and along it in `optimize_stats["held_out_curve"]`."""
+    `holdout.before_renders`, after it in `holdout`, and along it in `optimize_stats["held_out_curve"]`.
+    `choice`: the start decided already (`surfsplat.capture.starts.choose_start`; None: decided here)."""
     held = scene.holdout
     curve: list[dict] = []
     monitor = None
@@ -70,6 +79,7 @@ def optimize_scene(
         backend=backend,
         progress=progress,
         monitor=monitor,
+        choice=choice,
     )
     scene.alpha_threshold = scene.optimize_stats["alpha_threshold"]  # the surfels render as they were fitted
     if curve:
@@ -157,6 +167,7 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         seconds={},
         compact_level=summary.get("compact_level"),
         holdout=holdout,
+        network=summary.get("network", "ran"),
     )
     return scene, torch.stack(photos)
 
@@ -164,7 +175,7 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
 def optimize_saved(
     folder: str | Path,
     out_dir: str | Path,
-    config: OptimizeConfig,
+    config: OptimizeConfig | None = None,
     *,
     formats: tuple[str, ...] = ("ply", "renders"),
     bake: bool = True,
@@ -173,16 +184,36 @@ def optimize_saved(
 ) -> tuple[Scene, dict[str, Path]]:
     """Load the reconstruction in `folder`, optimize it on `device` ("auto": CUDA when available),
     and save `formats` to `out_dir` (which `load_reconstruction` reads again; `bake` False writes
-    surfels_3dgs.ply unbaked, as --raw-3dgs); returns the scene and {what: path}."""
+    surfels_3dgs.ply unbaked, as --raw-3dgs); returns the scene and {what: path}.
+
+    `config` None continues the saved fit (`OptimizeConfig` with the start "continue"); another start
+    restarts it. The result is compared with the input (`versus_input`, module docstring)."""
+    from ..capture.starts import StartConfig
     from ..export.bake import BakeConfig
     from ..export.flow import ExportOptions
     from .pipeline import resolve_device
 
+    config = config if config is not None else OptimizeConfig(start=StartConfig(kind="continue"))
     device = resolve_device(device)
     scene, images = load_reconstruction(folder)  # read on the host, then every step runs on the device
     scene, images = scene.to(device), images.to(device)
     tick = time.perf_counter()
+    # the input's figure: the held-out views' mean PSNR (scored by `optimize_scene` before the fit) where
+    # the reconstruction kept some, else the context views'
+    held = scene.holdout
+    before = _context_psnr(scene, images) if held is None else None
     optimize_scene(scene, images, config, progress=progress)
+    if held is not None:
+        measure, before, after = "held-out PSNR", held.before["mean_psnr"], held.scores()["mean_psnr"]
+    else:
+        measure, after = "context-view PSNR", _context_psnr(scene, images)
+    scene.optimize_stats["versus_input"] = {
+        "input": str(folder),
+        "measure": measure,
+        "input_psnr": before,
+        "psnr": after,
+        "worse": after < before,
+    }
     scene.seconds["total"] = time.perf_counter() - tick
     options = ExportOptions(
         formats=tuple(formats),
@@ -192,3 +223,26 @@ def optimize_saved(
         bake=BakeConfig() if bake else None,
     )
     return scene, scene.save(out_dir, options=options)
+
+
+def _context_psnr(scene: Scene, images: Tensor) -> float:
+    """Mean PSNR of the scene's renders at its context cameras against their photos."""
+    from ..metrics import psnr
+
+    colour = scene.render().color.clamp(0, 1)
+    return float(psnr(colour, images.to(colour)).mean())
+
+
+def versus_input_line(stats: dict) -> str | None:
+    """One line comparing an optimized saved scene with the scene it read (None: not compared)."""
+    versus = stats.get("versus_input")
+    if not versus:
+        return None
+    figures = f"{versus['measure']} {versus['input_psnr']:.2f} dB read, {versus['psnr']:.2f} dB now"
+    if versus["worse"]:
+        return f"WORSE than its input ({figures}): {versus['input']} stays the better scene"
+    return (
+        f"better than its input ({figures})"
+        if versus["psnr"] > versus["input_psnr"]
+        else f"as good as its input ({figures})"
+    )
