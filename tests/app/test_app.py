@@ -76,7 +76,7 @@ def test_a_video_and_a_camera_file(tmp_path):
 @pytest.mark.parametrize(
     "names, cameras, limit, message",
     [
-        ({}, None, 10**9, "photos: drop two or more photos of one scene, or one video"),
+        ({}, None, 10**9, "photos: drop two or more photos of one scene, one video, or a zip or folder"),
         ({"notes.txt": b"x", "a.png": b"x"}, None, 10**9, "notes.txt: neither a photo (.png"),
         ({"a.mp4": b"x", "b.png": b"x"}, None, 10**9, "expected two or more photos or one video, got 1 photos and 1"),
         ({"a.mp4": b"x", "b.mov": b"x"}, None, 10**9, "got 0 photos and 2 videos"),
@@ -368,6 +368,7 @@ def _noise(path: Path, seed: int) -> Path:
 )
 def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, make, message):
     """What a run refuses before any heavy work, as the page shows it (`page._one_line`)."""
+    from surfsplat.app.files import PathScrubber
     from surfsplat.app.page import _one_line
     from surfsplat.app.run import RunSettings, run_capture
 
@@ -378,7 +379,7 @@ def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, m
     uploads = prepare_uploads(make(source), None, session, 10**9)
     with pytest.raises(SurfSplatInputError) as err:
         run_capture(uploads, RunSettings(working_size=64), session / "outputs")
-    line = _one_line(err.value, session)
+    line = _one_line(err.value, PathScrubber(session))
     assert message in line and str(tmp_path) not in line and "\n" not in line
 
 
