@@ -345,6 +345,27 @@ def test_a_run_over_its_seconds_keeps_nothing(tmp_path):
     write_capture(capture, "transforms", views=2)
     config = AppConfig(sessions_dir=str(tmp_path / "sessions"), max_seconds=0.01, **SMALL)
     outputs, folder = _request(config, files=[zip_folder(capture, tmp_path / "fern.zip")])
-    assert outputs[0].startswith("**Stopped** the run went past this server's limit of 0.01 s for one run (during ")
+    assert outputs[0].startswith("**Stopped:** the run went past this server's limit of 0.01 s for one run (during ")
     assert outputs[1:] == (None, None, "", None, None, None)
     assert not (folder / "outputs").exists() and not (folder / "surfsplat_result.zip").exists()
+
+
+def test_the_runs_warnings_are_collected_from_its_own_thread_only(tmp_path):
+    """What the page shows of the library's log: the run's warnings (another thread's are not its own),
+    each as logged; `run_capture` then scrubs them like every other line."""
+    import logging
+    import threading
+
+    from surfsplat.app.run import _warnings
+
+    session = tmp_path / "s1-ab"
+    log = logging.getLogger("surfsplat.data.formats.blender")
+    with _warnings() as warned:
+        log.warning(f"1 of 3 frames listed in {session}/inputs/cap/transforms.json have no photo; left out")
+        log.info("not a warning")
+        other = threading.Thread(target=lambda: log.warning("another run's warning"))
+        other.start()
+        other.join()
+    log.warning("after the run")
+    assert warned == [f"1 of 3 frames listed in {session}/inputs/cap/transforms.json have no photo; left out"]
+    assert PathScrubber(session)(warned[0]) == "1 of 3 frames listed in cap/transforms.json have no photo; left out"

@@ -90,11 +90,11 @@ def run_request(
         _discard(folder)
         return _failed(
             f"{err}; nothing was kept. Send fewer photos, or choose a smaller working size or less optimization",
-            stopped=True,
+            head="**Stopped:**",
         )
     except RunCancelled:
         _discard(folder)
-        return _failed("stopped before the end; nothing was kept", stopped=True)
+        return _failed("stopped before the end; nothing was kept", head="**Stopped**")
     finally:
         sessions.release(folder)
     status = "**Done.** " + "  \n".join(result.lines)
@@ -285,6 +285,5 @@ def _optimize_max(config: AppConfig) -> float:
     return float(max(0, min(600, (config.max_seconds // 20) * 10)))
 
 
-def _failed(message: str, stopped: bool = False):
-    head = "**Stopped**" if stopped else "**Cannot reconstruct:**"
+def _failed(message: str, head: str = "**Cannot reconstruct:**"):
     return f"{head} {message}", None, None, "", None, None, None
