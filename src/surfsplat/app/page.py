@@ -174,7 +174,7 @@ def build(config: AppConfig | None = None, **overrides):
                     label="Or a folder: photos with their transforms.json or COLMAP model",
                     file_count="directory",
                     elem_id="capture-folder",
-                    height=120,
+                    height=160,
                 )
                 cameras = gr.File(label="Camera file (optional, JSON)", elem_id="cameras", height=120)
                 weights = gr.Dropdown(choices=choices, value=choices[0][1], label="Weights", elem_id="weights")
