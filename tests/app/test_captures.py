@@ -369,3 +369,58 @@ def test_the_runs_warnings_are_collected_from_its_own_thread_only(tmp_path):
     log.warning("after the run")
     assert warned == [f"1 of 3 frames listed in {session}/inputs/cap/transforms.json have no photo; left out"]
     assert PathScrubber(session)(warned[0]) == "1 of 3 frames listed in cap/transforms.json have no photo; left out"
+
+
+def test_colmap_files_at_a_zips_top_and_zips_or_folders_of_plain_photos(tmp_path):
+    """COLMAP's cameras/images files at the zip's top with images/ beside them are a capture; a zip or a
+    folder of photos alone is photos (the camera file box applies, cameras estimated without it)."""
+    from surfsplat.reconstruction.capture_folder import find_processed_capture
+
+    capture = tmp_path / "capture"
+    cams = write_capture(capture, "colmap", views=2)
+    for path in (capture / "sparse" / "0").iterdir():
+        path.rename(capture / path.name)
+    shutil.rmtree(capture / "sparse")
+    uploads = prepare_uploads([zip_folder(capture, tmp_path / "top.zip")], None, tmp_path / "s1", 10**9)
+    assert uploads.scene == uploads.cameras == uploads.capture == tmp_path / "s1" / "inputs" / "top"
+    found = find_processed_capture(uploads.scene)
+    assert found.kind == "COLMAP model" and found.photos == [uploads.scene / "images" / n for n in cams.names]
+
+    photos = zip_folder(capture / "images", tmp_path / "photos.zip", top="holiday")
+    camera_file = tmp_path / "cams.json"
+    camera_file.write_text("{}")
+    uploads = prepare_uploads([photos], camera_file, tmp_path / "s2", 10**9)
+    assert uploads.scene is None and uploads.cameras == tmp_path / "s2" / "inputs" / "cams.json"
+    assert uploads.capture == [tmp_path / "s2" / "inputs" / "photos" / "holiday" / n for n in cams.names]
+    files = sorted((capture / "images").iterdir())
+    uploads = prepare_uploads([], None, tmp_path / "s3", 10**9, capture_files=files)
+    assert uploads.capture == [tmp_path / "s3" / "inputs" / "capture" / n for n in cams.names]
+    assert uploads.cameras is None and uploads.notes == []
+
+
+def test_the_command_reads_a_capture_folders_cameras_unless_told(tmp_path, monkeypatch):
+    """`surfsplat reconstruct --images capture/` passes cameras="auto" (the folder's own), and --cameras
+    as given."""
+    import surfsplat.reconstruction as reconstruction
+    from surfsplat.cli import build_parser
+    from surfsplat.commands import reconstruct as command
+
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def stub(images, **kwargs):
+        seen.append((images, kwargs["cameras"]))
+        raise Seen
+
+    monkeypatch.setattr(reconstruction, "reconstruct", stub)
+    capture = tmp_path / "capture"
+    write_capture(capture, "transforms", views=2)
+    for extra in ([], ["--cameras", str(capture / "transforms.json")]):
+        args = build_parser().parse_args(
+            ["reconstruct", "--images", str(capture), "--out", str(tmp_path / "o"), *extra]
+        )
+        with pytest.raises(Seen):
+            command.run(args)
+    assert seen == [(capture, "auto"), (capture, capture / "transforms.json")]

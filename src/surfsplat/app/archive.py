@@ -177,7 +177,6 @@ def arrange_folder(files: list[Path], names: list[str], target: Path, label: str
     of the folder is copied to `target` (photos whose cameras are estimated)."""
     from ..data.images import IMAGE_SUFFIXES, read_image_size
     from ..reconstruction.capture_folder import find_processed_capture
-    from .files import safe_name
 
     target.mkdir(parents=True, exist_ok=False)
     out = Unpacked(target)
@@ -201,11 +200,15 @@ def arrange_folder(files: list[Path], names: list[str], target: Path, label: str
             shutil.copyfile(by_name[name][0], model / name)
             out.files.append(model / name)
     else:  # a folder of photos
+        from .files import _Copier
+
+        copy, several = _Copier(target), 0
         for base, paths in sorted(by_name.items()):
             if Path(base).suffix.lower() in IMAGE_SUFFIXES and not base.startswith("."):
-                dest = target / safe_name(base, f"view_{len(out.files):03d}")
-                shutil.copyfile(_largest(paths, read_image_size), dest)
-                out.files.append(dest)
+                several += len(paths) > 1
+                out.files.append(copy(_largest(paths, read_image_size), base, f"view_{len(out.files):03d}"))
+        if several:
+            out.notes.append(f"{label}: {several} photos came in several sizes; the largest of each is used")
         return out
     capture = find_processed_capture(target)
     if capture is None:  # e.g. a COLMAP images file without its cameras file

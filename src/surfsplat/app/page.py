@@ -95,6 +95,9 @@ def run_request(
     except RunCancelled:
         _discard(folder)
         return _failed("stopped before the end; nothing was kept", head="**Stopped**")
+    except BaseException:  # anything else (gradio shows a bare error): still nothing half-written kept
+        _discard(folder)
+        raise
     finally:
         sessions.release(folder)
     status = "**Done.** " + "  \n".join(result.lines)
