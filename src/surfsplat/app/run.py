@@ -8,6 +8,12 @@ Progress follows the library's own stages: `surfsplat.utils.log.listen_progress`
 loop of the run (forward passes, refinement, the viewer bake, the renders of the export), and
 `StageTracker` turns them into one fraction and a line naming the stage; the stages without a loop
 (cameras, closure figures, mesh) are announced around them.
+
+A shared server's limits: `RunSettings.max_seconds` is checked by the tracker at every one of those
+steps and stages (a run past it raises RunOverTime; the page keeps nothing of it), and
+`RunSettings.max_views` caps a video's frames (photos are counted before the run, in `prepare_uploads`).
+What the page shows of a run (its lines, the library's warnings logged while it ran) and the text files of
+its downloads pass through `PathScrubber`: no server folder in them.
 """
 
 from __future__ import annotations
@@ -127,7 +133,8 @@ class RunResult:
 
 class StageTracker:
     """A listener for `surfsplat.utils.log.listen_progress` that reports (fraction, text) to `report` as
-    the run goes through STAGES, and raises RunCancelled once `cancelled()` says so."""
+    the run goes through STAGES, raises RunCancelled once `cancelled()` says so, and RunOverTime at the
+    first step or stage after `max_seconds` (on `clock`) have passed since it was made."""
 
     def __init__(
         self,

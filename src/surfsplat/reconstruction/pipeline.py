@@ -142,10 +142,9 @@ def reconstruct(
             "(pass cameras=None to estimate them)"
         )
     views = read_capture(images, capture.frames)
-    if cameras_source is not None:  # a processed capture's own cameras, read already
-        given = cameras.select(views.names, cameras_source), cameras_source
-    else:
-        given = _given_cameras(cameras, views, images_folder)
+    given = _given_cameras(cameras, views, images_folder if cameras_source is None else None)
+    if cameras_source is not None:  # a processed capture's own cameras (a CameraSet read already): named by its file
+        given = given[0], cameras_source
 
     # ---- cameras
     seconds: dict[str, float] = {}
