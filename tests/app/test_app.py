@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import socket
 import time
 import zipfile
@@ -76,7 +77,7 @@ def test_a_video_and_a_camera_file(tmp_path):
 @pytest.mark.parametrize(
     "names, cameras, limit, message",
     [
-        ({}, None, 10**9, "photos: drop two or more photos of one scene, or one video"),
+        ({}, None, 10**9, "photos: drop two or more photos of one scene, one video, or a zip or folder"),
         ({"notes.txt": b"x", "a.png": b"x"}, None, 10**9, "notes.txt: neither a photo (.png"),
         ({"a.mp4": b"x", "b.png": b"x"}, None, 10**9, "expected two or more photos or one video, got 1 photos and 1"),
         ({"a.mp4": b"x", "b.mov": b"x"}, None, 10**9, "got 0 photos and 2 videos"),
@@ -368,6 +369,7 @@ def _noise(path: Path, seed: int) -> Path:
 )
 def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, make, message):
     """What a run refuses before any heavy work, as the page shows it (`page._one_line`)."""
+    from surfsplat.app.files import PathScrubber
     from surfsplat.app.page import _one_line
     from surfsplat.app.run import RunSettings, run_capture
 
@@ -378,7 +380,7 @@ def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, m
     uploads = prepare_uploads(make(source), None, session, 10**9)
     with pytest.raises(SurfSplatInputError) as err:
         run_capture(uploads, RunSettings(working_size=64), session / "outputs")
-    line = _one_line(err.value, session)
+    line = _one_line(err.value, PathScrubber(session))
     assert message in line and str(tmp_path) not in line and "\n" not in line
 
 
@@ -399,3 +401,72 @@ def test_the_space_is_the_package_and_the_app(tmp_path):
     assert "sdk: gradio" in front and "app_file: app.py" in front and (space / "app.py").is_file()
     with pytest.raises(SystemExit, match="not empty"):
         module.make_space(space)
+
+
+@pytest.mark.slow
+def test_browser_a_zipped_capture_a_folder_upload_and_a_traversal_zip(served, tmp_path):
+    """A zip of a COLMAP capture (photos in images/, the model in sparse/0) dropped in the photos box,
+    then a nerfstudio capture folder chosen in the folder box (the browser sends its files flat):
+    each run reads its own cameras and says so; then a zip with a '..' member is refused with one
+    line. The page states the server's limits before anything is sent."""
+    from tests.helpers.browser import chromium
+    from tests.helpers.captures import write_capture, zip_folder
+
+    sync_api = pytest.importorskip("playwright.sync_api", reason="needs playwright (pip install playwright)")
+    exe = chromium()
+    demo, root = served
+    colmap = tmp_path / "colmap"
+    write_capture(colmap, "colmap", views=2)
+    archive = zip_folder(colmap, tmp_path / "fern_colmap.zip")
+    nerfstudio = tmp_path / "nerfstudio"
+    write_capture(nerfstudio, "transforms", views=2)
+    bad = tmp_path / "bad.zip"
+    with zipfile.ZipFile(bad, "w") as zf:
+        zf.writestr("../evil.png", b"x")
+    shots = Path(os.environ.get("SURFSPLAT_APP_SHOTS", tmp_path))
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(
+            executable_path=exe,
+            args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+        )
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 1000})
+            page.goto(demo.local_url, timeout=60_000)
+            page.locator("#start").wait_for(timeout=60_000)
+            status = page.locator("#status")
+            limits = status.inner_text()
+            page.screenshot(path=str(shots / "capture_empty.png"))
+
+            page.locator("#photos input[type=file]").set_input_files([str(archive)])
+            page.locator("#photos td.filename[aria-label='fern_colmap.zip']").wait_for(timeout=30_000)
+            page.locator("#start").click()
+            status.get_by_text("Done.").wait_for(timeout=300_000)
+            zipped = status.inner_text()
+            page.screenshot(path=str(shots / "capture_zip.png"), full_page=True)
+
+            page.locator("#photos button[aria-label='Clear']").first.click()
+            page.locator("#capture-folder input[type=file]").set_input_files(str(nerfstudio))
+            page.locator("#capture-folder td.filename[aria-label='transforms.json']").wait_for(timeout=30_000)
+            page.locator("#start").click()
+            status.get_by_text("cameras: capture/transforms.json").wait_for(timeout=300_000)
+            folder = status.inner_text()
+            page.screenshot(path=str(shots / "capture_folder.png"), full_page=True)
+
+            page.locator("#capture-folder button[aria-label='Clear']").first.click()
+            page.locator("#photos input[type=file]").set_input_files([str(bad)])
+            page.locator("#photos td.filename[aria-label='bad.zip']").wait_for(timeout=30_000)
+            page.locator("#start").click()
+            status.get_by_text("Cannot reconstruct").wait_for(timeout=120_000)
+            refused = status.inner_text().strip()
+            page.screenshot(path=str(shots / "capture_refused.png"), full_page=True)
+        finally:
+            browser.close()
+    assert "20 MB of uploads and 60 views a run" in limits and "stops a run after 600 s" in limits, limits
+    assert "cameras: fern_colmap/sparse/0 (COLMAP model of the capture folder)" in zipped, zipped
+    assert "2 views" in zipped and "cameras: capture/transforms.json (transforms.json of the capture folder)" in folder
+    assert refused == (
+        "Cannot reconstruct: bad.zip: member '../evil.png' points outside the archive ('..'); "
+        "refused (nothing was unpacked)"
+    ), refused
+    for text in (zipped, folder, refused):
+        assert str(root) not in text and "/tmp" not in text, text

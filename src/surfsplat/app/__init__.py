@@ -1,12 +1,14 @@
-"""A browser app for the whole flow: photos or a video -> `surfsplat.reconstruct` -> the scene on a page.
+"""A browser app for the whole flow: photos, a video or a processed capture (a zip or folder of photos with
+their transforms.json or COLMAP model) -> `surfsplat.reconstruct` -> the scene on a page.
 
     from surfsplat.app import AppConfig, build, launch
-    demo = build(AppConfig(max_upload_mb=50))     # a gradio.Blocks: demo.launch(), or mount it
-    launch(AppConfig(port=7860))                  # what `surfsplat app` runs
+    demo = build(AppConfig(max_upload_mb=50, max_views=30))   # a gradio.Blocks: demo.launch(), or mount it
+    launch(AppConfig(port=7860))                              # what `surfsplat app` runs
 
 Needs the optional gradio dependency (`pip install "surfsplat[app]"`); without it `build` raises one
-line saying so. `files` (uploads made safe, session folders) and `run` (one run without the page)
-do not need gradio.
+line saying so. `files` (uploads made safe, session folders, messages without server paths), `archive`
+(zips and folder uploads unpacked safely), `run` (one run without the page) and `page.run_request`
+(one press of Start, what the page gets) do not need gradio.
 """
 
 from __future__ import annotations
@@ -14,14 +16,16 @@ from __future__ import annotations
 import logging
 
 from .config import AppConfig
-from .files import SessionFolders, Uploads, prepare_uploads, safe_name
-from .page import build, require_gradio
-from .run import RunResult, RunSettings, run_capture
+from .files import PathScrubber, SessionFolders, Uploads, prepare_uploads, safe_name
+from .page import build, require_gradio, run_request
+from .run import RunOverTime, RunResult, RunSettings, run_capture
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "AppConfig",
+    "PathScrubber",
+    "RunOverTime",
     "RunResult",
     "RunSettings",
     "SessionFolders",
@@ -31,6 +35,7 @@ __all__ = [
     "prepare_uploads",
     "require_gradio",
     "run_capture",
+    "run_request",
     "safe_name",
 ]
 

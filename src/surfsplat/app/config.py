@@ -17,7 +17,11 @@ class AppConfig:
 
     host: str = "127.0.0.1"  # this machine only; another address serves the network
     port: int = 7860  # gradio's usual port (0: any free port)
-    max_upload_mb: float = 200.0  # one run's uploads together
+    max_upload_mb: float = 200.0  # one run's uploads together (a zip's unpacked size too)
+    # a shared server's limits, checked before any heavy work: views of one run (photos, the photos a
+    # capture's camera file lists, a video's frames used), and the seconds of one run (checked at every step)
+    max_views: int = 60
+    max_seconds: float = 600.0
     keep_minutes: float = 60.0  # a run's folder (uploads and results) is removed this long after it started
     max_queue: int | None = 20  # people waiting at most (None: no limit); more are told to come back
     working_size: int = 256  # the page's default working size (long side in pixels)
@@ -34,6 +38,12 @@ class AppConfig:
         if not self.max_upload_mb > 0:
             raise SurfSplatInputError(
                 f"max_upload_mb (--max-upload-mb): expected a positive size, got {self.max_upload_mb}"
+            )
+        if isinstance(self.max_views, bool) or not isinstance(self.max_views, int) or self.max_views < 2:
+            raise SurfSplatInputError(f"max_views (--max-views): expected at least 2 views, got {self.max_views}")
+        if not self.max_seconds > 0:
+            raise SurfSplatInputError(
+                f"max_seconds (--max-run-seconds): expected a positive time, got {self.max_seconds}"
             )
         if not self.keep_minutes > 0:
             raise SurfSplatInputError(

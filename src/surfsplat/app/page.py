@@ -10,23 +10,106 @@ annotation, which must be the class itself.
 """
 
 import logging
+import shutil
 import threading
 from pathlib import Path
 
 from ..utils.atomic import OutputError
 from ..utils.checks import SurfSplatInputError
 from .config import AppConfig
-from .files import SessionFolders, prepare_uploads
-from .run import RunCancelled, RunSettings, closure_table, run_capture, weights_choices, weights_note
+from .files import PathScrubber, SessionFolders, prepare_uploads
+from .run import RunCancelled, RunOverTime, RunSettings, closure_table, run_capture, weights_choices, weights_note
 
 logger = logging.getLogger(__name__)
 
 INTRO = """# SurfSplat: photos to a surface of 2D Gaussian surfels
 
-Drop **two or more photos** of one scene (one size, taken a step apart) or **one video** filmed while moving
-around it. Cameras are estimated from the pictures unless you add a camera file. The result is a 3D scene you
-can turn in the viewer below, renders at x1 and x4, and files to download.
+Drop **two or more photos** of one scene (one size, taken a step apart), **one video** filmed while moving
+around it, or **a processed capture**: a zip (or a folder) of photos with the `transforms.json` of nerfstudio /
+instant-ngp or a COLMAP model (`sparse/0`). Cameras are estimated from the pictures unless a camera file
+comes with them. The result is a 3D scene you can turn in the viewer below, renders at x1 and x4, and files
+to download.
 """
+
+
+def limits_text(config: AppConfig) -> str:
+    """What the page says about this server's limits (Markdown)."""
+    return (
+        f"This server takes up to {config.max_upload_mb:g} MB of uploads and {config.max_views} views a run "
+        f"(photos; a video's frames are chosen up to that many), and stops a run after {config.max_seconds:g} s; "
+        f"files are removed {config.keep_minutes:g} minutes after a run."
+    )
+
+
+def run_request(
+    config: AppConfig,
+    sessions: SessionFolders,
+    files,
+    camera_file,
+    capture_folder,
+    weights: str,
+    working_size: float,
+    refine_fits: float,
+    optimize_seconds: float,
+    report=lambda fraction, text: None,
+    cancelled=lambda: False,
+) -> tuple:
+    """One press of Start, without gradio: the uploads checked against the server's limits, the run, and
+    what the page's outputs get (status, 3D view, grid, closure table, camera plot, video, downloads).
+    Every message it returns is one line with the server's folders taken out; a refused, stopped or
+    over-time run keeps nothing in the session's outputs."""
+    folder = sessions.new()
+    scrub = PathScrubber(folder, config.root())
+    try:
+        paths = [_upload_path(f) for f in files or []]
+        camera_path = _upload_path(camera_file) if camera_file else None
+        capture_paths = [_upload_path(f) for f in capture_folder or []]
+        settings = RunSettings(
+            weights=weights,
+            working_size=int(working_size),
+            refine_fits=float(refine_fits),
+            optimize_seconds=float(optimize_seconds),
+            device=config.device,
+            max_views=config.max_views,
+            max_seconds=config.max_seconds,
+            **config.export,
+        )
+        uploads = prepare_uploads(
+            paths,
+            camera_path,
+            folder,
+            config.max_upload_bytes(),
+            max_views=config.max_views,
+            capture_files=capture_paths,
+        )
+        result = run_capture(uploads, settings, folder / "outputs", report, cancelled)
+    except (SurfSplatInputError, FileNotFoundError, OutputError) as err:
+        _discard(folder)
+        return _failed(_one_line(err, scrub))
+    except RunOverTime as err:
+        _discard(folder)
+        return _failed(
+            f"{err}; nothing was kept. Send fewer photos, or choose a smaller working size or less optimization",
+            head="**Stopped:**",
+        )
+    except RunCancelled:
+        _discard(folder)
+        return _failed("stopped before the end; nothing was kept", head="**Stopped**")
+    except BaseException:  # anything else (gradio shows a bare error): still nothing half-written kept
+        _discard(folder)
+        raise
+    finally:
+        sessions.release(folder)
+    status = "**Done.** " + "  \n".join(result.lines)
+    return (
+        status,
+        str(result.view_ply),
+        str(result.grid),
+        closure_table(result.summary["closure"]),
+        str(result.camera_plot),
+        str(result.video) if result.video else None,
+        [str(p) for p in result.downloads],
+    )
 
 
 def build(config: AppConfig | None = None, **overrides):
@@ -45,43 +128,32 @@ def build(config: AppConfig | None = None, **overrides):
     tracked = gr.Progress()  # gradio finds the bar by this default and hands each call its own
 
     def run(
-        files, camera_file, weights, working_size, refine_fits, optimize_seconds, request: gr.Request, progress=tracked
+        files,
+        camera_file,
+        capture_folder,
+        weights,
+        working_size,
+        refine_fits,
+        optimize_seconds,
+        request: gr.Request,
+        progress=tracked,
     ):
         key = _session_key(request)
         with lock:
             stop = stops.setdefault(key, threading.Event())
         stop.clear()
-        folder = sessions.new()
-        try:
-            paths = [_upload_path(f) for f in files or []]
-            camera_path = _upload_path(camera_file) if camera_file else None
-            uploads = prepare_uploads(paths, camera_path, folder, config.max_upload_bytes())
-            settings = RunSettings(
-                weights=weights,
-                working_size=int(working_size),
-                refine_fits=float(refine_fits),
-                optimize_seconds=float(optimize_seconds),
-                device=config.device,
-                **config.export,
-            )
-            result = run_capture(
-                uploads, settings, folder / "outputs", lambda f, text: progress(f, desc=text), stop.is_set
-            )
-        except (SurfSplatInputError, FileNotFoundError, OutputError) as err:
-            return _failed(gr, _one_line(err, folder))
-        except RunCancelled:
-            return _failed(gr, "stopped before the end; nothing was kept", stopped=True)
-        finally:
-            sessions.release(folder)
-        status = "**Done.** " + "  \n".join(result.lines)
-        return (
-            status,
-            str(result.view_ply),
-            str(result.grid),
-            closure_table(result.summary["closure"]),
-            str(result.camera_plot),
-            str(result.video) if result.video else None,
-            [str(p) for p in result.downloads],
+        return run_request(
+            config,
+            sessions,
+            files,
+            camera_file,
+            capture_folder,
+            weights,
+            working_size,
+            refine_fits,
+            optimize_seconds,
+            lambda f, text: progress(f, desc=text),
+            stop.is_set,
         )
 
     def request_stop(request: gr.Request):
@@ -96,9 +168,15 @@ def build(config: AppConfig | None = None, **overrides):
         with gr.Row():
             with gr.Column(scale=2, min_width=320):
                 photos = gr.File(
-                    label="Photos (two or more) or one video",
+                    label="Photos (two or more), one video, or a zip of a processed capture",
                     file_count="multiple",
                     elem_id="photos",
+                    height=160,
+                )
+                capture_folder = gr.File(
+                    label="Or a folder: photos with their transforms.json or COLMAP model",
+                    file_count="directory",
+                    elem_id="capture-folder",
                     height=160,
                 )
                 cameras = gr.File(label="Camera file (optional, JSON)", elem_id="cameras", height=120)
@@ -122,8 +200,8 @@ def build(config: AppConfig | None = None, **overrides):
                 )
                 optimize_seconds = gr.Slider(
                     0,
-                    600,
-                    value=config.optimize_seconds,
+                    _optimize_max(config),
+                    value=min(config.optimize_seconds, _optimize_max(config)),
                     step=10,
                     label="Per-scene optimization: seconds fitting, growing and pruning the surfels on the photos "
                     "(three photos or more; 0: none; replaces the refinement)",
@@ -133,11 +211,7 @@ def build(config: AppConfig | None = None, **overrides):
                     start = gr.Button("Start", variant="primary", elem_id="start")
                     stop = gr.Button("Stop", variant="stop", elem_id="stop")
             with gr.Column(scale=3):
-                status = gr.Markdown(
-                    f"Uploads up to {config.max_upload_mb:g} MB; files are removed {config.keep_minutes:g} minutes "
-                    "after a run.",
-                    elem_id="status",
-                )
+                status = gr.Markdown(limits_text(config), elem_id="status")
                 view = gr.Model3D(
                     label="3D view: the baked 3DGS PLY (drag to turn, scroll to zoom)",
                     elem_id="view3d",
@@ -161,7 +235,7 @@ def build(config: AppConfig | None = None, **overrides):
         weights.change(weights_note, inputs=weights, outputs=about, queue=False)
         started = start.click(
             run,
-            inputs=[photos, cameras, weights, working_size, refine_fits, optimize_seconds],
+            inputs=[photos, cameras, capture_folder, weights, working_size, refine_fits, optimize_seconds],
             outputs=[status, view, grid, closure, plot, video, downloads],
             concurrency_limit=1,
             concurrency_id="reconstruct",
@@ -196,15 +270,23 @@ def _upload_path(item) -> str:
     raise SurfSplatInputError(f"upload: expected a file, got {type(item).__name__}")
 
 
-def _one_line(err: BaseException, folder: Path) -> str:
+def _one_line(err: BaseException, scrub) -> str:
     """The error's first line, without the server's folders (the uploads' own names stay)."""
     lines = str(err).strip().splitlines()
-    text = lines[0] if lines else type(err).__name__
-    for prefix in (folder / "inputs", folder / "outputs", folder):
-        text = text.replace(f"{prefix}/", "").replace(str(prefix), "")
-    return text
+    return scrub(lines[0] if lines else type(err).__name__)
 
 
-def _failed(gr, message: str, stopped: bool = False):
-    head = "**Stopped**" if stopped else "**Cannot reconstruct:**"
+def _discard(folder: Path) -> None:
+    """Nothing half-written is kept or shown: the session's outputs and its zip go."""
+    shutil.rmtree(folder / "outputs", ignore_errors=True)
+    (folder / "surfsplat_result.zip").unlink(missing_ok=True)
+
+
+def _optimize_max(config: AppConfig) -> float:
+    """The optimization slider's top: 600 s, or half the server's limit for a whole run (the export
+    after it needs its time too), in steps of 10 s."""
+    return float(max(0, min(600, (config.max_seconds // 20) * 10)))
+
+
+def _failed(message: str, head: str = "**Cannot reconstruct:**"):
     return f"{head} {message}", None, None, "", None, None, None

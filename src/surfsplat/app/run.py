@@ -8,6 +8,12 @@ Progress follows the library's own stages: `surfsplat.utils.log.listen_progress`
 loop of the run (forward passes, refinement, the viewer bake, the renders of the export), and
 `StageTracker` turns them into one fraction and a line naming the stage; the stages without a loop
 (cameras, closure figures, mesh) are announced around them.
+
+A shared server's limits: `RunSettings.max_seconds` is checked by the tracker at every one of those
+steps and stages (a run past it raises RunOverTime; the page keeps nothing of it), and
+`RunSettings.max_views` caps a video's frames (photos are counted before the run, in `prepare_uploads`).
+What the page shows of a run (its lines, the library's warnings logged while it ran) and the text files of
+its downloads pass through `PathScrubber`: no server folder in them.
 """
 
 from __future__ import annotations
@@ -15,15 +21,18 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import threading
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..capture.optimize import OptimizeConfig
 from ..capture.refine import RefineConfig
+from ..capture.video import FrameConfig
 from ..utils.checks import SurfSplatInputError
-from .files import Uploads
+from .files import PathScrubber, Uploads
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +64,15 @@ class RunCancelled(Exception):
     """The person pressed Stop: the run ends at its next progress step."""
 
 
+class RunOverTime(RunCancelled):
+    """The run went past the server's limit on a run's seconds (`RunSettings.max_seconds`)."""
+
+    def __init__(self, limit: float, stage: str) -> None:
+        super().__init__(f"the run went past this server's limit of {limit:g} s for one run (during {stage})")
+        self.limit = limit
+        self.stage = stage
+
+
 APP_OPTIMIZE_SECONDS = 60.0  # the page's default optimization budget: a web visitor waits a minute, not ten
 
 
@@ -74,6 +92,10 @@ class RunSettings:
     mesh_resolution: int = 128  # TSDF voxels along the longest side
     bake_steps: int | None = None  # fitting steps of the 3DGS PLY (None: BakeConfig.steps_for the views)
     zoom: int = 4  # the grid's second row renders at this factor
+    # a shared server's limits: a video's frames used at most (photos are counted by `prepare_uploads`), and
+    # the seconds of one run, checked at every progress step of every stage (None: no limit)
+    max_views: int | None = None
+    max_seconds: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.working_size, bool) or not 16 <= self.working_size <= 2048:
@@ -82,6 +104,15 @@ class RunSettings:
             raise SurfSplatInputError(f"refinement fits per view: expected 0 to 1000, got {self.refine_fits}")
         if isinstance(self.optimize_seconds, bool) or not 0 <= self.optimize_seconds <= 3_600:
             raise SurfSplatInputError(f"optimization seconds: expected 0 to 3600, got {self.optimize_seconds}")
+        if self.max_views is not None and (isinstance(self.max_views, bool) or self.max_views < 2):
+            raise SurfSplatInputError(f"max views: expected at least 2, got {self.max_views}")
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise SurfSplatInputError(f"max seconds: expected a positive time, got {self.max_seconds}")
+        if self.max_seconds is not None and self.optimize_seconds >= self.max_seconds:
+            raise SurfSplatInputError(
+                f"optimization seconds: {self.optimize_seconds:g} is not under this server's limit of "
+                f"{self.max_seconds:g} s for a whole run; choose fewer"
+            )
 
 
 @dataclass
@@ -102,13 +133,23 @@ class RunResult:
 
 class StageTracker:
     """A listener for `surfsplat.utils.log.listen_progress` that reports (fraction, text) to `report` as
-    the run goes through STAGES, and raises RunCancelled once `cancelled()` says so."""
+    the run goes through STAGES, raises RunCancelled once `cancelled()` says so, and RunOverTime at the
+    first step or stage after `max_seconds` (on `clock`) have passed since it was made."""
 
-    def __init__(self, report: Callable[[float, str], None], cancelled: Callable[[], bool] = lambda: False):
+    def __init__(
+        self,
+        report: Callable[[float, str], None],
+        cancelled: Callable[[], bool] = lambda: False,
+        max_seconds: float | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+    ):
         self.report = report
         self.cancelled = cancelled
         self.index = 0
         self.loops = {loop: i for i, (_, loop, _) in enumerate(STAGES) if loop is not None}
+        self.max_seconds = max_seconds
+        self.clock = clock
+        self.start = clock()
 
     def enter(self, label: str) -> None:
         """Announce a stage without a progress loop (by its label in STAGES)."""
@@ -135,6 +176,8 @@ class StageTracker:
     def _check(self) -> None:
         if self.cancelled():
             raise RunCancelled("stopped")
+        if self.max_seconds is not None and self.clock() - self.start > self.max_seconds:
+            raise RunOverTime(self.max_seconds, STAGES[self.index][0])
 
 
 def weights_choices() -> list[tuple[str, str]]:
@@ -193,19 +236,21 @@ def run_capture(
 
     start = time.perf_counter()
     out = Path(out_dir)
-    tracker = StageTracker(report, cancelled)
+    tracker = StageTracker(report, cancelled, settings.max_seconds)
     capture = CaptureOptions(
+        frames=FrameConfig(max_frames=settings.max_views),
         refine=replace(RefineConfig(), fits_per_view=settings.refine_fits),
         optimize=replace(OptimizeConfig(), steps=0)
         if settings.optimize_seconds == 0
         else replace(OptimizeConfig(), seconds=settings.optimize_seconds),
     )
-    with listen_progress(tracker):
+    scrub = PathScrubber(uploads.folder.parent)
+    with listen_progress(tracker), _warnings() as warned:
         tracker.enter("cameras")
         scene = reconstruct(
             uploads.capture,
             checkpoint=settings.weights,
-            cameras=uploads.cameras,
+            cameras=uploads.cameras,  # None: estimated; a processed capture: its own folder
             device=settings.device,
             max_working_size=settings.working_size,
             capture=capture,
@@ -226,10 +271,13 @@ def run_capture(
         view = write_view_ply(out / "surfels_3dgs.ply", out / "app" / "view.ply", scene.cameras.c2w[0])
         grid = write_grid(scene, out / "app" / "grid.png", settings.zoom)
         plot = write_camera_plot(scene, out / "app" / "cameras.svg")
+        scrub_text_files(out, scrub)
+        tracker.enter("x4 renders and zip")  # the limit once more before the result is kept
         archive = Path(shutil.make_archive(str(out.parent / "surfsplat_result"), "zip", root_dir=out))
     summary = json.loads(written["summary"].read_text())
     report(1.0, "done")
     seconds = time.perf_counter() - start
+    notes = [scrub(line) for line in [*uploads.notes, *(f"warning: {m}" for m in warned)]]
     downloads = [out / "surfels_3dgs.ply", out / "surfels.ply", out / "mesh.ply", out / "cameras.json", archive]
     return RunResult(
         out=out,
@@ -241,8 +289,49 @@ def run_capture(
         video=out / "path.mp4" if (out / "path.mp4").is_file() else None,
         summary=summary,
         seconds=seconds,
-        lines=summary_lines(scene, summary, seconds),
+        lines=[scrub(line) for line in summary_lines(scene, summary, seconds)] + notes,
     )
+
+
+class _Collect(logging.Handler):
+    """The package's warnings logged by this thread (the run's), for the page."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.thread = threading.get_ident()
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.messages.append(record.getMessage().strip().splitlines()[0] if record.getMessage().strip() else "")
+
+
+@contextmanager
+def _warnings():
+    """Collect the package's warnings while the run goes (shown on the page, paths scrubbed)."""
+    from ..utils.log import ROOT
+
+    handler = _Collect()
+    package = logging.getLogger(ROOT)
+    package.addHandler(handler)
+    try:
+        yield handler.messages
+    finally:
+        package.removeHandler(handler)
+
+
+TEXT_SUFFIXES = (".json", ".html", ".txt", ".md", ".svg", ".csv")  # outputs that may quote an input's path
+
+
+def scrub_text_files(folder: Path, scrub: Callable[[str], str]) -> None:
+    """Rewrite the text outputs of `folder` (reconstruction.json's sources, the pose report) without the
+    server's folders: the downloads name the uploads by their own names."""
+    for path in sorted(folder.rglob("*")):
+        if path.is_file() and path.suffix.lower() in TEXT_SUFFIXES:
+            text = path.read_text(encoding="utf-8", errors="surrogateescape")
+            clean = scrub(text)
+            if clean != text:
+                path.write_text(clean, encoding="utf-8", errors="surrogateescape")
 
 
 def write_grid(scene, path: Path, zoom: int) -> Path:

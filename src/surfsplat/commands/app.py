@@ -2,6 +2,7 @@
 
     surfsplat app                                  # http://127.0.0.1:7860, this machine only
     surfsplat app --port 8080 --max-upload-mb 50 --keep-minutes 30
+    surfsplat app --max-views 30 --max-run-seconds 300     # a shared server's limits on one run
     surfsplat app --host 0.0.0.0                   # the network too (a warning says so)
 
 The page is `surfsplat.app.build` (a gradio.Blocks); this module only parses the options.
@@ -29,6 +30,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"one run's uploads together at most (default {default.max_upload_mb:g} MB)",
     )
     parser.add_argument(
+        "--max-views",
+        type=int,
+        default=default.max_views,
+        help=f"views of one run at most: photos, or a video's frames used (default {default.max_views})",
+    )
+    parser.add_argument(
+        "--max-run-seconds",
+        type=float,
+        default=default.max_seconds,
+        help=f"a run stops after this many seconds, keeping nothing (default {default.max_seconds:g})",
+    )
+    parser.add_argument(
         "--keep-minutes",
         type=float,
         default=default.keep_minutes,
@@ -50,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         host=args.host,
         port=args.port,
         max_upload_mb=args.max_upload_mb,
+        max_views=args.max_views,
+        max_seconds=args.max_run_seconds,
         keep_minutes=args.keep_minutes,
         device=args.device,
     )

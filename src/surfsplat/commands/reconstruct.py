@@ -45,7 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", nargs="+", type=Path, help="two or more context images, or one folder of images")
     source.add_argument("--video", type=Path, help="a video of the scene (frames chosen by motion and sharpness)")
-    add_cameras(parser, "JSON camera file, COLMAP model or scene folder (default: estimate them from the images)")
+    add_cameras(
+        parser,
+        "JSON camera file, COLMAP model or scene folder (default: the cameras of a capture folder given as --images "
+        "that holds a transforms.json or sparse/0, else estimated from the images)",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
     parser.add_argument(
         "--images-folder", default=None, help="image folder of a scene folder given as --cameras (e.g. images_4)"
@@ -200,7 +204,8 @@ def run(args: argparse.Namespace) -> int:
     scene = reconstruct(
         images,
         checkpoint=args.checkpoint,
-        cameras=args.cameras,
+        # not given: a processed capture folder's own cameras (transforms.json, sparse/0), else estimated
+        cameras=args.cameras if args.cameras is not None else "auto",
         device=args.device,
         size=tuple(args.size) if args.size else None,
         near=args.near,

@@ -3,11 +3,13 @@
     scene = reconstruct(["a.jpg", "b.jpg"])                       # cameras estimated, the shipped model
     scene = reconstruct("capture.mp4", checkpoint="tiny-synthetic")
     scene = reconstruct("photos/", cameras="photos/cameras.json", size=(256, 256))
+    scene = reconstruct("capture/")        # photos + transforms.json or sparse/0: its photos and cameras
 
 Steps:
 1. inputs and options are checked (`_check_options`, `read_capture`); a video becomes its chosen
    frames (`surfsplat.capture.select_video_frames`).
-2. cameras: given (a camera file, a scene folder, a CameraSet or Cameras), or estimated from the
+2. cameras: given (a camera file, a scene folder, a CameraSet or Cameras, or with cameras="auto" those
+   of a processed capture given as `images`: `capture_folder`), or estimated from the
    views (`surfsplat.poses.estimate_cameras`; every pair of up to 30 views is matched, photos or a
    video's chosen frames, and each view with the views 1, 2, 4, ... ahead above that).
 3. the network: every `holdout_every`-th view is kept out (to look at the scene from there); the
@@ -76,7 +78,7 @@ class CaptureOptions:
 def reconstruct(
     images: ImageSource | Sequence[ImageSource],
     checkpoint="tiny-synthetic",
-    cameras=None,
+    cameras="auto",
     device: str | torch.device = "auto",
     *,
     size: tuple[int, int] | None = None,
@@ -97,10 +99,13 @@ def reconstruct(
     """One scene of surfels from photos, a folder of photos, or a video.
 
     images:     two or more image files or arrays ([H, W, 3] uint8 or float in [0, 1], or [3, H, W]
-                tensors), all of one size; a folder of images; or a video file (.mp4, .mov, ...)
+                tensors), all of one size; a folder of images; a processed capture folder (photos and a
+                transforms.json or a COLMAP sparse/0: its views are the photos the camera file lists);
+                or a video file (.mp4, .mov, ...)
     checkpoint: a weights name (default "tiny-synthetic"), hf://owner/repo/file, a checkpoint path,
                 or a loaded SurfSplat model
-    cameras:    None (estimated from the images), a JSON camera file / COLMAP model / scene folder
+    cameras:    "auto" (default: a processed capture folder's own cameras, else estimated), None
+                (estimated from the images), a JSON camera file / COLMAP model / scene folder
                 (views matched by name; video frames are named frame_000012, ...), a CameraSet
                 (matched by name; arrays take its names in order), or Cameras with K in pixels of
                 the images (one per view, in order)
@@ -129,10 +134,20 @@ def reconstruct(
     from ..utils.precision import parse_precision
 
     parse_precision(precision)
-    if focal is not None and cameras is not None:
+    from .capture_folder import AUTO, capture_views
+
+    if focal is not None and cameras is not None and not (isinstance(cameras, str) and cameras == AUTO):
         raise SurfSplatInputError("--focal: only used when the cameras are estimated (without --cameras)")
+    images, cameras, cameras_source = capture_views(images, cameras, images_folder)
+    if focal is not None and cameras is not None:  # "auto" found a processed capture's own cameras
+        raise SurfSplatInputError(
+            f"--focal: only used when the cameras are estimated; {cameras_source} are used "
+            "(pass cameras=None to estimate them)"
+        )
     views = read_capture(images, capture.frames)
-    given = _given_cameras(cameras, views, images_folder)
+    given = _given_cameras(cameras, views, images_folder if cameras_source is None else None)
+    if cameras_source is not None:  # a processed capture's own cameras (a CameraSet read already): named by its file
+        given = given[0], cameras_source
 
     # ---- cameras
     seconds: dict[str, float] = {}
