@@ -39,6 +39,7 @@ from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
+from .per_view import PerViewConfig
 from .starts import StartConfig, make_start
 
 NETWORK_NORMAL_WEIGHT = 0.05  # the depth-normal term's weight from the network's surfels (2DGS's)
@@ -102,6 +103,13 @@ class OptimizeConfig:
     # whose opacities it made for it (a room: 27.2 dB before, 26.1 dB after 30 steps fitted plain).
     # The fit renders with it and the optimized scene keeps it.
     alpha_threshold: float | None | Literal["auto"] = "auto"
+    # per-photo terms fitted beside the surfels (capture/per_view.py): an affine exposure map per photo
+    # (3DGS's exposure; held-out views then scored by its train_test_exp protocol), and a rigid
+    # correction per context camera, "auto": where the cameras were estimated from the photos (given
+    # calibrations are trusted), the held-out cameras then aligned to their photos before scoring
+    appearance: bool = False
+    refine_cameras: bool | Literal["auto"] = False
+    per_view: PerViewConfig = field(default_factory=PerViewConfig)  # their rates and gauge
 
     def __post_init__(self) -> None:
         if self.steps is not None and (
@@ -172,6 +180,13 @@ class OptimizeConfig:
             return 0
         return 1_000_000 if self.seconds is not None else DEFAULT_STEPS
 
+    def per_view_for(self, estimated_cameras: bool) -> PerViewConfig | None:
+        """The per-photo terms of a fit whose cameras were (or were not) estimated from the photos."""
+        cameras = estimated_cameras if self.refine_cameras == "auto" else bool(self.refine_cameras)
+        if not (self.appearance or cameras):
+            return None
+        return replace(self.per_view, appearance=self.appearance, cameras=cameras)
+
     def plan(self, extent: float, views: int) -> FitPlan:
         """The shared loop's plan for a scene of `extent` (3DGS's camera extent, scaling the position rate)."""
         base = {
@@ -230,6 +245,8 @@ def optimize_on_views(
     backend: str = "auto",
     progress: bool = False,
     monitor=None,
+    estimated_cameras: bool = False,
+    per_view_out: dict | None = None,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels optimized on the photos and the fit's figures: those of the loop
     (`fit.fit_on_views`), the start's (`starts.make_start`: "start", "start_surfels", "points") and
@@ -238,7 +255,8 @@ def optimize_on_views(
     `config.alpha_threshold` names, returned as stats["alpha_threshold"]: whatever renders the result
     should use it.
     `backend`: the renderer ("auto": the one `render` picks for the surfels' device); `monitor`: see
-    `fit.fit_on_views` (held-out scores along the fit)."""
+    `fit.fit_on_views` (held-out scores along the fit). `estimated_cameras`: the cameras came from the
+    photos (`config.refine_cameras` "auto" then refines them); `per_view_out`: see `fit.fit_on_views`."""
     config = config or OptimizeConfig()
     extent = scene_extent(cameras)
     start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree)
@@ -246,7 +264,7 @@ def optimize_on_views(
     from_network = start_figures["start"] == "network"
     if threshold == "auto":
         threshold = alpha_threshold if from_network else None
-    plan = config.plan(extent, len(cameras))
+    plan = replace(config.plan(extent, len(cameras)), per_view=config.per_view_for(estimated_cameras))
     if config.normal_weight == "auto" and from_network:
         plan = replace(plan, normal_weight=NETWORK_NORMAL_WEIGHT)
     fitted, stats = fit_on_views(
@@ -261,6 +279,7 @@ def optimize_on_views(
         backend=backend,
         progress=progress,
         monitor=monitor,
+        per_view_out=per_view_out,
     )
     stats["alpha_threshold"] = threshold
     stats["normal_weight"] = plan.normal_weight
