@@ -35,6 +35,7 @@ from ..utils.heap import reuse_freed_memory
 from .adam import SelectiveAdam, visible_rows
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
+from .per_view import PerView, PerViewConfig
 
 logger = logging.getLogger(__name__)
 
@@ -82,6 +83,8 @@ class FitPlan:
     extra: dict = field(default_factory=dict)  # figures the plan's owner adds to the stats
     # "selective": a step's Adam updates only the rows of the surfels its views saw (`adam.SelectiveAdam`)
     adam: Literal["dense", "selective"] = "dense"
+    # each photo's exposure and camera correction, fitted beside the surfels (None: neither; per_view.py)
+    per_view: PerViewConfig | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.rates) - set(TENSORS)
@@ -103,6 +106,7 @@ def fit_on_views(
     progress: bool = False,
     monitor: Callable[[int, float, Gaussians], None] | None = None,
     monitor_every: float = 0.1,
+    per_view_out: dict | None = None,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels fitted as `plan` says, and the fit's figures: {"steps", "max_steps", "mse_before",
     "mse_after", "kept", "scale", "width", "height", "seconds"} (colour errors over every view at the
@@ -110,7 +114,12 @@ def fit_on_views(
 
     `monitor(step, seconds, surfels, alpha_threshold)` is called before the first step, each time the fit's progress
     passes another `monitor_every`, and after the last step, with the surfels as they then are and
-    the seconds the fit has run; its own time is not counted in them (held-out scores along the way)."""
+    the seconds the fit has run; its own time is not counted in them (held-out scores along the way).
+
+    With `plan.per_view`, each photo's exposure map and camera correction are fitted beside the surfels
+    (`per_view.PerView`); `per_view_out` (a dict) then receives "cameras" (the refined context
+    cameras) and "exposure" ([V, 3, 4] or None), and the colour errors before and after are those of
+    the exposed renders from the refined cameras."""
     from ..render import render
     from ..utils.log import progress as progress_bar
 
@@ -148,10 +157,25 @@ def fit_on_views(
     def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
         return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, distortion=distortion)
 
+    views = PerView(plan.per_view, cameras, plan.extent) if plan.per_view is not None and plan.per_view.active else None
+
+    def colours(g: Gaussians, cams: Cameras, which: Tensor, w: int, h: int, distortion: bool = False):
+        """(RenderOutput, colour) of the views `which` of `cams`: with per-view terms each view renders
+        the surfels moved by its camera correction, and its colour goes through its exposure map."""
+        if views is None:
+            out = draw(g, cams[which], w, h, distortion)
+            return out, out.color
+        if views.config.cameras:
+            parts = [draw(views.moved(g, int(i)), cams[int(i)], w, h, distortion) for i in which.tolist()]
+            out = concat_outputs(parts)
+        else:
+            out = draw(g, cams[which], w, h, distortion)
+        return out, views.expose(out.color, which)
+
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
             chunks = torch.arange(v, device=images.device).split(plan.views_per_step)
-            sums = torch.stack([(draw(g, cameras[c], width, height).color - images[c]).square().sum() for c in chunks])
+            sums = torch.stack([(colours(g, cameras, c, width, height)[1] - images[c]).square().sum() for c in chunks])
         # read once; the chunks' float32 sums are added in Python's double precision, as they always were
         return sum(sums.tolist()) / images.numel()
 
@@ -215,11 +239,13 @@ def fit_on_views(
                 marks = int(done / monitor_every)
                 watch(step, done)
             free.schedule(optimizer, done)
+            if views is not None:
+                views.schedule(done)
             which = views_of(step)
             fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
             distorted = plan.distortion_weight > 0 and done >= plan.distortion_from
-            out = draw(free.current(done, unit_quats=False), fit_cameras[which], fit_w, fit_h, distorted)
-            loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
+            out, colour = colours(free.current(done, unit_quats=False), fit_cameras, which, fit_w, fit_h, distorted)
+            loss = colour_loss(colour, fit_images[which], plan.loss, plan.ssim_weight)
             if distorted:
                 loss = loss + plan.distortion_weight * distortion_error(out.distortion)
             if plan.normal_weight > 0 and done >= plan.normal_from:
@@ -227,6 +253,8 @@ def fit_on_views(
                     out.depth, out.normal, out.alpha, fit_cameras[which]
                 )
             optimizer.zero_grad(set_to_none=True)
+            if views is not None:
+                views.zero_grad()
             loss.backward()
             if densify is not None:
                 means = free.tensors["means"]
@@ -235,9 +263,11 @@ def fit_on_views(
                 optimizer.step(visible_rows(list(free.tensors.values())))
             else:
                 optimizer.step()
+            if views is not None:
+                views.step()
             pending.append(loss.detach())
             if progress:
-                errors.append((out.color.detach() - fit_images[which]).square().mean())
+                errors.append((colour.detach() - fit_images[which]).square().mean())
                 if len(errors) == PSNR_EVERY:
                     error = float(torch.stack(errors).mean())
                     bar.set_postfix(psnr=f"{-10 * math.log10(max(error, 1e-12)):.2f} dB", refresh=False)
@@ -265,6 +295,11 @@ def fit_on_views(
     stats = {"steps": steps, "mse_before": before, "mse_after": after, "kept": float(after <= before), **figures}
     if densify is not None:
         stats["densify"] = densify.history
+    if views is not None:
+        stats["per_view"] = views.summary()
+        if per_view_out is not None and after <= before:
+            per_view_out["cameras"] = views.refined_cameras()
+            per_view_out["exposure"] = views.tensors["exposure"].detach() if views.config.appearance else None
     stats["seconds"] = time.perf_counter() - start - watched
     if after > before:  # a rate too high for this scene: the photos are matched worse, so it is not used
         logger.warning(
@@ -442,6 +477,16 @@ class _Free:
         if bool(keep.all()) or not bool(keep.any()):  # one sync per pruning, a few per fit
             return
         self.keep(optimizer, keep)
+
+
+def concat_outputs(parts: list) -> object:
+    """One RenderOutput of several renders' (each of one or more cameras), camera by camera."""
+    first = parts[0]
+    joined = {
+        name: None if getattr(first, name) is None else torch.cat([getattr(p, name) for p in parts])
+        for name in ("color", "alpha", "depth", "normal", "distortion")
+    }
+    return replace(first, **joined)
 
 
 def progress_of(plan: FitPlan, step: int, elapsed: float) -> float:

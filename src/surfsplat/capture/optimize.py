@@ -40,6 +40,7 @@ from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
+from .per_view import PerViewConfig
 from .starts import StartChoice, StartConfig, make_start
 
 NETWORK_NORMAL_WEIGHT = 0.05  # the depth-normal term's weight from the network's surfels (2DGS's)
@@ -112,6 +113,13 @@ class OptimizeConfig:
     # whose opacities it made for it (a room: 27.2 dB before, 26.1 dB after 30 steps fitted plain).
     # The fit renders with it and the optimized scene keeps it.
     alpha_threshold: float | None | Literal["auto"] = "auto"
+    # per-photo terms fitted beside the surfels (capture/per_view.py): an affine exposure map per photo
+    # (3DGS's exposure; held-out views then scored by its train_test_exp protocol), and a rigid
+    # correction per context camera, "auto": where the cameras were estimated from the photos (given
+    # calibrations are trusted), the held-out cameras then aligned to their photos before scoring
+    appearance: bool = False
+    refine_cameras: bool | Literal["auto"] = False
+    per_view: PerViewConfig = field(default_factory=PerViewConfig)  # their rates and gauge
 
     def __post_init__(self) -> None:
         if self.steps is not None and (
@@ -178,6 +186,13 @@ class OptimizeConfig:
     def runs_for(self, views: int) -> bool:
         """Whether a fit of `views` context views runs at all (`steps_for` is positive, whatever the pixels)."""
         return self.steps != 0 if self.steps is not None else views > 2
+
+    def per_view_for(self, estimated_cameras: bool) -> PerViewConfig | None:
+        """The per-photo terms of a fit whose cameras were (or were not) estimated from the photos."""
+        cameras = estimated_cameras if self.refine_cameras == "auto" else bool(self.refine_cameras)
+        if not (self.appearance or cameras):
+            return None
+        return replace(self.per_view, appearance=self.appearance, cameras=cameras)
 
     def steps_for(self, views: int, pixels: int) -> int:
         """The steps the fit of `views` context views of `pixels` pixels each runs at most (0: none):
@@ -260,6 +275,8 @@ def optimize_on_views(
     progress: bool = False,
     monitor=None,
     choice: StartChoice | None = None,
+    estimated_cameras: bool = False,
+    per_view_out: dict | None = None,
 ) -> tuple[Gaussians, dict[str, float]]:
     """The surfels optimized on the photos and the fit's figures: those of the loop
     (`fit.fit_on_views`), the start's (`starts.make_start`: "start", "start_surfels", "points") and
@@ -275,7 +292,9 @@ def optimize_on_views(
     from the first step, the position rate at its final value throughout (3DGS's schedule past its end)
     and no densification (the saved fit grew them); the forced-alpha threshold and the depth-normal
     term are the given surfels' (`alpha_threshold`, and 2DGS's term where they render with one: the
-    network's, as from its start)."""
+    network's, as from its start).
+    `estimated_cameras`: the cameras came from the photos (`config.refine_cameras` "auto" then refines
+    them); `per_view_out`: see `fit.fit_on_views`."""
     config = config or OptimizeConfig()
     extent = scene_extent(cameras)
     start, start_figures = make_start(config.start, gaussians, images, cameras, config.sh_degree, choice)
@@ -284,7 +303,7 @@ def optimize_on_views(
     keeps_threshold = kind == "network" or (kind == "continue" and alpha_threshold is not None)
     if threshold == "auto":
         threshold = alpha_threshold if kind in ("network", "continue") else None
-    plan = config.plan(extent, len(cameras), width * height)
+    plan = replace(config.plan(extent, len(cameras), width * height), per_view=config.per_view_for(estimated_cameras))
     if config.normal_weight == "auto" and keeps_threshold:
         plan = replace(plan, normal_weight=NETWORK_NORMAL_WEIGHT)
     if kind == "continue":
@@ -303,6 +322,7 @@ def optimize_on_views(
         backend=backend,
         progress=progress,
         monitor=monitor,
+        per_view_out=per_view_out,
     )
     stats["alpha_threshold"] = threshold
     stats["normal_weight"] = plan.normal_weight

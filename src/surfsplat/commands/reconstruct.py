@@ -161,6 +161,22 @@ def add_optimize_arguments(group, continuing: bool = False) -> None:
         metavar="S",
         help=f"the optimization renders at this fraction of the working size (default {optimize.scale:g})",
     )
+    group.add_argument(
+        "--optimize-appearance",
+        action=argparse.BooleanOptionalAction,
+        default=optimize.appearance,
+        help="fit an affine exposure map per context photo beside the surfels (3DGS's exposure); held-out "
+        "views are then scored by 3DGS's train_test_exp protocol (map fitted on the photo's left half, "
+        f"figures on the right half) (default {'on' if optimize.appearance else 'off'})",
+    )
+    group.add_argument(
+        "--optimize-cameras",
+        choices=("auto", "on", "off"),
+        default={True: "on", False: "off"}.get(optimize.refine_cameras, "auto"),
+        help="refine each context camera (rotation and translation, the first camera fixed) beside the surfels, "
+        "and align the held-out cameras to their photos before scoring; auto: where the cameras were "
+        "estimated from the photos",
+    )
 
 
 def optimize_from_args(args: argparse.Namespace):
@@ -174,6 +190,8 @@ def optimize_from_args(args: argparse.Namespace):
         seconds=args.optimize_seconds,
         scale=args.optimize_scale,
         start=dataclasses.replace(config.start, kind=args.optimize_start),
+        appearance=args.optimize_appearance,
+        refine_cameras={"on": True, "off": False, "auto": "auto"}[args.optimize_cameras],
     )
 
 

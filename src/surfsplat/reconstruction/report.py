@@ -97,6 +97,18 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
             figures.append((str(render.relative_to(out)), caption))
             report.figure_row(figures, width=THUMBNAIL_WIDTH, pixelated=True)
         report.paragraph(held_out_line(h.scores(), len(h.names), h.lpips_note))
+        if h.protocol == "exposure":
+            report.paragraph(
+                "Scored as 3DGS's train_test_exp protocol: the scene was fitted with an exposure map per context "
+                "photo, so each held-out photo's map is fitted on its left half and the figures are those of the "
+                "right half."
+            )
+        if h.alignment is not None:
+            shifts = ", ".join(f"{a:.2f}" for a in h.alignment["rotation_deg"])
+            report.paragraph(
+                "The context cameras were refined with the scene, so each held-out camera was aligned to its photo "
+                f"first (the scene frozen, {h.alignment['steps']} steps; rotations moved by {shifts} degrees)."
+            )
         if h.before is not None:
             report.paragraph("Before the per-scene optimization: " + held_out_line(h.before, len(h.names), None))
         curve = scene.optimize_stats.get("held_out_curve") if scene.optimize_stats else None

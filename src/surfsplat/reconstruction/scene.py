@@ -40,6 +40,12 @@ class HeldOut:
     before: dict | None = None  # the figures above before the per-scene optimization (None: not optimized)
     before_renders: Tensor | None = None  # [H, 3, height, width] the renders before the optimization
     sources: list = field(default_factory=list)  # the photos' files (paths; empty for arrays), to score them again
+    # how a render is scored against its photo: "plain" (the whole photo as it is), or "exposure" (3DGS's
+    # train_test_exp, for scenes fitted with per-photo exposure: each view's affine colour map fitted on
+    # the photo's left half, the figures taken on the right half; capture/per_view.py)
+    protocol: str = "plain"
+    # with refined context cameras: how far test-time alignment moved each held-out camera (degrees, units)
+    alignment: dict | None = None
 
     def scores(self) -> dict:
         """Per-view and mean PSNR, SSIM, LPIPS and coverage."""
@@ -59,7 +65,9 @@ class HeldOut:
         }
 
     def to_dict(self) -> dict:
-        out = {"names": self.names, **self.scores()}
+        out = {"names": self.names, **self.scores(), "protocol": self.protocol}
+        if self.alignment is not None:
+            out["camera_alignment"] = self.alignment
         if self.sources:
             out["sources"] = [str(s) for s in self.sources]
         if self.lpips_note is not None:
@@ -74,12 +82,21 @@ class HeldOut:
 
         color = out.color.clamp(0, 1)
         truth = self.images.to(color)
+        alpha = out.alpha
+        if self.protocol == "exposure":
+            from ..capture.per_view import exposure_protocol
+
+            exposed, _ = exposure_protocol(out.color, truth)
+            half = color.shape[-1] // 2
+            color, truth, alpha = exposed[..., half:].clamp(0, 1), truth[..., half:], alpha[..., half:]
+        elif self.protocol != "plain":
+            raise SurfSplatInputError(f"held-out protocol: expected 'plain' or 'exposure', got {self.protocol!r}")
         views = range(len(self.names))
         # computed where the scene is and read back once (each read makes a GPU host wait)
         scores = torch.stack(
             [
                 torch.cat([psnr(color[i : i + 1], truth[i : i + 1]) for i in views]),
-                (out.alpha >= 0.5).float().mean(dim=(1, 2, 3)),
+                (alpha >= 0.5).float().mean(dim=(1, 2, 3)),
                 torch.stack([ssim(color[i : i + 1].double(), truth[i : i + 1].double()).reshape(()) for i in views]).to(
                     color.dtype
                 ),

@@ -67,6 +67,8 @@ def optimize_scene(
             curve.append({"step": step, "seconds": seconds, "surfels": len(surfels), "psnr": float(value)})
 
     tick = time.perf_counter()
+    estimated = scene.poses is not None  # cameras from the photos: "auto" refines them
+    per_view: dict = {}
     scene.gaussians, scene.optimize_stats = optimize_on_views(
         scene.gaussians,
         scene.cameras,
@@ -80,14 +82,49 @@ def optimize_scene(
         progress=progress,
         monitor=monitor,
         choice=choice,
+        estimated_cameras=estimated,
+        per_view_out=per_view,
     )
     scene.alpha_threshold = scene.optimize_stats["alpha_threshold"]  # the surfels render as they were fitted
     if curve:
         scene.optimize_stats["held_out_curve"] = curve
     scene.seconds["optimize"] = time.perf_counter() - tick
+    if "cameras" in per_view:  # the refined context cameras are the scene's from now on
+        scene.cameras = per_view["cameras"].to(scene.cameras.c2w.dtype)
     if held is not None:
+        terms = config.per_view_for(estimated)
+        if "cameras" in per_view and terms is not None and terms.cameras:
+            _align_held_out(scene, terms)
+        if per_view.get("exposure") is not None:
+            held.protocol = "exposure"
         scene.score_holdout()
     return scene
+
+
+def _align_held_out(scene: Scene, terms) -> None:
+    """The held-out cameras fitted to their photos with the scene frozen (test-time pose alignment), as
+    the context cameras were refined: the held-out poses were estimated alike and carry the same error."""
+    from ..capture.optimize import scene_extent
+    from ..capture.per_view import align_held_out
+    from ..render import render
+
+    held = scene.holdout
+
+    def draw(surfels, cameras):
+        out = render(
+            surfels, cameras, scene.width, scene.height, mode=scene.mode, alpha_threshold=scene.alpha_threshold
+        )
+        return out.color
+
+    before = held.cameras
+    held.cameras = align_held_out(draw, scene.gaussians, before, held.images, scene_extent(scene.cameras), terms)
+    delta = torch.linalg.solve(before.c2w.double(), held.cameras.c2w.double())  # E_v per view
+    cos = ((delta[:, 0, 0] + delta[:, 1, 1] + delta[:, 2, 2] - 1) / 2).clamp(-1, 1)
+    held.alignment = {
+        "steps": terms.align_steps,
+        "rotation_deg": torch.rad2deg(torch.acos(cos)).tolist(),
+        "translation": delta[:, :3, 3].norm(dim=-1).tolist(),
+    }
 
 
 def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
