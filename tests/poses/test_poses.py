@@ -217,6 +217,54 @@ def test_exif_focal_plane_resolution_rescaled_to_the_image(tmp_path):
     assert exif_focal(_jpeg_with_exif(tmp_path / "c.jpg", (400, 300), {}), 400, 300) is None
 
 
+def _photo_with_exif(path: Path, size: tuple[int, int], tags: dict[int, object], orientation: int, fmt: str) -> Path:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    exif.get_ifd(0x8769).update(tags)
+    Image.new("RGB", size, (120, 90, 60)).save(path, fmt, exif=exif.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_focal_plane_resolution_is_along_the_stored_width(tmp_path, orientation):
+    """FocalPlaneXResolution is along the sensor's width, the STORED image's width (CIPA DC-008): a
+    stored 200x300 crop of a 4000x3000 sensor keeps 200/4000 of its x pixels, whatever the display.
+    The displayed width (300 for 5-8) or the long sides' ratio (300/4000) would give other values."""
+    tags = {0x920A: 4.25, 0xA20E: 1000.0, 0xA210: 4, 0xA002: 4000, 0xA003: 3000}
+    path = _photo_with_exif(tmp_path / "p.jpg", (200, 300), tags, orientation, "JPEG")
+    shown = (300, 200) if orientation >= 5 else (200, 300)
+    from surfsplat.data.images import read_image_size
+
+    assert read_image_size(path) == shown
+    focal, _ = exif_focal(path, *shown)
+    assert focal == pytest.approx(4.25 * 1000 * 200 / 4000)
+
+
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_exif_35mm_focal_of_a_turned_photo_uses_the_diagonal(tmp_path, orientation):
+    path = _photo_with_exif(tmp_path / "p.jpg", (400, 300), {0xA405: 28}, orientation, "JPEG")
+    shown = (300, 400) if orientation == 6 else (400, 300)
+    focal, _ = exif_focal(path, *shown)
+    assert focal == pytest.approx(28 * 500 / math.hypot(36, 24))
+
+
+@pytest.mark.parametrize("orientation", [1, 6, 8])
+def test_exif_focal_read_from_heic(tmp_path, orientation):
+    """pillow-heif keeps the EXIF block (it resets only the Orientation tag, after applying it): both
+    routes read from a HEIC, the focal-plane one along the coded (stored) width."""
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'heic' extra) is not installed")
+    pillow_heif.register_heif_opener()
+    tags = {0x920A: 4.25, 0xA20E: 1000.0, 0xA210: 4, 0xA002: 4000, 0xA003: 3000}
+    path = _photo_with_exif(tmp_path / "p.heic", (64, 96), tags, orientation, "HEIF")
+    shown = (96, 64) if orientation >= 5 else (64, 96)
+    focal, source = exif_focal(path, *shown)
+    assert focal == pytest.approx(4.25 * 1000 * 64 / 4000)
+    assert "focal length 4.25 mm" in source
+    path35 = _photo_with_exif(tmp_path / "q.heic", (64, 48), {0xA405: 26}, orientation, "HEIF")
+    shown = (48, 64) if orientation >= 5 else (64, 48)
+    assert exif_focal(path35, *shown)[0] == pytest.approx(26 * 80 / math.hypot(36, 24))
+
+
 # ----------------------------------------------------------------------------------------- bad input
 def test_fewer_than_two_images(orbit_views, tmp_path, capsys):
     with pytest.raises(SurfSplatInputError, match="at least 2 images of one scene, got 1"):
