@@ -290,12 +290,31 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
-def test_images_of_different_sizes(orbit_views, tmp_path, capsys):
+def test_images_of_different_sizes_with_one_focal_are_refused(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
-    assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json")]) == 2
+    assert main(["poses", *map(str, paths), "--focal", "300", "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err
-    assert "all images must have one size" in err and "view0.png 400x300, view1.png 320x240" in err
+    assert "--focal: one focal length in pixels fits one image size, the photos have 2 (400x300, 320x240)" in err
+
+
+@pytest.mark.slow
+def test_landscape_and_portrait_views_get_a_camera_each(room, orbit_views):
+    """Three 400x300 views and a 300x400 portrait one (the same lens turned: the same focal length in
+    pixels): one camera per size (COLMAP's PER_FOLDER), each view's K in its own pixels."""
+    images, truth, _ = orbit_views
+    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
+    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
+    cams, summary = estimate_cameras([*images[:3], portrait])
+    assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
+    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot.max() < 1.5 and trans.max() < 3.0, (rot, trans)
+    K = cams.cameras.K
+    assert [float(K[i, 0, 2]) for i in range(4)] == [W / 2] * 3 + [H / 2]  # each principal point at its centre
+    assert [float(K[i, 1, 2]) for i in range(4)] == [H / 2] * 3 + [W / 2]
+    for i in range(4):
+        assert abs(float(K[i, 0, 0]) / float(truth.K[0, 0, 0]) - 1) < 0.05, K[:, 0, 0]
+    assert any(note.startswith("camera 2 (300x400, 1 images): focal") for note in summary.notes), summary.notes
 
 
 def test_too_few_matches_names_the_pair_and_count(orbit_views, tmp_path, capsys):

@@ -152,7 +152,7 @@ def reconstruct(
     from .sizes import crop_report, view_cameras
 
     # each view's K in pixels of its own photo as displayed (photos may differ in size and orientation)
-    own = isinstance(cameras, Cameras)
+    own = cameras is None or isinstance(cameras, Cameras)  # estimated K: each in its own photo's pixels
     per_view = view_cameras(given, views.sizes, views.orientations, views.names, source, own_pixels=own)
     K, c2w = per_view.K, per_view.c2w
     near, far = _depth_range(near, far, given)
