@@ -293,9 +293,12 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
 def test_images_of_different_sizes_with_one_focal_are_refused(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
-    assert main(["poses", *map(str, paths), "--focal", "300", "--out", str(tmp_path / "c.json")]) == 2
+    with pytest.raises(SurfSplatInputError, match=r"--focal: one focal length in pixels fits one image size, the "):
+        estimate_cameras(paths, focal=300.0)
+    assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err
-    assert "--focal: one focal length in pixels fits one image size, the photos have 2 (400x300, 320x240)" in err
+    assert "--out: a camera file holds cameras of one image size, the photos have 2 (400x300, 320x240)" in err
+    assert not (tmp_path / "c.json").exists()
 
 
 @pytest.mark.slow
