@@ -438,6 +438,41 @@ def test_reconstruct_two_fern_photos_without_a_camera_file(data_dir, tmp_path, c
     assert (out / "poses" / "cameras.svg").read_text().count("<polygon") == 2
 
 
+@pytest.mark.slow
+def test_reconstruct_landscape_and_portrait_photos_without_a_camera_file(room, orbit_views, tmp_path):
+    """Estimated cameras of photos of two shapes: each view's K in its own pixels, then cropped to the
+    working size by rescale_and_crop's closed form; no one-size camera file is written, poses.json
+    gives every photo's size."""
+    import surfsplat
+    from surfsplat.capture import OptimizeConfig
+
+    images, truth, _ = orbit_views
+    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
+    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
+    paths = _save([*images[:3], portrait], tmp_path / "photos")
+    options = surfsplat.CaptureOptions(views_per_pass=4, optimize=OptimizeConfig(steps=0))
+    shape = (96, 128)
+    scene = surfsplat.reconstruct(paths, "tiny-synthetic", size=shape, capture=options, device="cpu", progress=False)
+    estimated = scene.pose_cameras.cameras.K.double()
+    for i, size in enumerate([(W, H)] * 3 + [(H, W)]):
+        (w, h), (sh, sw) = size, shape
+        s = max(sh / h, sw / w)
+        rw, rh = max(sw, round(w * s)), max(sh, round(h * s))
+        expected = estimated[i].clone()
+        expected[0] *= rw / w
+        expected[1] *= rh / h
+        expected[0, 2] -= (rw - sw) // 2
+        expected[1, 2] -= (rh - sh) // 2
+        torch.testing.assert_close(scene.cameras.K[i].double(), expected, rtol=1e-6, atol=1e-4)
+    assert float(estimated[3, 0, 2]) == H / 2 and float(estimated[3, 1, 2]) == W / 2  # the portrait's own centre
+    out = tmp_path / "out"
+    scene.save(out, formats=("ply",))
+    assert not (out / "estimated_cameras.json").exists()
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["image_sizes"]["view3.png"] == [H, W] and poses["image_sizes"]["view0.png"] == [W, H]
+    assert "no estimated_cameras.json: the photos have 2 sizes" in (out / "report.html").read_text()
+
+
 def test_reconstruct_refuses_focal_with_a_camera_file(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     args = ["reconstruct", "--checkpoint", str(tmp_path / "none"), "--images", *map(str, paths)]

@@ -150,6 +150,12 @@ class PoseSummary:
     seconds: float
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage: read, extract, match, reconstruct
     notes: list[str] = field(default_factory=list)  # what the user should know (dropped images, ...)
+    # (width, height) of every input image; the photos may differ, each size with a camera of its own
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+    @property
+    def one_size(self) -> bool:
+        return len(set(self.sizes.values())) <= 1
 
     @property
     def unregistered(self) -> list[str]:
@@ -194,6 +200,7 @@ class PoseSummary:
             "timings": self.timings,
             "pairs": [vars(p) for p in self.pairs],
             "notes": self.notes,
+            "image_sizes": {name: list(size) for name, size in self.sizes.items()},
         }
 
 
@@ -213,7 +220,9 @@ def estimate_cameras(
     focal: focal length in pixels of these images (overrides EXIF and the prior).
     names: a name per image (default: the file names, or view_000, ... for arrays).
     Returns the cameras of the registered images (OpenCV c2w, K in pixels of the images, near/far)
-    in input order, and the summary. Raises SurfSplatInputError naming the cause when the photos
+    in input order, and the summary. Photos may differ in size: each size gets a camera of its own,
+    every K is in pixels of its own image, and the CameraSet's width x height is the first image's
+    (so with several sizes it is not one camera file's size: `summary.sizes` gives each image's). Raises SurfSplatInputError naming the cause when the photos
     do not define cameras (too few matches, pure rotation, a plane, unreadable files).
     """
     config = config or PoseConfig()
@@ -304,6 +313,7 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
         seconds=time.perf_counter() - start,
         timings=timings,
         notes=notes,
+        sizes=dict(zip(names, sizes)),
     )
     return camera_set, summary
 
