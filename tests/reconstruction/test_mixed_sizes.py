@@ -117,3 +117,21 @@ def test_a_size_no_camera_fits_names_the_view():
         view_cameras(given, [(LW, LH), (40, 40)], [1, 1], ["a.png", "b.png"], "cameras.json")
     with pytest.raises(SurfSplatInputError, match=r"b.png is 32x48"):  # transposed without an EXIF turn
         view_cameras(given, [(LW, LH), (LH, LW)], [1, 1], ["a.png", "b.png"], "cameras.json")
+
+
+def test_mirrored_photos_are_named_in_one_warning(tmp_path, caplog):
+    from surfsplat.capture import FrameConfig
+    from surfsplat.reconstruction.inputs import read_capture
+
+    paths = []
+    for name, orientation in (("a.png", 1), ("b.png", 2), ("c.png", 6), ("d.png", 7)):
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.new("RGB", (LW, LH), (90, 60, 30)).save(tmp_path / name, exif=exif.tobytes())
+        paths.append(tmp_path / name)
+    with caplog.at_level(logging.WARNING, logger="surfsplat"):
+        views = read_capture(paths, FrameConfig())
+    assert views.orientations == [1, 2, 6, 7]
+    assert views.sizes == [(LW, LH), (LW, LH), (LH, LW), (LH, LW)]
+    warned = [r.getMessage() for r in caplog.records if "mirrored" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("b.png (orientation 2), d.png (orientation 7): shown mirrored")

@@ -7,6 +7,7 @@ one line. The option names in brackets are the command line's.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,6 +19,8 @@ from torch import Tensor
 
 from ..capture import FrameConfig, VideoFrames, is_video_file, select_video_frames
 from ..utils.checks import SurfSplatInputError
+
+logger = logging.getLogger(__name__)
 
 ImageSource = str | os.PathLike | np.ndarray | Tensor  # a file, uint8 / float [H, W, 3] array, or [3, H, W] tensor
 
@@ -129,8 +132,22 @@ def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfi
         raise SurfSplatInputError(
             f"images (--images): file names must be unique (cameras are keyed by name): {repeated}"
         )
+    _warn_mirrored(names, orientations)
     width, height = reference_size(sizes)
     return CaptureInput(names, paths, arrays, width, height, False, None, sources, sizes, orientations)
+
+
+def _warn_mirrored(names: list[str], orientations: list[int]) -> None:
+    """Photos an EXIF orientation shows mirrored (2, 4, 5, 7) are read as shown: a mirror image of the
+    scene, which matches unmirrored photos of it under no camera (see surfsplat.geometry.orientation)."""
+    from ..geometry.orientation import MIRRORED
+
+    mirrored = [f"{n} (orientation {o})" for n, o in zip(names, orientations) if o in MIRRORED]
+    if mirrored:
+        logger.warning(
+            f"{', '.join(mirrored)}: shown mirrored by the EXIF orientation and read so; a mirror image fits "
+            "no camera that also sees the unmirrored scene (save such photos unmirrored)"
+        )
 
 
 def reference_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
