@@ -96,7 +96,7 @@ def test_photo_with_a_damaged_exif_block_reconstructs_with_one_warning(views, tm
         assert main([*argv, "--formats", "ply", "--no-progress"]) == 0, capsys.readouterr().err
     warned = [r.getMessage() for r in caplog.records if "EXIF" in r.getMessage()]
     assert len(warned) == 1, warned
-    assert warned[0].startswith(f"{photos[0]}: damaged EXIF block (") and "read as stored" in warned[0]
+    assert warned[0].startswith(f"{photos[0]}: damaged EXIF block (") and "read without an orientation" in warned[0]
     assert (out / "surfels.ply").is_file()
 
 

@@ -170,6 +170,25 @@ def test_damaged_exif_block_still_decodes_with_one_warning(tmp_path, caplog):
     assert len(warned) == 1 and str(path) in warned[0], warned
 
 
+def test_damaged_exif_block_with_a_readable_orientation_applies_it_and_says_so(tmp_path, caplog):
+    """An IFD whose second entry points past the block's end: Pillow still reads Orientation 6 and warns
+    'Truncated File Read'; the photo is turned and the warning says the orientation was applied."""
+    U = upright(16, 24, block=8)
+    buffer = io.BytesIO()
+    Image.fromarray(stored_from_upright(U, 6)).save(buffer, "JPEG", quality=100, subsampling=0)
+    ifd = struct.pack("<H", 2) + struct.pack("<HHII", 0x0112, 3, 1, 6) + struct.pack("<HHII", 0x010E, 2, 100, 0x1000)
+    payload = b"Exif\x00\x00II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0)
+    data = buffer.getvalue()
+    path = tmp_path / "partial_exif.jpg"
+    path.write_bytes(data[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + data[2:])
+    with caplog.at_level(logging.WARNING, logger="surfsplat"):
+        assert image_orientation(path) == 6
+        got = _as_uint8(read_image(path)[0]).astype(int)
+    assert got.shape == U.shape and np.abs(got - U).max() <= 8
+    warned = [r.getMessage() for r in caplog.records if "damaged EXIF block" in r.getMessage()]
+    assert warned == [f"{path}: damaged EXIF block (Truncated File Read); its orientation 6 is applied"]
+
+
 # ----------------------------------------------------------------------------------------- HEIC
 def _heif_or_skip():
     return pytest.importorskip("pillow_heif", reason="pillow-heif (the 'heic' extra) is not installed")

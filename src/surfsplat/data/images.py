@@ -40,15 +40,16 @@ logger = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif")
 ORIENTATION_TAG = 0x0112  # EXIF / TIFF Orientation (CIPA DC-008): 1 upright, 2-8 the flips and turns below
 HEIF_EXTRA = "HEIC/HEIF photos need the optional extra: pip install 'surfsplat[heic]'"
+_SELF_ORIENTING = ("HEIF", "TIFF")  # Pillow formats whose opener applies the orientation itself
 # Major brands of HEIF still images (ISO/IEC 23008-12): HEVC-coded ones and the generic image brands.
 # AVIF ("avif", "avis") is Pillow's own plugin's, not pillow-heif's.
-_SELF_ORIENTING = ("HEIF", "TIFF")  # Pillow formats whose opener applies the orientation itself
 _HEIF_BRANDS = {b"heic", b"heix", b"heim", b"heis", b"hevc", b"hevx", b"hevm", b"hevs", b"mif1", b"msf1"}
 
 # What Pillow raises for unreadable data: unknown format, truncated stream, corrupt chunks.
 _DECODE_ERRORS = (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError)
 _heif_registered = False
-_warned: set[str] = set()  # files whose damaged EXIF block was reported
+_warned: set[str] = set()  # files whose damaged EXIF block was reported (once a process)
+_DAMAGE_KEY = "surfsplat_exif_damage"  # image.info entry: what the opener's EXIF parse warned
 
 
 def is_heif(head: bytes) -> bool:
@@ -90,7 +91,9 @@ def open_image(stream: BinaryIO | str | Path, source: str, action: str = "read i
         with warnings.catch_warnings(record=True) as caught:  # JPEG's opener parses EXIF for its dpi
             warnings.simplefilter("always")
             image = Image.open(stream)
-        _report_exif_damage(source, caught)
+        damage = _exif_warnings(caught)
+        if damage:  # reported with the orientation it leaves (orientation_of)
+            image.info[_DAMAGE_KEY] = damage
     except _DECODE_ERRORS as err:
         raise SurfSplatInputError(f"{source}: cannot {action} ({type(err).__name__}: {err})") from None
     with image:
@@ -99,40 +102,47 @@ def open_image(stream: BinaryIO | str | Path, source: str, action: str = "read i
 
 def orientation_of(image: Image.Image, source: str) -> int:
     """The EXIF orientation (1-8) that maps the stored pixels to the displayed photo; 1 when absent,
-    invalid or unreadable (a warning names a damaged block). A PNG's eXIf chunk is read where it
-    precedes the pixels (Pillow reads a later one only when decoding them)."""
-    if image.format == "HEIF":  # pillow-heif applied it already and reset the tag; the original is kept
-        value = image.info.get("original_orientation") or 1
-        return value if value in range(1, 9) else 1
-    if image.format == "TIFF":  # before decoding; Pillow's decode turns the pixels and drops the tag
-        value = image.tag_v2.get(ORIENTATION_TAG, 1)
-        return value if isinstance(value, int) and value in range(1, 9) else 1
-    if image.format == "PNG" and "exif" not in image.info:
-        return 1  # Pillow's PngImageFile.getexif() would decode the pixels to look further
+    invalid or unreadable. A damaged EXIF block is one warning naming the file (what Pillow could
+    still read of it is used). A PNG's eXIf chunk is read where it precedes the pixels (Pillow reads
+    a later one only when decoding them)."""
+    reasons = list(image.info.get(_DAMAGE_KEY, ()))  # what the opener's own EXIF parse said
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            value = image.getexif().get(ORIENTATION_TAG, 1)
+            value = _orientation_value(image)
         except _DECODE_ERRORS + (TypeError, KeyError, IndexError) as err:
-            value = 1
-            _report_exif_damage(source, [], f"{type(err).__name__}: {err}")
-    _report_exif_damage(source, caught)
-    return value if isinstance(value, int) and value in range(1, 9) else 1
+            value = None
+            reasons.append(f"{type(err).__name__}: {err}")
+    reasons += _exif_warnings(caught)
+    orientation = value if isinstance(value, int) and value in range(1, 9) else 1
+    if reasons and source not in _warned:  # once per file: its size and its pixels are read apart
+        _warned.add(source)
+        listed = "; ".join(sorted(set(reasons)))
+        outcome = f"its orientation {orientation} is applied" if orientation != 1 else "read without an orientation"
+        logger.warning(f"{source}: damaged EXIF block ({listed}); {outcome}")
+    return orientation
 
 
-def _report_exif_damage(source: str, caught: list[warnings.WarningMessage], error: str | None = None) -> None:
-    """Pillow's warnings about an EXIF block it could not parse (its TIFF-IFD reader's) as one warning
-    line naming the file, once per file; any other warning is passed on as it was."""
-    reasons = [error] if error else []
+def _orientation_value(image: Image.Image) -> object:
+    if image.format == "HEIF":  # pillow-heif applied it already and reset the tag; the original is kept
+        return image.info.get("original_orientation") or 1
+    if image.format == "TIFF":  # before decoding; Pillow's decode turns the pixels and drops the tag
+        return image.tag_v2.get(ORIENTATION_TAG, 1)
+    if image.format == "PNG" and "exif" not in image.info:
+        return 1  # Pillow's PngImageFile.getexif() would decode the pixels to look further
+    return image.getexif().get(ORIENTATION_TAG, 1)
+
+
+def _exif_warnings(caught: list[warnings.WarningMessage]) -> list[str]:
+    """The messages of Pillow's warnings about an EXIF block it could not parse (its TIFF-IFD reader
+    warns them); any other warning is passed on as it was."""
+    reasons = []
     for w in caught:
         if w.filename.endswith("TiffImagePlugin.py"):
             reasons.append(str(w.message).strip())
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    if reasons and source not in _warned:  # once per file: its size and its pixels are read apart
-        _warned.add(source)
-        listed = "; ".join(sorted(set(reasons)))
-        logger.warning(f"{source}: damaged EXIF block ({listed}); read as stored, without its orientation")
+    return reasons
 
 
 def image_orientation(path: str | Path) -> int:
@@ -190,7 +200,10 @@ def _decode(stream: BinaryIO, source: str) -> np.ndarray:
         try:
             image.load()  # forces the full decode, so truncation is detected here and not later
             if pending != 1:
-                image = ImageOps.exif_transpose(image)
+                with warnings.catch_warnings(record=True) as caught:  # it parses the EXIF block again
+                    warnings.simplefilter("always")
+                    image = ImageOps.exif_transpose(image)
+                _exif_warnings(caught)  # a damaged block was reported with its orientation; others pass on
             return _to_array(image, source)
         except _DECODE_ERRORS as err:
             raise SurfSplatInputError(f"{source}: cannot decode image ({type(err).__name__}: {err})") from None
