@@ -135,3 +135,13 @@ def test_mirrored_photos_are_named_in_one_warning(tmp_path, caplog):
     assert views.sizes == [(LW, LH), (LW, LH), (LH, LW), (LH, LW)]
     warned = [r.getMessage() for r in caplog.records if "mirrored" in r.getMessage()]
     assert len(warned) == 1 and warned[0].startswith("b.png (orientation 2), d.png (orientation 7): shown mirrored")
+
+
+def test_crop_report_only_where_the_photos_differ_in_shape():
+    from surfsplat.reconstruction.sizes import crop_report
+
+    assert crop_report([(48, 32), (48, 32)], ["a", "b"], (32, 32)) is None  # one shape: cropped alike, as before
+    assert crop_report([(48, 32), (96, 64)], ["a", "b"], (32, 48)) is None  # one shape, two sizes: nothing lost
+    line = crop_report([(48, 32), (32, 48)], ["a", "b"], (32, 48))
+    assert line.startswith("the photos differ in shape: every view is cropped to the working size 48x32; ")
+    assert "b (32x48) keeps 44%, its top and bottom cut" in line and "a (" not in line

@@ -77,7 +77,11 @@ def kept_share(size: tuple[int, int], shape: tuple[int, int]) -> float:
 
 def crop_report(sizes: list[tuple[int, int]], names: list[str], shape: tuple[int, int]) -> str | None:
     """One line naming the views that lose more than 1 - CROP_WARN_SHARE of their frame to the working
-    size, and what they keep; None when every view keeps (nearly) all of it."""
+    size, and what they keep; None when every view keeps (nearly) all of it, or when the photos share
+    one shape (a working size of another shape given with --size crops them all alike, as it always did)."""
+    aspects = [w / h for w, h in sizes]
+    if max(aspects) <= min(aspects) * 1.01:
+        return None
     cut = []
     for name, size in zip(names, sizes):
         share = kept_share(size, shape)
