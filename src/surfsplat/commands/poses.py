@@ -33,7 +33,9 @@ def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
+    parser.add_argument(
+        "images", nargs="+", type=Path, help="two or more photos of one scene, all of one size (one camera file)"
+    )
     parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
     add_pose_arguments(parser)
     add_depth_range(
