@@ -144,6 +144,19 @@ def test_undo_inverts_the_fixture():
         np.testing.assert_array_equal(_undo(stored_from_upright(U, orientation), orientation), U)
 
 
+def test_displayed_size_comes_from_the_header_without_decoding(tmp_path):
+    """A JPEG cut off after its header and first scan bytes: its displayed size and orientation still
+    read (nothing but the header is looked at), while decoding its pixels is one clear error."""
+    U = upright(32, 48, block=8)
+    buffer = io.BytesIO()
+    _save(buffer, stored_from_upright(U, 6), 6, "JPEG", quality=100)
+    path = tmp_path / "cut.jpg"
+    path.write_bytes(buffer.getvalue()[:700])
+    assert read_image_size(path) == (48, 32) and image_orientation(path) == 6
+    with pytest.raises(SurfSplatInputError, match="cut.jpg: cannot decode image"):
+        read_image(path)
+
+
 def test_invalid_orientation_value_reads_as_stored(tmp_path):
     U = upright()
     path = tmp_path / "nine.png"
