@@ -290,6 +290,31 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
+@pytest.mark.slow
+def test_two_views_of_different_sizes_each_with_its_exif_focal(room, tmp_path):
+    """The two-view path with two cameras: a 400x300 photo and a 320x240 one (a second camera, or the
+    same one downscaled), each with its 35 mm equivalent focal length in EXIF."""
+    truth = _orbit(2, 12.0)
+    images, _ = _render(room, truth)
+    f = float(truth.K[0, 0, 0])
+    paths = []
+    for k, (image, (w, h)) in enumerate(zip(images, [(W, H), (320, 240)])):
+        array = (image.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0xA405] = round(f * math.hypot(36, 24) / math.hypot(W, H))  # same lens, both
+        paths.append(tmp_path / f"view{k}.png")
+        Image.fromarray(array).resize((w, h), Image.Resampling.LANCZOS).save(paths[-1], exif=exif.tobytes())
+    cams, summary = estimate_cameras(paths)
+    assert summary.method == "two-view" and summary.sizes == {"view0.png": (W, H), "view1.png": (320, 240)}
+    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot[0] < 1.0 and trans[0] < 3.0, (rot, trans)
+    K = cams.cameras.K
+    f35 = round(f * math.hypot(36, 24) / math.hypot(W, H))
+    assert float(K[0, 0, 0]) == pytest.approx(f35 * 500 / math.hypot(36, 24))  # EXIF focal of each size
+    assert float(K[1, 0, 0]) == pytest.approx(f35 * 400 / math.hypot(36, 24))
+    assert (float(K[1, 0, 2]), float(K[1, 1, 2])) == (160.0, 120.0)
+
+
 def test_images_of_different_sizes_with_one_focal_are_refused(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
