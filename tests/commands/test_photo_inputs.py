@@ -56,7 +56,7 @@ def test_heic_without_the_extra_is_one_line_exit_2_nothing_written(views, tmp_pa
     before = _tree(tmp_path)
     if command == "reconstruct":
         argv = ["reconstruct", "--images", *map(str, photos), "--cameras", str(cameras), "--out", str(tmp_path / "o")]
-        argv += ["--formats", "ply", "--no-progress"]
+        argv += ["--formats", "renders", "--no-progress"]
     else:
         argv = ["poses", *map(str, photos), "--out", str(tmp_path / "c.json")]
     code = main(argv)
@@ -71,10 +71,10 @@ def test_heic_photos_reconstruct_with_the_extra(views, tmp_path, capsys):
     photos = [_heic(tmp_path / "a.heic", arrays[0]), _heic(tmp_path / "b.heic", arrays[1])]
     out = tmp_path / "o"
     argv = ["reconstruct", "--images", *map(str, photos), "--cameras", str(cameras), "--out", str(out)]
-    assert main([*argv, "--formats", "ply", "--no-progress"]) == 0, capsys.readouterr().err
+    assert main([*argv, "--formats", "renders", "--no-progress"]) == 0, capsys.readouterr().err
     summary = json.loads((out / "reconstruction.json").read_text())
     assert [Path(s).name for s in summary["images"]] == ["a.heic", "b.heic"]
-    assert (out / "surfels.ply").stat().st_size > 0
+    assert (out / "renders" / "view01_color.png").stat().st_size > 0
 
 
 def _damaged_exif_jpeg(path: Path, array: np.ndarray) -> Path:
@@ -93,16 +93,16 @@ def test_photo_with_a_damaged_exif_block_reconstructs_with_one_warning(views, tm
     out = tmp_path / "o"
     argv = ["reconstruct", "--images", *map(str, photos), "--cameras", str(cameras), "--out", str(out)]
     with caplog.at_level(logging.WARNING, logger="surfsplat"):
-        assert main([*argv, "--formats", "ply", "--no-progress"]) == 0, capsys.readouterr().err
+        assert main([*argv, "--formats", "renders", "--no-progress"]) == 0, capsys.readouterr().err
     warned = [r.getMessage() for r in caplog.records if "EXIF" in r.getMessage()]
     assert len(warned) == 1, warned
     assert warned[0].startswith(f"{photos[0]}: damaged EXIF block (") and "read without an orientation" in warned[0]
-    assert (out / "surfels.ply").is_file()
+    assert (out / "renders" / "view00_color.png").is_file()
 
 
 def test_portrait_stored_sideways_is_reconstructed_upright(views, tmp_path, capsys):
     """The same two views, one stored turned with EXIF orientation 6: the capture is the upright one,
-    so the camera file of the upright photos fits without a warning and the scene matches the plain run."""
+    so the camera file of the upright photos fits and the renders are the plain run's, byte for byte."""
     arrays, cameras = views
     plain = [tmp_path / "a.png", tmp_path / "b.png"]
     for path, array in zip(plain, arrays):
@@ -116,6 +116,8 @@ def test_portrait_stored_sideways_is_reconstructed_upright(views, tmp_path, caps
     for name, photos in (("plain", plain), ("turned", [plain[0], turned])):
         out = tmp_path / name
         argv = ["reconstruct", "--images", *map(str, photos), "--cameras", str(cameras), "--out", str(out)]
-        assert main([*argv, "--formats", "ply", "--no-progress"]) == 0, capsys.readouterr().err
-        runs[name] = (out / "surfels.ply").read_bytes()
+        assert main([*argv, "--formats", "renders", "--no-progress"]) == 0, capsys.readouterr().err
+        runs[name] = [
+            (out / "renders" / f"view0{k}_{what}.png").read_bytes() for k in (0, 1) for what in ("color", "depth")
+        ]
     assert runs["plain"] == runs["turned"]
