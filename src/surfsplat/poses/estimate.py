@@ -221,9 +221,10 @@ def estimate_cameras(
     names: a name per image (default: the file names, or view_000, ... for arrays).
     Returns the cameras of the registered images (OpenCV c2w, K in pixels of the images, near/far)
     in input order, and the summary. Photos may differ in size: each size gets a camera of its own,
-    every K is in pixels of its own image, and the CameraSet's width x height is the first image's
-    (so with several sizes it is not one camera file's size: `summary.sizes` gives each image's). Raises SurfSplatInputError naming the cause when the photos
-    do not define cameras (too few matches, pure rotation, a plane, unreadable files).
+    every K is in pixels of its own image, and the CameraSet's width x height is the first
+    registered image's (with several sizes not one camera file's size: `summary.sizes` gives each
+    image's). Raises SurfSplatInputError naming the cause when the photos do not define cameras (too
+    few matches, pure rotation, a plane, unreadable files).
     """
     config = config or PoseConfig()
     if focal is not None:
@@ -254,8 +255,6 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
     focals = [
         _initial_focal(config, [p for p, g in zip(paths, groups) if g == k], *distinct[k]) for k in range(len(distinct))
     ]
-    width, height = distinct[0]
-    f0, focal_source, _ = focals[0]
     # one origin for bundle adjustment: an EXIF focal is refined only where every size has one
     origins = {origin for _, _, origin in focals}
     focal_origin = origins.pop() if len(origins) == 1 else "prior"
@@ -274,10 +273,11 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             method = "two-view"
         else:
             recon, method, focal_note = work.incremental(pairs)
-        if focal_note is not None:
-            focal_source = focal_note.format(source=focal_source)
         timings["reconstruct"] = time.perf_counter() - start - sum(timings.values())
         cameras, K, registered, depths = _export(recon, work.ids, names)
+    focal_source = focals[groups[names.index(registered[0])]][1]  # the summary's focal: K[0]'s camera
+    if focal_note is not None:
+        focal_source = focal_note.format(source=focal_source)
     notes = []
     dropped = [n for n in names if n not in registered]
     if dropped:
@@ -290,10 +290,13 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             members = [n for n, g in zip(names, groups) if g == k and n in registered]
             if members:
                 fk = float(K[registered.index(members[0]), 0, 0])
-                notes.append(f"camera {k + 1} ({w}x{h}, {len(members)} images): focal {fk:.1f} px ({focals[k][1]})")
+                notes.append(
+                    f"camera {k + 1} ({w}x{h}, {len(members)} images): focal {fk:.1f} px (initial: {focals[k][1]})"
+                )
     cameras, depths = _normalize(cameras, depths, config.median_depth)
     near, far = _depth_range(depths, config)
     pinhole = Cameras(cameras, K)
+    width, height = sizes[names.index(registered[0])]  # the size K[0] (and summary.focal) is in pixels of
     camera_set = CameraSet(pinhole, width, height, registered, near, far)
     summary = PoseSummary(
         images=list(names),
