@@ -117,6 +117,8 @@ def test_a_size_no_camera_fits_names_the_view():
         view_cameras(given, [(LW, LH), (40, 40)], [1, 1], ["a.png", "b.png"], "cameras.json")
     with pytest.raises(SurfSplatInputError, match=r"b.png is 32x48"):  # transposed without an EXIF turn
         view_cameras(given, [(LW, LH), (LH, LW)], [1, 1], ["a.png", "b.png"], "cameras.json")
+    with pytest.raises(SurfSplatInputError, match=r"cameras.json: b.png: EXIF orientation 5 shows the photo mirrored"):
+        view_cameras(given, [(LW, LH), (LH, LW)], [1, 5], ["a.png", "b.png"], "cameras.json")
 
 
 def test_mirrored_photos_are_named_in_one_warning(tmp_path, caplog):
