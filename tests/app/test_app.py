@@ -357,7 +357,6 @@ def _noise(path: Path, seed: int) -> Path:
     "make, message",
     [
         (lambda d: [_photo(d / "a.png", (40, 60))], "expected at least 2 images, got 1"),
-        (lambda d: [_photo(d / "a.png", (40, 60)), _photo(d / "b.png", (60, 40))], "all images must have one size"),
         (lambda d: [_photo(d / "a.png", (40, 60)), d / "b.png"], "b.png: cannot read image header"),
         (lambda d: [_still_video(d / "still.mp4")], "only 1 usable frame among 5"),
         (
@@ -365,7 +364,7 @@ def _noise(path: Path, seed: int) -> Path:
             "only 0 verified matches (0 putative), at least 30 are needed: take the photos closer together",
         ),
     ],
-    ids=["one photo", "two sizes", "not an image", "video without motion", "cameras not estimable"],
+    ids=["one photo", "not an image", "video without motion", "cameras not estimable"],
 )
 def test_the_librarys_one_line_reaches_the_page_without_server_paths(tmp_path, make, message):
     """What a run refuses before any heavy work, as the page shows it (`page._one_line`)."""

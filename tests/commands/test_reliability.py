@@ -241,10 +241,10 @@ CASES = [
         ["--images", "small0.png", "8x8"],
     ),
     (
-        "reconstruct-images-of-two-sizes",
+        "reconstruct-image-of-a-size-no-camera-fits",
         "image",
         lambda w, t: _reconstruct(w, images=[w.images[0], _odd_size(t, w)], out=t / "o"),
-        ["--images", "one size"],
+        ["view1.png is 64x48 but the cameras are for 64x64"],
     ),
     (
         "reconstruct-one-image",

@@ -217,6 +217,54 @@ def test_exif_focal_plane_resolution_rescaled_to_the_image(tmp_path):
     assert exif_focal(_jpeg_with_exif(tmp_path / "c.jpg", (400, 300), {}), 400, 300) is None
 
 
+def _photo_with_exif(path: Path, size: tuple[int, int], tags: dict[int, object], orientation: int, fmt: str) -> Path:
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    exif.get_ifd(0x8769).update(tags)
+    Image.new("RGB", size, (120, 90, 60)).save(path, fmt, exif=exif.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_focal_plane_resolution_is_along_the_stored_width(tmp_path, orientation):
+    """FocalPlaneXResolution is along the sensor's width, the STORED image's width (CIPA DC-008): a
+    stored 200x300 crop of a 4000x3000 sensor keeps 200/4000 of its x pixels, whatever the display.
+    The displayed width (300 for 5-8) or the long sides' ratio (300/4000) would give other values."""
+    tags = {0x920A: 4.25, 0xA20E: 1000.0, 0xA210: 4, 0xA002: 4000, 0xA003: 3000}
+    path = _photo_with_exif(tmp_path / "p.jpg", (200, 300), tags, orientation, "JPEG")
+    shown = (300, 200) if orientation >= 5 else (200, 300)
+    from surfsplat.data.images import read_image_size
+
+    assert read_image_size(path) == shown
+    focal, _ = exif_focal(path, *shown)
+    assert focal == pytest.approx(4.25 * 1000 * 200 / 4000)
+
+
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_exif_35mm_focal_of_a_turned_photo_uses_the_diagonal(tmp_path, orientation):
+    path = _photo_with_exif(tmp_path / "p.jpg", (400, 300), {0xA405: 28}, orientation, "JPEG")
+    shown = (300, 400) if orientation == 6 else (400, 300)
+    focal, _ = exif_focal(path, *shown)
+    assert focal == pytest.approx(28 * 500 / math.hypot(36, 24))
+
+
+@pytest.mark.parametrize("orientation", [1, 6, 8])
+def test_exif_focal_read_from_heic(tmp_path, orientation):
+    """pillow-heif keeps the EXIF block (it resets only the Orientation tag, after applying it): both
+    routes read from a HEIC, the focal-plane one along the coded (stored) width."""
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'heic' extra) is not installed")
+    pillow_heif.register_heif_opener()
+    tags = {0x920A: 4.25, 0xA20E: 1000.0, 0xA210: 4, 0xA002: 4000, 0xA003: 3000}
+    path = _photo_with_exif(tmp_path / "p.heic", (64, 96), tags, orientation, "HEIF")
+    shown = (96, 64) if orientation >= 5 else (64, 96)
+    focal, source = exif_focal(path, *shown)
+    assert focal == pytest.approx(4.25 * 1000 * 64 / 4000)
+    assert "focal length 4.25 mm" in source
+    path35 = _photo_with_exif(tmp_path / "q.heic", (64, 48), {0xA405: 26}, orientation, "HEIF")
+    shown = (48, 64) if orientation >= 5 else (64, 48)
+    assert exif_focal(path35, *shown)[0] == pytest.approx(26 * 80 / math.hypot(36, 24))
+
+
 # ----------------------------------------------------------------------------------------- bad input
 def test_fewer_than_two_images(orbit_views, tmp_path, capsys):
     with pytest.raises(SurfSplatInputError, match="at least 2 images of one scene, got 1"):
@@ -242,12 +290,59 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
-def test_images_of_different_sizes(orbit_views, tmp_path, capsys):
+@pytest.mark.slow
+def test_two_views_of_different_sizes_each_with_its_exif_focal(room, tmp_path):
+    """The two-view path with two cameras: a 400x300 photo and a 320x240 one (a second camera, or the
+    same one downscaled), each with its 35 mm equivalent focal length in EXIF."""
+    truth = _orbit(2, 12.0)
+    images, _ = _render(room, truth)
+    f = float(truth.K[0, 0, 0])
+    paths = []
+    for k, (image, (w, h)) in enumerate(zip(images, [(W, H), (320, 240)])):
+        array = (image.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0xA405] = round(f * math.hypot(36, 24) / math.hypot(W, H))  # same lens, both
+        paths.append(tmp_path / f"view{k}.png")
+        Image.fromarray(array).resize((w, h), Image.Resampling.LANCZOS).save(paths[-1], exif=exif.tobytes())
+    cams, summary = estimate_cameras(paths)
+    assert summary.method == "two-view" and summary.sizes == {"view0.png": (W, H), "view1.png": (320, 240)}
+    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot[0] < 1.0 and trans[0] < 3.0, (rot, trans)
+    K = cams.cameras.K
+    f35 = round(f * math.hypot(36, 24) / math.hypot(W, H))
+    assert float(K[0, 0, 0]) == pytest.approx(f35 * 500 / math.hypot(36, 24))  # EXIF focal of each size
+    assert float(K[1, 0, 0]) == pytest.approx(f35 * 400 / math.hypot(36, 24))
+    assert (float(K[1, 0, 2]), float(K[1, 1, 2])) == (160.0, 120.0)
+
+
+def test_images_of_different_sizes_with_one_focal_are_refused(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
+    with pytest.raises(SurfSplatInputError, match=r"--focal: one focal length in pixels fits one image size, the "):
+        estimate_cameras(paths, focal=300.0)
     assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err
-    assert "all images must have one size" in err and "view0.png 400x300, view1.png 320x240" in err
+    assert "--out: a camera file holds cameras of one image size, the photos have 2 (400x300, 320x240)" in err
+    assert not (tmp_path / "c.json").exists()
+
+
+@pytest.mark.slow
+def test_landscape_and_portrait_views_get_a_camera_each(room, orbit_views):
+    """Three 400x300 views and a 300x400 portrait one (the same lens turned: the same focal length in
+    pixels): one camera per size (COLMAP's PER_FOLDER), each view's K in its own pixels."""
+    images, truth, _ = orbit_views
+    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
+    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
+    cams, summary = estimate_cameras([*images[:3], portrait])
+    assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
+    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
+    assert rot.max() < 1.5 and trans.max() < 3.0, (rot, trans)
+    K = cams.cameras.K
+    assert [float(K[i, 0, 2]) for i in range(4)] == [W / 2] * 3 + [H / 2]  # each principal point at its centre
+    assert [float(K[i, 1, 2]) for i in range(4)] == [H / 2] * 3 + [W / 2]
+    for i in range(4):
+        assert abs(float(K[i, 0, 0]) / float(truth.K[0, 0, 0]) - 1) < 0.05, K[:, 0, 0]
+    assert any(note.startswith("camera 2 (300x400, 1 images): focal") for note in summary.notes), summary.notes
 
 
 def test_too_few_matches_names_the_pair_and_count(orbit_views, tmp_path, capsys):
@@ -366,6 +461,41 @@ def test_reconstruct_two_fern_photos_without_a_camera_file(data_dir, tmp_path, c
         assert f'src="poses/photo{k:02d}.png"' in report and (out / "poses" / f"photo{k:02d}.png").is_file()
     assert "IMG_4027.png: centre (" in report and "renders/view01_color.png" in report
     assert (out / "poses" / "cameras.svg").read_text().count("<polygon") == 2
+
+
+@pytest.mark.slow
+def test_reconstruct_landscape_and_portrait_photos_without_a_camera_file(room, orbit_views, tmp_path):
+    """Estimated cameras of photos of two shapes: each view's K in its own pixels, then cropped to the
+    working size by rescale_and_crop's closed form; no one-size camera file is written, poses.json
+    gives every photo's size."""
+    import surfsplat
+    from surfsplat.capture import OptimizeConfig
+
+    images, truth, _ = orbit_views
+    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
+    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
+    paths = _save([*images[:3], portrait], tmp_path / "photos")
+    options = surfsplat.CaptureOptions(views_per_pass=4, optimize=OptimizeConfig(steps=0))
+    shape = (96, 128)
+    scene = surfsplat.reconstruct(paths, "tiny-synthetic", size=shape, capture=options, device="cpu", progress=False)
+    estimated = scene.pose_cameras.cameras.K.double()
+    for i, size in enumerate([(W, H)] * 3 + [(H, W)]):
+        (w, h), (sh, sw) = size, shape
+        s = max(sh / h, sw / w)
+        rw, rh = max(sw, round(w * s)), max(sh, round(h * s))
+        expected = estimated[i].clone()
+        expected[0] *= rw / w
+        expected[1] *= rh / h
+        expected[0, 2] -= (rw - sw) // 2
+        expected[1, 2] -= (rh - sh) // 2
+        torch.testing.assert_close(scene.cameras.K[i].double(), expected, rtol=1e-6, atol=1e-4)
+    assert float(estimated[3, 0, 2]) == H / 2 and float(estimated[3, 1, 2]) == W / 2  # the portrait's own centre
+    out = tmp_path / "out"
+    scene.save(out, formats=("ply",))
+    assert not (out / "estimated_cameras.json").exists()
+    poses = json.loads((out / "poses.json").read_text())
+    assert poses["image_sizes"]["view3.png"] == [H, W] and poses["image_sizes"]["view0.png"] == [W, H]
+    assert "no estimated_cameras.json: the photos have 2 sizes" in (out / "report.html").read_text()
 
 
 def test_reconstruct_refuses_focal_with_a_camera_file(orbit_views, tmp_path, capsys):

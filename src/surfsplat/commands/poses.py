@@ -33,7 +33,9 @@ def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
+    parser.add_argument(
+        "images", nargs="+", type=Path, help="two or more photos of one scene, all of one size (one camera file)"
+    )
     parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
     add_pose_arguments(parser)
     add_depth_range(
@@ -65,6 +67,18 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".json":
         raise SurfSplatInputError(f"--out: expected a .json camera file name, got {args.out}")
     check_output_file(args.out, "--out", inputs=args.images)
+    from ..data.images import read_image_size
+
+    try:
+        sizes = list(dict.fromkeys(read_image_size(p) for p in args.images if p.is_file()))
+    except SurfSplatInputError:
+        sizes = []  # an unreadable photo: the estimation names it, as it decodes every photo
+    if len(sizes) > 1:  # the camera file states one width x height that every K is in pixels of
+        listing = ", ".join(f"{w}x{h}" for w, h in sizes)
+        raise SurfSplatInputError(
+            f"--out: a camera file holds cameras of one image size, the photos have {len(sizes)} ({listing}); "
+            "surfsplat reconstruct estimates and keeps a camera per size, or resize the photos alike"
+        )
     camera_set, _ = estimate_from_args(args)
     written = save_cameras(
         args.out,

@@ -2,24 +2,164 @@
 
 Decoding goes through Pillow (a dependency of imageio). Every failure names the file (or the
 chunk entry) and the reason; nothing is silently replaced.
+
+What is read is the photo as its owner sees it:
+- EXIF orientation (tag 0x0112, values 1-8) is applied first, on every decode path (files and
+  encoded bytes), by Pillow's `ImageOps.exif_transpose`; `read_image_size` gives the size as
+  displayed (width and height swapped for orientations 5-8) from the header alone, and
+  `image_orientation` the tag itself. A damaged EXIF block does not stop the decode: the photo is
+  read as stored and one warning names the file.
+- HEIC/HEIF (recognised by its `ftyp` box, whatever the suffix) through the optional extra
+  pillow-heif, whose Pillow opener is registered on first need. libheif applies the container's
+  irot/imir transforms itself and pillow-heif then resets the EXIF Orientation tag to 1 (keeping
+  the original in `info["original_orientation"]`), so `exif_transpose` never rotates a HEIC twice.
+- TIFF alike: Pillow's own TIFF plugin reports the displayed size when it opens a file and turns
+  the pixels itself when it decodes them (it calls `exif_transpose` and drops the tag), so for
+  HEIF and TIFF the size Pillow gives is the displayed one and nothing is applied again.
 """
 
 from __future__ import annotations
 
 import io
+import logging
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 
 from ..utils.checks import SurfSplatInputError
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+logger = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif")
+ORIENTATION_TAG = 0x0112  # EXIF / TIFF Orientation (CIPA DC-008): 1 upright, 2-8 the flips and turns below
+HEIF_EXTRA = "HEIC/HEIF photos need the optional extra: pip install 'surfsplat[heic]'"
+_SELF_ORIENTING = ("HEIF", "TIFF")  # Pillow formats whose opener applies the orientation itself
+# Major brands of HEIF still images (ISO/IEC 23008-12): HEVC-coded ones and the generic image brands.
+# AVIF ("avif", "avis") is Pillow's own plugin's, not pillow-heif's.
+_HEIF_BRANDS = {b"heic", b"heix", b"heim", b"heis", b"hevc", b"hevx", b"hevm", b"hevs", b"mif1", b"msf1"}
 
 # What Pillow raises for unreadable data: unknown format, truncated stream, corrupt chunks.
 _DECODE_ERRORS = (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError)
+_heif_registered = False
+_warned: set[str] = set()  # files whose damaged EXIF block was reported (once a process)
+_DAMAGE_KEY = "surfsplat_exif_damage"  # image.info entry: what the opener's EXIF parse warned
+
+
+def is_heif(head: bytes) -> bool:
+    """Whether the first bytes of a file are a HEIF container (an ISO BMFF `ftyp` box with a HEIF brand)."""
+    if len(head) < 12 or head[4:8] != b"ftyp":
+        return False
+    major = head[8:12]
+    return major in _HEIF_BRANDS and not (major in (b"mif1", b"msf1") and b"avif" in head[12:64])
+
+
+def _require_heif(source: str) -> None:
+    """pillow-heif's opener registered with Pillow, or the one line that names the extra."""
+    global _heif_registered
+    try:
+        import pillow_heif
+    except ImportError:
+        raise SurfSplatInputError(f"{source}: {HEIF_EXTRA}") from None
+    if not _heif_registered:
+        pillow_heif.register_heif_opener()
+        _heif_registered = True
+
+
+@contextmanager
+def open_image(stream: BinaryIO | str | Path, source: str, action: str = "read image header") -> Iterator[Image.Image]:
+    """Pillow's lazy open (header only) of a file or stream, HEIF included; a file Pillow cannot open
+    is one line: "<source>: cannot <action> (<why>)"."""
+    try:
+        if isinstance(stream, (str, Path)):
+            with open(stream, "rb") as f:
+                head = f.read(64)
+        else:
+            head = stream.read(64)
+            stream.seek(0)
+    except OSError as err:
+        raise SurfSplatInputError(f"{source}: cannot {action} ({type(err).__name__}: {err})") from None
+    if is_heif(head):
+        _require_heif(source)
+    try:
+        with warnings.catch_warnings(record=True) as caught:  # JPEG's opener parses EXIF for its dpi
+            warnings.simplefilter("always")
+            image = Image.open(stream)
+        damage = _exif_warnings(caught)
+        if damage:  # reported with the orientation it leaves (orientation_of)
+            image.info[_DAMAGE_KEY] = damage
+    except _DECODE_ERRORS as err:
+        raise SurfSplatInputError(f"{source}: cannot {action} ({type(err).__name__}: {err})") from None
+    with image:
+        yield image
+
+
+def orientation_of(image: Image.Image, source: str) -> int:
+    """The EXIF orientation (1-8) that maps the stored pixels to the displayed photo; 1 when absent,
+    invalid or unreadable. A damaged EXIF block is one warning naming the file (what Pillow could
+    still read of it is used). A PNG's eXIf chunk is read where it precedes the pixels (Pillow reads
+    a later one only when decoding them)."""
+    reasons = list(image.info.get(_DAMAGE_KEY, ()))  # what the opener's own EXIF parse said
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            value = _orientation_value(image)
+        except _DECODE_ERRORS + (TypeError, KeyError, IndexError) as err:
+            value = None
+            reasons.append(f"{type(err).__name__}: {err}")
+    reasons += _exif_warnings(caught)
+    orientation = value if isinstance(value, int) and value in range(1, 9) else 1
+    if reasons and source not in _warned:  # once per file: its size and its pixels are read apart
+        _warned.add(source)
+        listed = "; ".join(sorted(set(reasons)))
+        outcome = f"its orientation {orientation} is applied" if orientation != 1 else "read without an orientation"
+        logger.warning(f"{source}: damaged EXIF block ({listed}); {outcome}")
+    return orientation
+
+
+def _orientation_value(image: Image.Image) -> object:
+    if image.format == "HEIF":  # pillow-heif applied it already and reset the tag; the original is kept
+        return image.info.get("original_orientation") or 1
+    if image.format == "TIFF":  # before decoding; Pillow's decode turns the pixels and drops the tag
+        return image.tag_v2.get(ORIENTATION_TAG, 1)
+    if image.format == "PNG" and "exif" not in image.info:
+        return 1  # Pillow's PngImageFile.getexif() would decode the pixels to look further
+    return image.getexif().get(ORIENTATION_TAG, 1)
+
+
+def _exif_warnings(caught: list[warnings.WarningMessage]) -> list[str]:
+    """The messages of Pillow's warnings about an EXIF block it could not parse (its TIFF-IFD reader
+    warns them); any other warning is passed on as it was."""
+    reasons = []
+    for w in caught:
+        if w.filename.endswith("TiffImagePlugin.py"):
+            reasons.append(str(w.message).strip())
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return reasons
+
+
+def image_orientation(path: str | Path) -> int:
+    """EXIF orientation of a photo, 1-8 (1 when the tag is absent or unreadable), from its header.
+
+    It is the transform from the stored pixels to the photo as displayed, which `read_image` applies
+    (see `surfsplat.geometry.orientation` for the camera of each). For a HEIC it is the original EXIF
+    tag, which libheif has applied already through the container's irot/imir boxes."""
+    with open_image(path, str(path)) as image:
+        return orientation_of(image, str(path))
+
+
+def _displayed_size(image: Image.Image, source: str) -> tuple[int, int]:
+    width, height = image.size
+    if image.format not in _SELF_ORIENTING and orientation_of(image, source) >= 5:  # a transpose: axes swap
+        return height, width
+    return width, height
 
 
 def is_image_file(path: Path) -> bool:
@@ -53,13 +193,20 @@ def _to_array(image: Image.Image, source: str) -> np.ndarray:
     return arr.astype(np.float32) / 255.0
 
 
-def _decode(stream: io.BufferedIOBase | io.BytesIO, source: str) -> np.ndarray:
-    try:
-        with Image.open(stream) as image:
+def _decode(stream: BinaryIO, source: str) -> np.ndarray:
+    with open_image(stream, source, "decode image") as image:
+        # read from the header, as read_image_size does, so the two always agree; HEIF and TIFF turn themselves
+        pending = 1 if image.format in _SELF_ORIENTING else orientation_of(image, source)
+        try:
             image.load()  # forces the full decode, so truncation is detected here and not later
+            if pending != 1:
+                with warnings.catch_warnings(record=True) as caught:  # it parses the EXIF block again
+                    warnings.simplefilter("always")
+                    image = ImageOps.exif_transpose(image)
+                _exif_warnings(caught)  # a damaged block was reported with its orientation; others pass on
             return _to_array(image, source)
-    except _DECODE_ERRORS as err:
-        raise SurfSplatInputError(f"{source}: cannot decode image ({type(err).__name__}: {err})") from None
+        except _DECODE_ERRORS as err:
+            raise SurfSplatInputError(f"{source}: cannot decode image ({type(err).__name__}: {err})") from None
 
 
 def _compose(
@@ -122,21 +269,16 @@ def decode_image_bytes(
 
 
 def read_image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except _DECODE_ERRORS as err:
-        raise SurfSplatInputError(f"{path}: cannot read image header ({type(err).__name__}: {err})") from None
+    """(width, height) of the photo as displayed (EXIF orientations 5-8 swap the stored axes), from
+    the file header, without decoding the pixels."""
+    with open_image(path, str(path)) as image:
+        return _displayed_size(image, str(path))
 
 
 def image_bytes_size(data: Tensor, source: str) -> tuple[int, int]:
-    """(width, height) of encoded image bytes (1-D uint8 tensor), from the header only."""
-    try:
-        with Image.open(io.BytesIO(data.numpy().tobytes())) as image:
-            return image.size
-    except _DECODE_ERRORS as err:
-        raise SurfSplatInputError(f"{source}: cannot read image header ({type(err).__name__}: {err})") from None
+    """(width, height) of encoded image bytes (1-D uint8 tensor) as displayed, from the header only."""
+    with open_image(io.BytesIO(data.numpy().tobytes()), source) as image:
+        return _displayed_size(image, source)
 
 
 def encode_image(image: Tensor, image_format: str = "png", quality: int = 95) -> Tensor:

@@ -24,8 +24,11 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    Cauchy loss. If the mapper registers fewer than two images, the two-view path runs on the
    pair with most inliers. Degenerate pairs (a camera that only turned, a single plane) are
    refused with the cause named (`_Workspace._check_not_homography`).
-4. Intrinsics: one shared pinhole camera (SIMPLE_PINHOLE: f, principal point at the centre, no
-   distortion, so the images need no undistortion). f comes from `focal`, else EXIF, else the
+4. Intrinsics: one shared pinhole camera per image size (SIMPLE_PINHOLE: f, principal point at the
+   centre, no distortion, so the images need no undistortion): COLMAP's PER_FOLDER camera mode with
+   the images of each size in a folder of their own, so portrait and landscape photos of one phone,
+   or photos of two cameras, each get theirs (focal lengths from EXIF, the prior or bundle adjustment
+   per size; a given --focal needs photos of one size). f comes from `focal`, else EXIF, else the
    prior 1.2 x the long side (COLMAP's default guess, a 45 degree field of view on the long side).
    With 3+ views bundle adjustment refines the prior always and an EXIF value only when the
    optical axes span `focal_observable_angle` (20 degrees): with nearly parallel views (LLFF fern
@@ -147,6 +150,12 @@ class PoseSummary:
     seconds: float
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage: read, extract, match, reconstruct
     notes: list[str] = field(default_factory=list)  # what the user should know (dropped images, ...)
+    # (width, height) of every input image; the photos may differ, each size with a camera of its own
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+    @property
+    def one_size(self) -> bool:
+        return len(set(self.sizes.values())) <= 1
 
     @property
     def unregistered(self) -> list[str]:
@@ -191,6 +200,7 @@ class PoseSummary:
             "timings": self.timings,
             "pairs": [vars(p) for p in self.pairs],
             "notes": self.notes,
+            "image_sizes": {name: list(size) for name, size in self.sizes.items()},
         }
 
 
@@ -210,8 +220,11 @@ def estimate_cameras(
     focal: focal length in pixels of these images (overrides EXIF and the prior).
     names: a name per image (default: the file names, or view_000, ... for arrays).
     Returns the cameras of the registered images (OpenCV c2w, K in pixels of the images, near/far)
-    in input order, and the summary. Raises SurfSplatInputError naming the cause when the photos
-    do not define cameras (too few matches, pure rotation, a plane, unreadable files).
+    in input order, and the summary. Photos may differ in size: each size gets a camera of its own,
+    every K is in pixels of its own image, and the CameraSet's width x height is the first
+    registered image's (with several sizes not one camera file's size: `summary.sizes` gives each
+    image's). Raises SurfSplatInputError naming the cause when the photos do not define cameras (too
+    few matches, pure rotation, a plane, unreadable files).
     """
     config = config or PoseConfig()
     if focal is not None:
@@ -230,16 +243,27 @@ def estimate_cameras(
 
 
 def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[CameraSet, PoseSummary]:
-    height, width = arrays[0].shape[:2]
-    f0, focal_source, focal_origin = _initial_focal(config, paths, width, height)
-    long_side = max(width, height)
-    target = min(max(long_side, config.min_extraction_size), config.max_size)
-    s = target / long_side
-    ext_size = (max(1, round(width * s)), max(1, round(height * s)))
+    sizes = [(a.shape[1], a.shape[0]) for a in arrays]
+    distinct = list(dict.fromkeys(sizes))  # one camera per image size, in order of first appearance
+    groups = [distinct.index(size) for size in sizes]
+    if config.focal is not None and len(distinct) > 1:
+        listing = ", ".join(f"{w}x{h}" for w, h in distinct)
+        raise SurfSplatInputError(
+            f"--focal: one focal length in pixels fits one image size, the photos have {len(distinct)} ({listing}); "
+            "leave it out (EXIF or bundle adjustment finds one per size)"
+        )
+    focals = [
+        _initial_focal(config, [p for p, g in zip(paths, groups) if g == k], *distinct[k]) for k in range(len(distinct))
+    ]
+    # one origin for bundle adjustment: an EXIF focal is refined only where every size has one
+    origins = {origin for _, _, origin in focals}
+    focal_origin = origins.pop() if len(origins) == 1 else "prior"
+    ext_sizes = [_extraction_size(size, config) for size in distinct]
+    ext_size = ext_sizes[0]
     with tempfile.TemporaryDirectory(prefix="surfsplat-poses-") as tmp:
-        work = _Workspace(Path(tmp), names, (width, height), f0, focal_origin, config)
+        work = _Workspace(Path(tmp), names, distinct, groups, [f for f, _, _ in focals], focal_origin, config)
         timings = {"read": time.perf_counter() - start}
-        work.extract(arrays, ext_size)
+        work.extract(arrays, ext_sizes)
         timings["extract"] = time.perf_counter() - start - sum(timings.values())
         pairs = work.match()
         timings["match"] = time.perf_counter() - start - sum(timings.values())
@@ -249,10 +273,11 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             method = "two-view"
         else:
             recon, method, focal_note = work.incremental(pairs)
-        if focal_note is not None:
-            focal_source = focal_note.format(source=focal_source)
         timings["reconstruct"] = time.perf_counter() - start - sum(timings.values())
         cameras, K, registered, depths = _export(recon, work.ids, names)
+    focal_source = focals[groups[names.index(registered[0])]][1]  # the summary's focal: K[0]'s camera
+    if focal_note is not None:
+        focal_source = focal_note.format(source=focal_source)
     notes = []
     dropped = [n for n in names if n not in registered]
     if dropped:
@@ -260,9 +285,18 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             f"not registered (no reliable matches to the others): {', '.join(dropped)}; "
             f"continuing with the {len(registered)} registered images"
         )
+    if len(distinct) > 1:
+        for k, (w, h) in enumerate(distinct):
+            members = [n for n, g in zip(names, groups) if g == k and n in registered]
+            if members:
+                fk = float(K[registered.index(members[0]), 0, 0])
+                notes.append(
+                    f"camera {k + 1} ({w}x{h}, {len(members)} images): focal {fk:.1f} px (initial: {focals[k][1]})"
+                )
     cameras, depths = _normalize(cameras, depths, config.median_depth)
     near, far = _depth_range(depths, config)
-    pinhole = Cameras(cameras, K.expand(len(registered), 3, 3).clone())
+    pinhole = Cameras(cameras, K)
+    width, height = sizes[names.index(registered[0])]  # the size K[0] (and summary.focal) is in pixels of
     camera_set = CameraSet(pinhole, width, height, registered, near, far)
     summary = PoseSummary(
         images=list(names),
@@ -271,7 +305,7 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
         method=method,
         points=int(recon.num_points3D()),
         reprojection_error=float(recon.compute_mean_reprojection_error()),
-        focal=float(K[0, 0]),
+        focal=float(K[0, 0, 0]),
         focal_source=focal_source,
         width=width,
         height=height,
@@ -282,6 +316,7 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
         seconds=time.perf_counter() - start,
         timings=timings,
         notes=notes,
+        sizes=dict(zip(names, sizes)),
     )
     return camera_set, summary
 
@@ -318,12 +353,6 @@ def _load_images(items: Sequence[ImageInput], names: Sequence[str] | None) -> tu
         raise SurfSplatInputError(
             f"images: file names must be unique (cameras are keyed by name), repeated: {repeated}"
         )
-    sizes = {a.shape[1::-1] for a in arrays}
-    if len(sizes) != 1:
-        listing = ", ".join(f"{n} {a.shape[1]}x{a.shape[0]}" for n, a in zip(names, arrays))
-        raise SurfSplatInputError(
-            f"images: all images must have one size (one shared camera), got {listing}; resize or crop them alike"
-        )
     return arrays, names, paths
 
 
@@ -337,6 +366,14 @@ def _to_uint8(array: np.ndarray, source: str) -> np.ndarray:
     if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all():
         raise SurfSplatInputError(f"{source}: expected uint8 or finite float values in [0, 1], got {array.dtype}")
     return np.round(np.clip(array, 0, 1) * 255).astype(np.uint8)
+
+
+def _extraction_size(size: tuple[int, int], config: PoseConfig) -> tuple[int, int]:
+    """(width, height) SIFT runs at: the long side brought into [min_extraction_size, max_size]."""
+    width, height = size
+    long_side = max(width, height)
+    s = min(max(long_side, config.min_extraction_size), config.max_size) / long_side
+    return max(1, round(width * s)), max(1, round(height * s))
 
 
 def _initial_focal(config: PoseConfig, paths: list, width: int, height: int) -> tuple[float, str, str]:
@@ -359,41 +396,55 @@ class _Workspace:
     """A temporary COLMAP database and image folder for one estimation."""
 
     def __init__(
-        self, root: Path, names: list[str], size: tuple[int, int], focal: float, focal_origin: str, config: PoseConfig
+        self,
+        root: Path,
+        names: list[str],
+        sizes: list[tuple[int, int]],
+        groups: list[int],
+        focals: list[float],
+        focal_origin: str,
+        config: PoseConfig,
     ):
         import pycolmap
 
         self.pycolmap = pycolmap
         self.root = root
-        self.names = names  # user names; files inside are 000000.png, ...
-        self.files = [f"{i:06d}.png" for i in range(len(names))]
-        self.size = size
-        self.focal = focal
+        self.names = names  # user names; files inside are s0/000000.png, ... (one folder per image size)
+        self.files = [f"s{g}/{i:06d}.png" for i, g in enumerate(groups)]
+        self.sizes = sizes  # (width, height) of each camera, one per image size
+        self.groups = dict(zip(names, groups))  # user name -> its camera (index into sizes)
+        self.focals = focals  # initial focal length of each camera, pixels of its images
         self.focal_origin = focal_origin  # "given", "exif" or "prior"
         self.config = config
         self.database = root / "database.db"
         self.images = root / "images"
-        self.images.mkdir()
+        for g in range(len(sizes)):
+            (self.images / f"s{g}").mkdir(parents=True)
         self.ids: dict[str, int] = {}  # user name -> database image id
         pycolmap.set_random_seed(config.seed)
 
-    def camera(self):
-        w, h = self.size
+    def camera(self, group: int = 0):
+        """The pinhole camera of the images of one size (camera_id = group + 1)."""
+        w, h = self.sizes[group]
+        f = self.focals[group]
         return self.pycolmap.Camera(
-            model="SIMPLE_PINHOLE", width=w, height=h, params=[self.focal, w / 2, h / 2], camera_id=1
+            model="SIMPLE_PINHOLE", width=w, height=h, params=[f, w / 2, h / 2], camera_id=group + 1
         )
 
-    def extract(self, arrays: list[np.ndarray], ext_size: tuple[int, int]) -> None:
+    def extract(self, arrays: list[np.ndarray], ext_sizes: list[tuple[int, int]]) -> None:
         pycolmap = self.pycolmap
-        for array, file in zip(arrays, self.files):
+        scales = [(e[0] / s[0], e[1] / s[1]) for e, s in zip(ext_sizes, self.sizes)]
+        for array, file, name in zip(arrays, self.files, self.names):
             image = Image.fromarray(array)
+            ext_size = ext_sizes[self.groups[name]]
             if image.size != ext_size:
                 image = image.resize(ext_size, Image.Resampling.LANCZOS)
             image.save(self.images / file)
-        sx, sy = ext_size[0] / self.size[0], ext_size[1] / self.size[1]
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "SIMPLE_PINHOLE"
-        reader.camera_params = f"{self.focal * sx},{ext_size[0] / 2},{ext_size[1] / 2}"
+        # every camera is replaced below by its size's, in the input images' pixels
+        (sx, _), ext0 = scales[0], ext_sizes[0]
+        reader.camera_params = f"{self.focals[0] * sx},{ext0[0] / 2},{ext0[1] / 2}"
         options = pycolmap.FeatureExtractionOptions()
         options.num_threads = self.config.threads
         options.sift.max_num_features = self.config.max_features
@@ -404,7 +455,7 @@ class _Workspace:
             self.database,
             self.images,
             image_names=self.files,
-            camera_mode=pycolmap.CameraMode.SINGLE,
+            camera_mode=pycolmap.CameraMode.PER_FOLDER,  # one camera per image size (a folder each)
             reader_options=reader,
             extraction_options=options,
             device=pycolmap.Device.cpu,
@@ -414,11 +465,15 @@ class _Workspace:
         # COLMAP and this package, so a resize maps coordinates by a plain scale.
         db = pycolmap.Database.open(self.database)
         try:
-            by_file = {im.name: im.image_id for im in db.read_all_images()}
+            records = {im.name: im for im in db.read_all_images()}
+            by_file = {name: im.image_id for name, im in records.items()}
+            camera_group = {}  # database camera id -> image size group
             for name, file in zip(self.names, self.files):
                 if file not in by_file:
                     raise SurfSplatInputError(f"{name}: feature extraction produced no entry for this image")
                 self.ids[name] = by_file[file]
+                camera_group[records[file].camera_id] = self.groups[name]
+                sx, sy = scales[self.groups[name]]
                 keypoints = db.read_keypoints(by_file[file]).copy()
                 keypoints[:, 0] /= sx
                 keypoints[:, 1] /= sy
@@ -427,7 +482,7 @@ class _Workspace:
                     keypoints[:, 4:6] /= sy
                 db.update_keypoints(by_file[file], keypoints)
             for cam in db.read_all_cameras():
-                fixed = self.camera()
+                fixed = self.camera(camera_group[cam.camera_id])
                 fixed.camera_id = cam.camera_id
                 fixed.has_prior_focal_length = True
                 db.update_camera(fixed)
@@ -512,25 +567,26 @@ class _Workspace:
             inlier_matches = db.read_two_view_geometry(a, b).inlier_matches
         finally:
             db.close()
-        camera = self.camera()
+        camera1, camera2 = self.camera(self.groups[pair.first]), self.camera(self.groups[pair.second])
         p1, p2 = kp1[inlier_matches[:, 0]], kp2[inlier_matches[:, 1]]
         ransac = pycolmap.RANSACOptions()
         ransac.max_error = 1.0  # px; the verified matches are already consistent to 4 px
         ransac.random_seed = cfg.seed
-        estimate = pycolmap.estimate_relative_pose(camera, p1, camera, p2, ransac)
+        estimate = pycolmap.estimate_relative_pose(camera1, p1, camera2, p2, ransac)
         if estimate is None:
             raise SurfSplatInputError(
                 f"{what}: no relative pose fits the {len(p1)} verified matches; give the focal length "
                 "(--focal) or take photos with more overlap"
             )
         mask = np.asarray(estimate["inlier_mask"], dtype=bool).reshape(-1)
-        self._check_not_homography(what, camera, p1, p2, mask, ransac)
-        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera, p1, camera, p2, mask)
+        self._check_not_homography(what, camera1, camera2, p1, p2, mask, ransac)
+        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera1, p1, camera2, p2, mask)
         if isinstance(pose, dict):
             pose = pose["cam2_from_cam1"]
         recon = pycolmap.Reconstruction()
-        recon.add_camera_with_trivial_rig(camera)
-        for image_id, kp, cam_from_world in ((a, kp1, pycolmap.Rigid3d()), (b, kp2, pose)):
+        for camera in {camera1.camera_id: camera1, camera2.camera_id: camera2}.values():
+            recon.add_camera_with_trivial_rig(camera)
+        for image_id, kp, cam_from_world, camera in ((a, kp1, pycolmap.Rigid3d(), camera1), (b, kp2, pose, camera2)):
             name = pair.first if image_id == a else pair.second
             image = pycolmap.Image(name=name, keypoints=kp, camera_id=camera.camera_id, image_id=image_id)
             recon.add_image_with_trivial_frame(image, cam_from_world)
@@ -550,7 +606,7 @@ class _Workspace:
         return recon
 
     def _check_not_homography(
-        self, what: str, camera, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
+        self, what: str, camera1, camera2, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
     ) -> None:
         """Refuse pairs that one homography explains: a camera that only turned (any translation then
         fits E) or a single plane (two poses fit). COLMAP's own verdict (PLANAR_OR_PANORAMIC when H
@@ -576,10 +632,10 @@ class _Workspace:
         parallax = float((offset > cfg.parallax_px).mean())
         if explained < cfg.max_homography_share or parallax >= cfg.min_parallax_share:
             return
-        rays1 = np.concatenate([camera.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
-        rays2 = np.concatenate([camera.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
-        K = camera.calibration_matrix()
-        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K, K, rays1, rays2)
+        rays1 = np.concatenate([camera1.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
+        rays2 = np.concatenate([camera2.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
+        K1, K2 = camera1.calibration_matrix(), camera2.calibration_matrix()
+        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K1, K2, rays1, rays2)
         # H = R - t n^T / d: the translation comes out in units of the plane's distance d
         moved = float(np.linalg.norm(decomposed["cam2_from_cam1"].translation))
         if moved < cfg.min_homography_translation:
@@ -593,11 +649,11 @@ class _Workspace:
 
     def _triangulate(self, recon, a: int, b: int, matches: np.ndarray) -> None:
         pycolmap = self.pycolmap
-        camera = recon.cameras[1]
         image_a, image_b = recon.images[a], recon.images[b]
+        camera_a, camera_b = recon.cameras[image_a.camera_id], recon.cameras[image_b.camera_id]
         P1, P2 = image_a.cam_from_world().matrix(), image_b.cam_from_world().matrix()
-        xy1 = camera.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
-        xy2 = camera.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
+        xy1 = camera_a.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
+        xy2 = camera_b.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
         c1, c2 = image_a.projection_center(), image_b.projection_center()
         for (i, j), u, v in zip(matches, xy1, xy2):
             point = pycolmap.triangulate_point(P1, P2, u, v)
@@ -718,11 +774,13 @@ def _rotation_error(what: str, angle: float | None) -> SurfSplatInputError:
 
 # ----------------------------------------------------------------------------------------- outputs
 def _export(recon, ids: dict[str, int], names: list[str]):
-    """(c2w [R, 4, 4] float64, K [3, 3], registered names, per-view point depths) in input order."""
+    """(c2w [R, 4, 4] float64, K [R, 3, 3], registered names, per-view point depths) in input order."""
     registered = [n for n in names if ids[n] in recon.images and recon.images[ids[n]].has_pose]
-    camera = recon.cameras[recon.images[ids[registered[0]]].camera_id]
-    f, cx, cy = (float(v) for v in camera.params)
-    K = torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    Ks = []
+    for name in registered:  # each image's camera: one per image size
+        f, cx, cy = (float(v) for v in recon.cameras[recon.images[ids[name]].camera_id].params)
+        Ks.append(torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64))
+    K = torch.stack(Ks)
     w2c = np.tile(np.eye(4), (len(registered), 1, 1))
     for k, name in enumerate(registered):
         w2c[k, :3, :4] = recon.images[ids[name]].cam_from_world().matrix()

@@ -4,9 +4,17 @@ Two routes, in order of preference:
 - FocalLengthIn35mmFilm (0xA405): the focal length a 36 x 24 mm film frame with the same diagonal
   field of view would need (CIPA DC-008), so f_px = f35 * diagonal_px / 43.27 (the film diagonal).
 - FocalLength (0x920A, mm) with FocalPlaneXResolution (0xA20E) / FocalPlaneResolutionUnit (0xA210):
-  sensor pixels per unit length at the camera's native resolution; the result is rescaled by the
-  ratio of the image's long side to the native one (PixelXDimension / PixelYDimension), so a photo
-  downscaled after capture keeps the right focal length.
+  sensor pixels per unit length along the sensor's width, which is the STORED image's width
+  (EXIF 2.3 / CIPA DC-008: the X resolution of the focal plane in the image width direction), at
+  the camera's native resolution, PixelXDimension (0xA002) pixels wide. The focal length in stored
+  x pixels is rescaled by stored width / PixelXDimension, so a photo downscaled or cropped after
+  capture keeps the right focal length; without PixelXDimension the photo is taken at its native size.
+
+The focal length is of the photo as displayed (`surfsplat.data.images.read_image` applies the EXIF
+orientation): the 35 mm route uses the diagonal, which no turn changes; the focal-plane route
+measures along the stored width, which is the displayed height for orientations 5-8 (a turn of 90
+degrees), and with square sensor pixels that is the displayed image's fx as well. HEIC photos are
+read through pillow-heif (the `heic` extra), whose EXIF block this reads alike.
 """
 
 from __future__ import annotations
@@ -14,7 +22,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from PIL import Image, UnidentifiedImageError
+from ..data.images import open_image, orientation_of
+from ..geometry.orientation import stored_size
 
 EXIF_IFD = 0x8769
 FOCAL_LENGTH = 0x920A
@@ -29,12 +38,11 @@ UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 
 
 def exif_focal(path: str | Path, width: int, height: int) -> tuple[float, str] | None:
-    """(focal in pixels of a width x height image, which tags gave it), or None without usable tags."""
-    try:
-        with Image.open(path) as image:
-            exif = image.getexif().get_ifd(EXIF_IFD)
-    except (UnidentifiedImageError, OSError):
-        return None
+    """(focal in pixels of the photo displayed at width x height, which tags gave it), or None without
+    usable tags. A file Pillow cannot open raises SurfSplatInputError naming it."""
+    with open_image(path, str(path)) as image:
+        orientation = orientation_of(image, str(path))
+        exif = image.getexif().get_ifd(EXIF_IFD)
     f35 = _number(exif.get(FOCAL_LENGTH_35MM))
     if f35 is not None and f35 > 0:
         return f35 * math.hypot(width, height) / FILM_DIAGONAL_MM, f"EXIF 35 mm equivalent {f35:g} mm"
@@ -43,9 +51,9 @@ def exif_focal(path: str | Path, width: int, height: int) -> tuple[float, str] |
     unit = UNIT_MM.get(int(_number(exif.get(FOCAL_PLANE_RESOLUTION_UNIT)) or 2))
     if f_mm is None or f_mm <= 0 or resolution is None or resolution <= 0 or unit is None:
         return None
-    native = [_number(exif.get(tag)) for tag in (PIXEL_X_DIMENSION, PIXEL_Y_DIMENSION)]
-    native_long = max((v for v in native if v), default=None)
-    rescale = max(width, height) / native_long if native_long else 1.0
+    stored_width, _ = stored_size(orientation, width, height)
+    native_width = _number(exif.get(PIXEL_X_DIMENSION))
+    rescale = stored_width / native_width if native_width and native_width > 0 else 1.0
     focal = f_mm * resolution / unit * rescale
     return focal, f"EXIF focal length {f_mm:g} mm at {resolution:g} px per {unit:g} mm"
 

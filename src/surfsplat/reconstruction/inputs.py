@@ -7,6 +7,7 @@ one line. The option names in brackets are the command line's.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -19,6 +20,8 @@ from torch import Tensor
 from ..capture import FrameConfig, VideoFrames, is_video_file, select_video_frames
 from ..utils.checks import SurfSplatInputError
 
+logger = logging.getLogger(__name__)
+
 ImageSource = str | os.PathLike | np.ndarray | Tensor  # a file, uint8 / float [H, W, 3] array, or [3, H, W] tensor
 
 
@@ -29,11 +32,13 @@ class CaptureInput:
     names: list[str]  # one per view, unique (cameras are keyed by them)
     paths: list[Path | None]  # the file of each view (None for arrays and video frames)
     arrays: list[np.ndarray | None]  # uint8 [H, W, 3] of views given as arrays or decoded from a video
-    width: int
+    width: int  # the reference size: the first view of the most common orientation (see reference_size)
     height: int
     ordered: bool  # the views follow a path (video frames): neighbours in the list overlap most
     video: VideoFrames | None = None
     sources: list[str] = field(default_factory=list)  # what each view came from, for the summary
+    sizes: list[tuple[int, int]] = field(default_factory=list)  # (width, height) of each view as displayed
+    orientations: list[int] = field(default_factory=list)  # EXIF orientation of each view's file (1: none)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -51,6 +56,8 @@ class CaptureInput:
             self.ordered,
             self.video,
             pick(self.sources),
+            pick(self.sizes),
+            pick(self.orientations),
         )
 
     def image(self, i: int) -> Tensor:
@@ -69,7 +76,7 @@ class CaptureInput:
 
 def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfig) -> CaptureInput:
     """The views of `images`: a list of photos (paths or arrays), a folder of photos, or a video file."""
-    from ..data.images import list_images, read_image_size
+    from ..data.images import image_orientation, list_images, read_image_size
 
     if isinstance(images, (str, os.PathLike)):
         path = Path(images)
@@ -82,7 +89,10 @@ def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfi
             video = select_video_frames(path, frames)
             h, w = video.frames[0].shape[:2]
             sources = [f"{path}#{n}" for n in video.names]
-            return CaptureInput(video.names, [None] * len(video.frames), video.frames, w, h, True, video, sources)
+            n = len(video.frames)
+            return CaptureInput(
+                video.names, [None] * n, video.frames, w, h, True, video, sources, [(w, h)] * n, [1] * n
+            )
         if not path.exists():
             raise FileNotFoundError(f"{path}: no such image folder or video file")
         raise SurfSplatInputError(
@@ -95,7 +105,7 @@ def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfi
         raise SurfSplatInputError(
             f"images (--images): the model matches views, expected at least 2 images, got {len(items)}"
         )
-    names, paths, arrays, sizes, sources = [], [], [], [], []
+    names, paths, arrays, sizes, sources, orientations = [], [], [], [], [], []
     for i, item in enumerate(items):
         if isinstance(item, (str, os.PathLike)):
             path = Path(item)
@@ -104,7 +114,8 @@ def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfi
             names.append(path.name)
             paths.append(path)
             arrays.append(None)
-            sizes.append(read_image_size(path))
+            sizes.append(read_image_size(path))  # as displayed: EXIF orientation applied
+            orientations.append(image_orientation(path))
             sources.append(str(path))
         elif isinstance(item, (np.ndarray, Tensor)):
             array = _uint8_image(item, f"images[{i}]")
@@ -112,19 +123,45 @@ def read_capture(images: ImageSource | Sequence[ImageSource], frames: FrameConfi
             paths.append(None)
             arrays.append(array)
             sizes.append((array.shape[1], array.shape[0]))
+            orientations.append(1)
             sources.append(f"images[{i}] (array)")
         else:
             raise SurfSplatInputError(f"images[{i}]: expected a path or an image array, got {type(item).__name__}")
-    if len(set(sizes)) != 1:
-        listing = sorted({f"{h}x{w}" for w, h in sizes})  # as (H, W), like the network's size
-        raise SurfSplatInputError(f"images (--images): all images must have one size, got {listing}")
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated and all(p is not None for p in paths) and len({Path(p).resolve() for p in paths}) == len(paths):
         raise SurfSplatInputError(
             f"images (--images): file names must be unique (cameras are keyed by name): {repeated}"
         )
-    ((width, height),) = set(sizes)
-    return CaptureInput(names, paths, arrays, width, height, False, None, sources)
+    _warn_mirrored(names, orientations)
+    width, height = reference_size(sizes)
+    return CaptureInput(names, paths, arrays, width, height, False, None, sources, sizes, orientations)
+
+
+def _warn_mirrored(names: list[str], orientations: list[int]) -> None:
+    """Photos an EXIF orientation shows mirrored (2, 4, 5, 7) are read as shown: a mirror image of the
+    scene, which matches unmirrored photos of it under no camera (see surfsplat.geometry.orientation)."""
+    from ..geometry.orientation import MIRRORED
+
+    mirrored = [f"{n} (orientation {o})" for n, o in zip(names, orientations) if o in MIRRORED]
+    if mirrored:
+        logger.warning(
+            f"{', '.join(mirrored)}: shown mirrored by the EXIF orientation and read so; a mirror image fits "
+            "no camera that also sees the unmirrored scene (save such photos unmirrored)"
+        )
+
+
+def reference_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
+    """The (width, height) a capture of several sizes is worked at: the first view of the most common
+    orientation (landscape, portrait or square; a tie goes to the first view's), so most views keep
+    their whole frame and the others are cropped (`surfsplat.reconstruction.sizes`)."""
+
+    def shape(size: tuple[int, int]) -> int:
+        return (size[0] > size[1]) - (size[0] < size[1])  # 1 landscape, -1 portrait, 0 square
+
+    counts = {k: sum(shape(s) == k for s in sizes) for k in (1, -1, 0)}
+    most = max(counts.values())
+    winner = next(shape(s) for s in sizes if counts[shape(s)] == most)
+    return next(s for s in sizes if shape(s) == winner)
 
 
 def _uint8_image(item: np.ndarray | Tensor, source: str) -> np.ndarray:

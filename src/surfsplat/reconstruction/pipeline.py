@@ -99,16 +99,18 @@ def reconstruct(
     """One scene of surfels from photos, a folder of photos, or a video.
 
     images:     two or more image files or arrays ([H, W, 3] uint8 or float in [0, 1], or [3, H, W]
-                tensors), all of one size; a folder of images; a processed capture folder (photos and a
-                transforms.json or a COLMAP sparse/0: its views are the photos the camera file lists);
-                or a video file (.mp4, .mov, ...)
+                tensors); a folder of images; a processed capture folder (photos and a transforms.json or
+                a COLMAP sparse/0: its views are the photos the camera file lists); or a video file (.mp4,
+                .mov, ...). Photos are read as displayed (EXIF orientation) and may differ in size and
+                orientation: each keeps its own K, and is cropped to the working size (a warning names
+                views that lose much of their frame)
     checkpoint: a weights name (default "tiny-synthetic"), hf://owner/repo/file, a checkpoint path,
                 or a loaded SurfSplat model
     cameras:    "auto" (default: a processed capture folder's own cameras, else estimated), None
                 (estimated from the images), a JSON camera file / COLMAP model / scene folder
                 (views matched by name; video frames are named frame_000012, ...), a CameraSet
                 (matched by name; arrays take its names in order), or Cameras with K in pixels of
-                the images (one per view, in order)
+                each view's own image (one per view, in order)
     device:     "auto" (CUDA when available), "cpu", "cuda" or a torch.device
     size:       network input (height, width), multiples of the model's (default: the largest crop of
                 the views, downscaled first so that their long side is at most `max_working_size`)
@@ -165,8 +167,12 @@ def reconstruct(
         seconds["poses"] = poses.seconds
     else:
         given, source = given
-    K = given.resized(views.width, views.height, source).K
-    c2w = given.cameras.c2w
+    from .sizes import crop_report, view_cameras
+
+    # each view's K in pixels of its own photo as displayed (photos may differ in size and orientation)
+    own = cameras is None or isinstance(cameras, Cameras)  # estimated K: each in its own photo's pixels
+    per_view = view_cameras(given, views.sizes, views.orientations, views.names, source, own_pixels=own)
+    K, c2w = per_view.K, per_view.c2w
     near, far = _depth_range(near, far, given)
 
     # ---- held-out views and context sets
@@ -188,14 +194,18 @@ def reconstruct(
     if not may_skip:
         model, label = _load_for_inference(checkpoint, preset, trust_pickle, device, compile)
     shape = _working_shape(views, size, max_working_size, _size_multiple(model))
+    cropped = crop_report(views.sizes, views.names, shape)
+    if cropped is not None:
+        logger.warning(cropped)
 
     def network_views(indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """The photos [V, 3, H, W] at the network's size and their K [V, 3, 3], on the device: the
         photos are read on the host, and every stage after the network runs where it ran."""
         from ..data.transforms import rescale_and_crop
 
-        stack = torch.stack([views.image(i) for i in indices])
-        stack, K_net, _ = rescale_and_crop(stack, K[indices].to(torch.float32), shape)
+        # one view at a time: each has its own size and K
+        pairs = [rescale_and_crop(views.image(i)[None], K[i : i + 1].to(torch.float32), shape)[:2] for i in indices]
+        stack, K_net = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
         return stack.clamp(0, 1).to(device), K_net.to(device)
 
     # ---- the optimizer's start, decided from the context photos before any pass
