@@ -109,6 +109,18 @@ class CameraSet:
         return Cameras(cameras.c2w, cameras.K * S[:, None], validate=False)
 
 
+def pinhole_of(lens: Lens) -> Lens:
+    """The pinhole a lens's photos are undistorted to: the lens itself where it is one (as PINHOLE), else
+    `undistorted_pinhole` (COLMAP image_undistorter's choice)."""
+    if lens.is_pinhole:
+        from .formats.common import lens_matrix, pinhole_lens
+
+        return pinhole_lens(lens_matrix(lens), lens.width, lens.height)
+    from ..geometry.lens import undistorted_pinhole
+
+    return undistorted_pinhole(lens)
+
+
 def _uniform(cw: int, ch: int, width: int, height: int) -> bool:
     """Whether width x height is cw x ch rescaled uniformly (the height within the half pixel of rounding)."""
     return abs(ch * width / cw - height) <= 0.5 + 1e-9
@@ -124,14 +136,15 @@ def save_cameras(
     far: float | None = None,
     *,
     crop: WorkingCrop | None = None,
-    lenses: list[tuple[Lens, Lens]] | None = None,
+    lenses: list[Lens] | None = None,
 ) -> Path:
     """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height.
 
     crop: the working crop of the photos K is in pixels of (`surfsplat.data.transforms.working_crop`),
         recorded so that the file is accepted back with those photos.
-    lenses: each view's (source lens, pinhole it was undistorted to), recorded so that renders can be
-        compared with the original photos and the file read back with them.
+    lenses: each view's source lens (`CameraSet.lenses`), recorded with the pinhole its photo was
+        undistorted to (`undistorted_pinhole`), so that renders can be compared with the original photos
+        and the file is read back with them.
     """
     from ..utils.atomic import write_text
 
@@ -139,14 +152,14 @@ def save_cameras(
     if len(names) != len(cameras):
         raise SurfSplatInputError(f"names: expected {len(cameras)} names, got {len(names)}")
     if lenses is not None and len(lenses) != len(cameras):
-        raise SurfSplatInputError(f"lenses: expected {len(cameras)} (lens, pinhole) pairs, got {len(lenses)}")
+        raise SurfSplatInputError(f"lenses: expected {len(cameras)} lenses (one a view), got {len(lenses)}")
     if crop is not None and (crop.width, crop.height) != (int(width), int(height)):
         raise SurfSplatInputError(f"crop: a crop of {crop.width}x{crop.height} for cameras of {width}x{height}")
     frames = []
     for i, (n, k, c) in enumerate(zip(names, cameras.K.to(torch.float64), cameras.c2w.to(torch.float64))):
         frame: dict[str, object] = {"name": n, "K": k.tolist(), "c2w": c.tolist()}
         if lenses is not None:
-            frame["lens"], frame["pinhole"] = lenses[i][0].to_dict(), lenses[i][1].to_dict()
+            frame["lens"], frame["pinhole"] = lenses[i].to_dict(), pinhole_of(lenses[i]).to_dict()
         frames.append(frame)
     document: dict[str, object] = {
         "format": CAMERA_FILE_FORMAT,

@@ -147,7 +147,10 @@ def reconstruct(
         seconds["poses"] = poses.seconds
     else:
         given, source = given
-    K = given.resized(views.width, views.height, source).K
+    if given.lenses is not None:  # every stage after this sees the pinhole photos
+        views, K = _undistorted_views(views, given, source)
+    else:
+        K = given.resized(views.width, views.height, source).K
     c2w = given.cameras.c2w
     near, far = _depth_range(near, far, given)
 
@@ -286,6 +289,8 @@ def reconstruct(
         checkpoint=str(checkpoint if checkpoint is not None and not _is_model(checkpoint) else label),
         sources=[views.sources[i] for i in context],
         cameras_source=source,
+        source_size=(views.width, views.height),
+        lenses=None if views.lenses is None else dict(zip(views.names, (pair[0] for pair in views.lenses))),
         passes=[[views.names[context[j]] for j in members] for members in passes],
         seconds=seconds,
         compact_level=compact,
@@ -379,6 +384,45 @@ def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
     raise SurfSplatInputError(
         f"cameras: expected None, a camera file or folder, a CameraSet or Cameras, got {type(cameras).__name__}"
     )
+
+
+def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[CaptureInput, torch.Tensor]:
+    """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), and their K [V, 3, 3]:
+    each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled with it,
+    as COLMAP's Camera.rescale does) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
+    pinhole's, so every stage after this one sees pinhole photos and cameras."""
+    from ..data.cameras import pinhole_of
+    from ..data.formats.common import lens_matrix, rescaled_lens
+
+    pairs, Ks = [], []
+    for name, lens in zip(views.names, given.lenses, strict=True):
+        size = (views.width, views.height)
+        if size != (lens.width, lens.height):
+            if size[0] > lens.width or abs(lens.height * size[0] / lens.width - size[1]) > 0.5:
+                raise SurfSplatInputError(
+                    f"{source}: image {name!r} is {size[0]}x{size[1]} but its {lens.model} lens is calibrated for "
+                    f"{lens.width}x{lens.height} (the photos must be that size or a uniform downscale of it)"
+                )
+            lens = rescaled_lens(lens, *size)
+        pinhole = pinhole_of(lens)
+        pairs.append((lens, pinhole))
+        Ks.append(lens_matrix(pinhole))
+    sizes = sorted({(p.width, p.height) for _, p in pairs})
+    if len(sizes) != 1:
+        raise SurfSplatInputError(
+            f"{source}: the views' lenses undistort to different sizes {[f'{w}x{h}' for w, h in sizes]}; "
+            "a reconstruction has one size"
+        )
+    ((width, height),) = sizes
+    undistorted = views.subset(list(range(len(views))))
+    undistorted.width, undistorted.height, undistorted.lenses = width, height, pairs
+    models = sorted({lens.model for lens, _ in pairs if not lens.is_pinhole})
+    if models:
+        logger.info(
+            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {width}x{height} pinholes "
+            f"as they are read (from {views.width}x{views.height})"
+        )
+    return undistorted, torch.stack(Ks).to(given.cameras.K.dtype)
 
 
 def _depth_range(near: float | None, far: float | None, cams) -> tuple[float, float]:

@@ -146,6 +146,39 @@ class Scene:
     precision: str = "fp32"  # what the forward passes ran in (surfels and rendering are float32)
     scale_multipliers: Tensor | None = None  # [N, 2] Eq. 9 multipliers (one uncompacted pass only)
     multiplier_range: float | None = None  # the clamp's r of those multipliers
+    # (width, height) of the photos the working crop was taken from (after undistortion; None: unknown)
+    source_size: tuple[int, int] | None = None
+    # each view's source lens by name, context and held-out (None: the photos were pinhole); the
+    # photos were undistorted to `pinhole_of(lens)` before the working crop
+    lenses: dict | None = None
+
+    @property
+    def crop(self):
+        """The WorkingCrop from the photos (after undistortion) to the scene's width x height, or None."""
+        if self.source_size is None:
+            return None
+        from ..data.transforms import working_crop
+
+        return working_crop(*self.source_size, (self.height, self.width))
+
+    def view_lenses(self, names: list[str]) -> list | None:
+        """The source lens of each named view (None where the scene has no lenses)."""
+        return None if self.lenses is None else [self.lenses[n] for n in names]
+
+    def lens_summary(self) -> list[dict] | None:
+        """What reconstruction.json records of the lenses: each distinct source lens (COLMAP model and
+        parameters), the pinhole its photos were undistorted to, and the views that had it."""
+        if self.lenses is None:
+            return None
+        from ..data.cameras import pinhole_of
+
+        groups: dict = {}
+        for name, lens in self.lenses.items():
+            groups.setdefault(lens, []).append(name)
+        return [
+            {"source": lens.to_dict(), "pinhole": pinhole_of(lens).to_dict(), "views": names}
+            for lens, names in groups.items()
+        ]
 
     @property
     def device(self) -> torch.device:
@@ -229,6 +262,10 @@ class Scene:
             "cameras": self.cameras_source,
             "precision": self.precision,
         }
+        if self.crop is not None:
+            out["working_crop"] = self.crop.to_dict()
+        if self.lenses is not None:
+            out["lenses"] = self.lens_summary()
         if self.optimize_stats:
             out["optimize"] = self.optimize_stats
         if self.is_capture:
@@ -296,6 +333,8 @@ class Scene:
             near=self.near,
             far=self.far,
             seconds=seconds,
+            crop=self.crop,
+            lenses=self.view_lenses(self.names),
         )
         tick = time.perf_counter()
         if self.poses is not None:

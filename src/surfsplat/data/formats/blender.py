@@ -233,9 +233,7 @@ def load_blender(
     parsed = read_transforms(path, split=split, images=images, dtype=dtype)
     if cameras_only:
         names = [p.name for p in parsed.paths]
-        result = camera_set(parsed.cameras, parsed.paths, parsed.sizes, names)
-        result.lenses = parsed.lenses
-        return result
+        return camera_set(parsed.cameras, parsed.paths, parsed.sizes, names, lenses=parsed.lenses)
     rgb, alpha = load_image_stack(parsed.paths, background=background)
     rgb, alpha = undistort_views(rgb, alpha, parsed.lenses, parsed.paths)
     return PosedImages(

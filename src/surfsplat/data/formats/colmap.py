@@ -359,9 +359,7 @@ def load_colmap(
 
     names = [r.name for r in ordered]
     if cameras_only:
-        result = camera_set(cams, paths, view_sizes, names, near, far)
-        result.lenses = lenses
-        return result
+        return camera_set(cams, paths, view_sizes, names, near, far, lenses)
     rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
     rgb, alpha = undistort_views(rgb, alpha, lenses, paths)
     return PosedImages(images=rgb, cameras=cams, names=names, near=near, far=far, masks=alpha, source=str(root))

@@ -90,16 +90,20 @@ def camera_set(
     names: list[str],
     near: Tensor | None = None,
     far: Tensor | None = None,
+    lenses: list[Lens] | None = None,
 ):
     """A reader's `cameras_only` result: a CameraSet from its camera records and the images'
-    headers (`sizes`, (width, height) each), without decoding a pixel."""
+    headers (`sizes`, (width, height) each, after undistortion where `lenses` are given), without
+    decoding a pixel."""
     from ..cameras import CameraSet
 
     if len(set(sizes)) != 1:
         (w0, h0), bad = sizes[0], next(i for i, s in enumerate(sizes) if s != sizes[0])
         w, h = sizes[bad]
+        what = "undistorts to" if lenses is not None else "is"
         raise SurfSplatInputError(
-            f"{paths[bad]}: image is {w}x{h} but {paths[0].name} is {w0}x{h0}; all views of a scene must share one size"
+            f"{paths[bad]}: image {what} {w}x{h} but {paths[0].name} {what} {w0}x{h0}; "
+            "all views of a scene must share one size"
         )
     width, height = sizes[0]
     return CameraSet(
@@ -109,6 +113,7 @@ def camera_set(
         names,
         float(near.min()) if near is not None else None,
         float(far.max()) if far is not None else None,
+        lenses,
     )
 
 
@@ -175,9 +180,9 @@ def lens_view(
         return K, None, image_size
     if image_size != (lens.width, lens.height):
         lens = rescaled_lens(lens, *image_size)
-    from ...geometry.lens import undistorted_pinhole
+    from ..cameras import pinhole_of
 
-    pinhole = undistorted_pinhole(lens)
+    pinhole = pinhole_of(lens)
     return lens_matrix(pinhole), lens, (pinhole.width, pinhole.height)
 
 
@@ -206,10 +211,10 @@ def undistort_photo(image: Tensor, lens: Lens, mode: str = "bilinear") -> Tensor
     """One photo [C, H, W] at its lens's size undistorted to the lens's pinhole (unchanged for a pinhole)."""
     if lens.is_pinhole:
         return image
-    from ...geometry.lens import undistorted_pinhole
+    from ..cameras import pinhole_of
     from ..undistort import undistort
 
-    return undistort(image, lens, undistorted_pinhole(lens), mode=mode)
+    return undistort(image, lens, pinhole_of(lens), mode=mode)
 
 
 def undistort_views(
