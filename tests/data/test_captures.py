@@ -83,7 +83,7 @@ def test_colmap_every_model_is_read_into_its_lens(tmp_path: Path, model: str, bi
     _assert_pinhole_K(cam_set.cameras.K, pinhole)
 
     scene = load_scene(tmp_path, dtype=torch.float64)
-    assert scene.images.shape == (3, 3, pinhole.height, pinhole.width)
+    assert scene.images.shape == (3, 3, pinhole.height, pinhole.width) and scene.extras["lenses"] == [lens] * 3
     _assert_pinhole_K(scene.cameras.K, pinhole)
     photo, _ = read_image(tmp_path / "images" / "a.png", background=None)
     reference = reference_undistort(photo, lens, pinhole)

@@ -152,6 +152,27 @@ class Scene:
     # photos were undistorted to `pinhole_of(lens)` before the working crop
     lenses: dict | None = None
 
+    def lens_lines(self) -> list[str]:
+        """One line per distinct source lens: its model and parameters, the pinhole its photos were
+        undistorted to, and the working crop of that."""
+        lines = []
+        for group in self.lens_summary() or []:
+            source, pinhole = group["source"], group["pinhole"]
+            if source["model"] == "PINHOLE":
+                continue
+            from ..geometry.lens import Lens
+
+            names = Lens.from_dict(source).param_names
+            params = ", ".join(f"{n} {v:.6g}" for n, v in zip(names, source["params"]))
+            fx, fy, cx, cy = pinhole["params"]
+            lines.append(
+                f"lens {source['model']} ({params}) at {source['width']}x{source['height']}, {len(group['views'])} "
+                f"view{'s' if len(group['views']) > 1 else ''}: photos undistorted to a {pinhole['width']}x"
+                f"{pinhole['height']} pinhole (fx {fx:.6g}, fy {fy:.6g}, cx {cx:.6g}, cy {cy:.6g}), "
+                f"then cropped to {self.width}x{self.height}"
+            )
+        return lines
+
     @property
     def crop(self):
         """The WorkingCrop from the photos (after undistortion) to the scene's width x height, or None."""

@@ -242,4 +242,5 @@ def load_blender(
         names=[p.name for p in parsed.paths],
         masks=alpha,
         source=str(parsed.json_path),
+        extras={} if parsed.lenses is None else {"lenses": parsed.lenses},  # each view's lens before undistortion
     )

@@ -362,4 +362,7 @@ def load_colmap(
         return camera_set(cams, paths, view_sizes, names, near, far, lenses)
     rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
     rgb, alpha = undistort_views(rgb, alpha, lenses, paths)
-    return PosedImages(images=rgb, cameras=cams, names=names, near=near, far=far, masks=alpha, source=str(root))
+    extras = {} if lenses is None else {"lenses": lenses}  # the source lens of each view, before undistortion
+    return PosedImages(
+        images=rgb, cameras=cams, names=names, near=near, far=far, masks=alpha, source=str(root), extras=extras
+    )
