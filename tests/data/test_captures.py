@@ -275,7 +275,7 @@ def test_colmap_registered_images_without_photo_are_left_out(tmp_path: Path, cap
         scene = load_scene(tmp_path)
     assert scene.names == ["a.png", "c.png", "d.png"]
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
-        f"1 of 4 frames listed in {tmp_path / 'sparse' / '0'} (registered images) have no photo (b.png); "
+        f"1 of 4 frames listed in {tmp_path / 'sparse' / '0'} (registered images) has no photo (b.png); "
         "they are left out"
     ]
 

@@ -279,7 +279,7 @@ CASES = [
     ("colmap_unknown_model_id", _case_colmap_unknown_model_id, "cameras.bin: camera 1 has camera model id 12"),
     ("colmap_nan_distortion", _case_colmap_nan_distortion, "camera 1: camera model OPENCV: parameter k1 is NaN"),
     ("colmap_truncated", _case_colmap_truncated, "images.bin: truncated file"),
-    ("colmap_missing_image", _case_colmap_missing_image, "1 of 2 listed frames have no photo (b.png)"),
+    ("colmap_missing_image", _case_colmap_missing_image, "1 of 2 listed frames has no photo (b.png)"),
     ("re10k_short_line", _case_re10k_short_line, "vid.txt:3: expected a timestamp and 18 numbers, got 18 fields"),
     ("re10k_nan", _case_re10k_nan, "vid.txt: camera row 0 contains NaN or inf"),
     ("re10k_missing_frame", _case_re10k_missing_frame, "no frame image for timestamp 20"),

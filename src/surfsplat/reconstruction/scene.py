@@ -169,7 +169,7 @@ class Scene:
                 f"lens {source['model']} ({params}) at {source['width']}x{source['height']}, {len(group['views'])} "
                 f"view{'s' if len(group['views']) > 1 else ''}: photos undistorted to a {pinhole['width']}x"
                 f"{pinhole['height']} pinhole (fx {fx:.6g}, fy {fy:.6g}, cx {cx:.6g}, cy {cy:.6g}), "
-                f"then cropped to {self.width}x{self.height}"
+                f"then rescaled and cropped to the {self.width}x{self.height} working size"
             )
         return lines
 

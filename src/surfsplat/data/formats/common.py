@@ -129,6 +129,7 @@ def present_views(paths: list[Path], source: str) -> list[int]:
     shown = ", ".join(paths[i].name for i in missing[:SHOWN_MISSING]) + (
         ", ..." if len(missing) > SHOWN_MISSING else ""
     )
+    verb = "has" if len(missing) == 1 else "have"
     if len(missing) == len(paths):
         raise SurfSplatInputError(
             f"{source}: every photo listed in it is missing ({len(paths)} frames: {shown}; looked in {paths[0].parent})"
@@ -136,11 +137,11 @@ def present_views(paths: list[Path], source: str) -> list[int]:
     keep = [i for i in range(len(paths)) if i not in set(missing)]
     if len(keep) < 2:
         raise SurfSplatInputError(
-            f"{source}: {len(missing)} of {len(paths)} listed frames have no photo ({shown}); "
+            f"{source}: {len(missing)} of {len(paths)} listed frames {verb} no photo ({shown}); "
             f"only {paths[keep[0]].name} is left and at least two views are needed"
         )
     logger.warning(
-        f"{len(missing)} of {len(paths)} frames listed in {source} have no photo ({shown}); they are left out"
+        f"{len(missing)} of {len(paths)} frames listed in {source} {verb} no photo ({shown}); they are left out"
     )
     return keep
 
