@@ -4,12 +4,30 @@ A `Lens` is a camera model with its calibrated image size and its parameters in 
 (`colmap/src/colmap/sensor/models.h`; pycolmap's `Camera.params_info` prints them). Every stage after
 loading sees pinhole cameras (SPEC section 2): a capture with a lens is undistorted once, where it is
 read, and the reconstruction records the lens it came from beside the pinhole it used.
+
+The math of the eleven models (ids 0-10) is COLMAP's, written here again in torch:
+- `project` is COLMAP's `ImgFromCam` (with its cheirality check: points with z < machine epsilon
+  give NaN), `unproject` its `CamFromImg`: the same closed forms, the same Newton iteration with
+  the same trust region, step threshold and 100-iteration limit where COLMAP inverts a distortion
+  iteratively (NaN where COLMAP's iteration does not converge), the fisheye models through the angle
+  theta = atan(r) (COLMAP's `FisheyeFromNormal` / `NormalFromFisheye`, with their epsilon guards),
+  FOV through its closed-form inverse with COLMAP's small-omega and small-radius series.
+- Pixel coordinates are COLMAP's and this project's: the top-left pixel's centre is (0.5, 0.5).
+- `undistorted_pinhole` is COLMAP's `UndistortCamera` with `image_undistorter`'s default options.
+Why not call pycolmap: its `Camera` works on NumPy arrays on the host, one model at a time, in a
+Python call per array; these functions take any leading batch shape, stay on the caller's device
+and are differentiable where the closed forms are. pycolmap and OpenCV are their references in the
+tests (`tests/geometry/test_lens.py`), to 1e-6 px.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+
+import torch
+from torch import Tensor
 
 from ..utils.checks import SurfSplatInputError
 
@@ -29,6 +47,8 @@ CAMERA_MODELS: dict[int, tuple[str, tuple[str, ...]]] = {
 }
 MODEL_IDS: dict[str, int] = {name: i for i, (name, _) in CAMERA_MODELS.items()}
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+# Models that apply their distortion to theta = atan(r) (COLMAP's BasePerspectiveFisheyeCameraModel).
+FISHEYE_MODELS = ("OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE")
 
 
 @dataclass(frozen=True)
@@ -61,14 +81,27 @@ class Lens:
         return CAMERA_MODELS[MODEL_IDS[self.model]][1]
 
     @property
+    def focal_and_centre(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) in pixels; models with one focal length "f" have fx = fy = f."""
+        p = self.params
+        if self.param_names[0] == "f":
+            return p[0], p[0], p[1], p[2]
+        return p[0], p[1], p[2], p[3]
+
+    @property
+    def extra_params(self) -> tuple[float, ...]:
+        """The distortion parameters (COLMAP's extra_params), after focal length and principal point."""
+        return self.params[3:] if self.param_names[0] == "f" else self.params[4:]
+
+    @property
     def is_pinhole(self) -> bool:
-        """Whether the model projects as a pinhole: a pinhole model, or a perspective model whose
-        distortion parameters are all zero (fisheye models never are)."""
+        """Whether the model projects as a pinhole: a pinhole model, or a perspective model (FOV
+        included) whose distortion parameters are all zero (fisheye models never are)."""
         if self.model in PINHOLE_MODELS:
             return True
-        if self.model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"):
-            first = 3 if self.model.startswith(("SIMPLE_RADIAL", "RADIAL")) else 4
-            return all(v == 0 for v in self.params[first:])
+        if self.model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "FOV"):
+            # FOV with omega = 0 is COLMAP's exact pinhole (its series branch gives the factor 1)
+            return all(v == 0 for v in self.extra_params)
         return False
 
     def to_dict(self) -> dict:
@@ -84,3 +117,238 @@ class Lens:
             raise SurfSplatInputError(
                 f"{source}: a lens needs 'model', 'width', 'height' and 'params' ({type(err).__name__}: {err})"
             ) from None
+
+
+# --- COLMAP's projection and its inverse -------------------------------------------------------
+
+_EPS = 2.220446049250313e-16  # std::numeric_limits<double>::epsilon(), COLMAP's guards
+# COLMAP's IterativeUndistortion (BasePerspectiveCameraModel): Newton's method with a trust region.
+_NEWTON_ITERATIONS = 100
+_NEWTON_MIN_STEP_SQ = 1e-10
+_NEWTON_REL_RADIUS = 0.1
+_NEWTON_RADIUS = 0.1
+_FOV_EPS = 1e-4  # COLMAP's FOV model: "chosen arbitrarily", the switch to its series expansions
+
+Distortion = Callable[[tuple[float, ...], Tensor, Tensor], tuple[Tensor, Tensor]]
+
+
+def _radial_simple(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    # SIMPLE_RADIAL and SIMPLE_RADIAL_FISHEYE (on theta): k r^2
+    radial = e[0] * (u * u + v * v)
+    return u * radial, v * radial
+
+
+def _radial(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    # RADIAL and RADIAL_FISHEYE (on theta): k1 r^2 + k2 r^4
+    r2 = u * u + v * v
+    radial = e[0] * r2 + e[1] * r2 * r2
+    return u * radial, v * radial
+
+
+def _opencv(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    k1, k2, p1, p2 = e
+    u2, uv, v2 = u * u, u * v, v * v
+    r2 = u2 + v2
+    radial = k1 * r2 + k2 * r2 * r2
+    return u * radial + 2 * p1 * uv + p2 * (r2 + 2 * u2), v * radial + 2 * p2 * uv + p1 * (r2 + 2 * v2)
+
+
+def _opencv_fisheye(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    # applied to (u, v) = theta * direction: k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8
+    k1, k2, k3, k4 = e
+    t2 = u * u + v * v
+    t4 = t2 * t2
+    radial = k1 * t2 + k2 * t4 + k3 * t4 * t2 + k4 * t4 * t4
+    return u * radial, v * radial
+
+
+def _full_opencv(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    # OpenCV's rational model; COLMAP writes the displacement, hence the "- u", "- v"
+    k1, k2, p1, p2, k3, k4, k5, k6 = e
+    u2, uv, v2 = u * u, u * v, v * v
+    r2 = u2 + v2
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+    du = u * radial + 2 * p1 * uv + p2 * (r2 + 2 * u2) - u
+    dv = v * radial + 2 * p2 * uv + p1 * (r2 + 2 * v2) - v
+    return du, dv
+
+
+def _thin_prism(e: tuple[float, ...], u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    k1, k2, p1, p2, k3, k4, sx1, sy1 = e
+    u2, uv, v2 = u * u, u * v, v * v
+    r2 = u2 + v2
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = k1 * r2 + k2 * r4 + k3 * r6 + k4 * r6 * r2
+    du = u * radial + 2 * p1 * uv + p2 * (r2 + 2 * u2) + sx1 * r2
+    dv = v * radial + 2 * p2 * uv + p1 * (r2 + 2 * v2) + sy1 * r2
+    return du, dv
+
+
+# The displacement (du, dv) each model adds on the normalized plane (or, fisheye, on the theta plane).
+_DISTORTIONS: dict[str, Distortion] = {
+    "SIMPLE_RADIAL": _radial_simple,
+    "RADIAL": _radial,
+    "OPENCV": _opencv,
+    "FULL_OPENCV": _full_opencv,
+    "OPENCV_FISHEYE": _opencv_fisheye,
+    "SIMPLE_RADIAL_FISHEYE": _radial_simple,
+    "RADIAL_FISHEYE": _radial,
+    "THIN_PRISM_FISHEYE": _thin_prism,
+}
+
+
+def _fov_distort(omega: float, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """COLMAP's FOVCameraModel::Distortion: the distorted point itself (not a displacement)."""
+    r2 = u * u + v * v
+    omega2 = omega * omega
+    if omega2 < _FOV_EPS:
+        factor = (omega2 * r2) / 3 - omega2 / 12 + 1  # COLMAP's Taylor series in omega
+    else:
+        tan_half = math.tan(omega / 2)
+        small = (-2 * tan_half * (4 * r2 * tan_half * tan_half - 3)) / (3 * omega)  # series in the radius
+        radius = torch.sqrt(r2)
+        factor = torch.where(r2 < _FOV_EPS, small, torch.atan(radius * 2 * tan_half) / (radius * omega))
+    return u * factor, v * factor
+
+
+def _fov_undistort(omega: float, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """COLMAP's FOVCameraModel::Undistortion: its closed-form inverse."""
+    r2 = u * u + v * v
+    omega2 = omega * omega
+    if omega2 < _FOV_EPS:
+        factor = (omega2 * r2) / 3 - omega2 / 12 + 1
+    else:
+        tan_half = math.tan(omega / 2)
+        small = (omega * (omega * omega * r2 + 3)) / (6 * tan_half)
+        radius = torch.sqrt(r2)
+        factor = torch.where(r2 < _FOV_EPS, small, torch.tan(radius * omega) / (radius * 2 * tan_half))
+    return u * factor, v * factor
+
+
+def _fisheye_from_normal(u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """(u, v) on the normalized plane -> theta * direction (COLMAP's FisheyeFromNormal)."""
+    r = torch.sqrt(u * u + v * v)
+    scale = torch.where(r > _EPS, torch.atan(r) / r, torch.ones_like(r))
+    return u * scale, v * scale
+
+
+def _normal_from_fisheye(uu: Tensor, vv: Tensor) -> tuple[Tensor, Tensor]:
+    """theta * direction -> the normalized plane (COLMAP's NormalFromFisheye). As COLMAP, a point at
+    theta >= pi/2 (theta cos theta <= eps) is returned unscaled: such rays have no point on the plane."""
+    theta = torch.sqrt(uu * uu + vv * vv)
+    t_cos = theta * torch.cos(theta)
+    scale = torch.where(t_cos > _EPS, torch.sin(theta) / t_cos, torch.ones_like(theta))
+    return uu * scale, vv * scale
+
+
+def _iterative_undistortion(
+    distortion: Distortion, e: tuple[float, ...], x0: Tensor, y0: Tensor
+) -> tuple[Tensor, Tensor]:
+    """COLMAP's IterativeUndistortion, vectorized: solve p + d(p) = p0 for p by Newton's method from
+    p = p0, the step clipped to max(0.1 |p|, 0.1), converged when the step's squared norm < 1e-10;
+    points not converged after 100 iterations are NaN (COLMAP returns false there). The Jacobian is
+    exact (forward-mode derivatives of the distortion, as COLMAP's ceres Jets)."""
+    x, y = x0.clone(), y0.clone()
+    active = torch.arange(x.numel(), device=x.device)
+    xf, yf, x0f, y0f = x.view(-1), y.view(-1), x0.reshape(-1), y0.reshape(-1)
+    converged = torch.zeros(x.numel(), dtype=torch.bool, device=x.device)
+
+    def d(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+        return distortion(e, a, b)
+
+    for _ in range(_NEWTON_ITERATIONS):
+        if active.numel() == 0:
+            break
+        a, b = xf[active], yf[active]
+        one, zero = torch.ones_like(a), torch.zeros_like(a)
+        (da, db), (daa, dba) = torch.func.jvp(d, (a, b), (one, zero))
+        _, (dab, dbb) = torch.func.jvp(d, (a, b), (zero, one))
+        j00, j01, j10, j11 = daa + 1, dab, dba, dbb + 1
+        r0 = a + da - x0f[active]
+        r1 = b + db - y0f[active]
+        det = j00 * j11 - j01 * j10
+        s0 = (j11 * r0 - j01 * r1) / det
+        s1 = (j00 * r1 - j10 * r0) / det
+        radius_sq = torch.clamp(
+            (a * a + b * b) * (_NEWTON_REL_RADIUS * _NEWTON_REL_RADIUS), min=_NEWTON_RADIUS * _NEWTON_RADIUS
+        )
+        step_sq = s0 * s0 + s1 * s1
+        shrink = torch.where(step_sq > radius_sq, torch.sqrt(radius_sq / step_sq), torch.ones_like(step_sq))
+        s0, s1 = s0 * shrink, s1 * shrink
+        xf[active] = a - s0
+        yf[active] = b - s1
+        done = (s0 * s0 + s1 * s1) < _NEWTON_MIN_STEP_SQ
+        converged[active[done]] = True
+        active = active[~done]
+    xf[~converged] = math.nan
+    yf[~converged] = math.nan
+    return x, y
+
+
+def _float64(t: Tensor, last: int, name: str) -> Tensor:
+    if not isinstance(t, Tensor) or t.ndim < 1 or t.shape[-1] != last:
+        shape = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+        raise SurfSplatInputError(f"{name}: expected a tensor of shape [..., {last}], got {shape}")
+    return t.to(torch.float64)
+
+
+def _out_dtype(t: Tensor) -> torch.dtype:
+    return t.dtype if t.is_floating_point() else torch.float64
+
+
+def project(lens: Lens, points: Tensor) -> Tensor:
+    """Points in the camera frame (OpenCV axes) -> pixels, COLMAP's `ImgFromCam` for `lens.model`.
+
+    points: [..., 3]. Returns [..., 2] (x right, y down, top-left pixel centre at (0.5, 0.5)), in the
+    points' floating dtype (computed in float64). Points with z < machine epsilon (at or behind the
+    camera plane) give NaN, as pycolmap's `Camera.img_from_cam` with its default cheirality check.
+    """
+    p = _float64(points, 3, "project: points")
+    fx, fy, cx, cy = lens.focal_and_centre
+    w = p[..., 2]
+    in_front = w >= _EPS
+    w = torch.where(in_front, w, torch.ones_like(w))
+    u, v = p[..., 0] / w, p[..., 1] / w
+    model, e = lens.model, lens.extra_params
+    if model == "FOV":
+        x, y = _fov_distort(e[0], u, v)
+    elif model in FISHEYE_MODELS:
+        uu, vv = _fisheye_from_normal(u, v)
+        du, dv = _DISTORTIONS[model](e, uu, vv)
+        x, y = uu + du, vv + dv
+    elif model in PINHOLE_MODELS:
+        x, y = u, v
+    else:
+        du, dv = _DISTORTIONS[model](e, u, v)
+        x, y = u + du, v + dv
+    out = torch.stack([fx * x + cx, fy * y + cy], dim=-1)
+    out = torch.where(in_front[..., None], out, torch.full_like(out, math.nan))
+    return out.to(_out_dtype(points))
+
+
+def unproject(lens: Lens, pixels: Tensor) -> Tensor:
+    """Pixels -> normalized image-plane coordinates (x/z, y/z), COLMAP's `CamFromImg`.
+
+    pixels: [..., 2] (top-left pixel centre at (0.5, 0.5)). Returns [..., 2] in the pixels' floating
+    dtype (computed in float64). Distortions without a closed-form inverse are inverted by COLMAP's
+    Newton iteration (NaN where it does not converge, where pycolmap's `cam_from_img` gives NaN);
+    fisheye models invert on theta and map back with tan(theta), and, as COLMAP, return the theta
+    vector unscaled for a pixel whose ray is at 90 degrees or more from the axis.
+    """
+    q = _float64(pixels, 2, "unproject: pixels")
+    fx, fy, cx, cy = lens.focal_and_centre
+    x0 = (q[..., 0] - cx) / fx
+    y0 = (q[..., 1] - cy) / fy
+    model, e = lens.model, lens.extra_params
+    if model in PINHOLE_MODELS:
+        u, v = x0, y0
+    elif model == "FOV":
+        u, v = _fov_undistort(e[0], x0, y0)
+    else:
+        u, v = _iterative_undistortion(_DISTORTIONS[model], e, x0, y0)
+        if model in FISHEYE_MODELS:
+            u, v = _normal_from_fisheye(u, v)
+    return torch.stack([u, v], dim=-1).to(_out_dtype(pixels))

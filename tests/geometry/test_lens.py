@@ -1,0 +1,211 @@
+"""COLMAP's camera models: `project` / `unproject` against pycolmap and OpenCV, round trips, pinholes."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from surfsplat.geometry.lens import CAMERA_MODELS, Lens, project, unproject
+from surfsplat.utils.checks import SurfSplatInputError
+
+W, H = 640, 480
+# Realistic calibrations for every model 0-10 (a 640x480 sensor, about 65 degrees across for the
+# perspective models, about 110 degrees for the fisheye ones; coefficients of the size COLMAP and
+# OpenCV calibrations of phone and action cameras give).
+LENSES: dict[str, tuple[float, ...]] = {
+    "SIMPLE_PINHOLE": (500.0, 320.0, 240.0),
+    "PINHOLE": (500.0, 510.0, 321.5, 238.7),
+    "SIMPLE_RADIAL": (500.0, 320.0, 240.0, -0.1),
+    "RADIAL": (500.0, 320.0, 240.0, -0.1, 0.03),
+    "OPENCV": (500.0, 510.0, 321.5, 238.7, -0.1, 0.05, 0.001, -0.001),
+    "OPENCV_FISHEYE": (300.0, 305.0, 321.5, 238.7, 0.05, -0.01, 0.002, 0.0),
+    "FULL_OPENCV": (500.0, 510.0, 321.5, 238.7, -0.1, 0.05, 0.001, -0.001, 0.01, 0.02, 0.003, 0.001),
+    "FOV": (500.0, 510.0, 321.5, 238.7, 0.9),
+    "SIMPLE_RADIAL_FISHEYE": (300.0, 320.0, 240.0, 0.03),
+    "RADIAL_FISHEYE": (300.0, 320.0, 240.0, 0.03, -0.005),
+    "THIN_PRISM_FISHEYE": (300.0, 305.0, 321.5, 238.7, 0.05, -0.01, 0.001, -0.001, 0.002, 0.0, 0.001, -0.0005),
+}
+MODELS = [name for name, _ in CAMERA_MODELS.values()]
+
+
+def test_every_model_has_a_calibration() -> None:
+    assert sorted(LENSES) == sorted(MODELS) and len(MODELS) == 11
+
+
+def _pair(model: str, params: tuple[float, ...] | None = None) -> tuple[Lens, pycolmap.Camera]:
+    params = LENSES[model] if params is None else params
+    return Lens(model, W, H, params), pycolmap.Camera(model=model, width=W, height=H, params=list(params))
+
+
+def _points(seed: int, n: int = 2000, spread: float = 0.65) -> np.ndarray:
+    """Camera-frame points in front of the camera: random directions up to `spread` in x/z and y/z
+    (the image and beyond), random depths, plus points within 1e-3 of the axis (the models' series
+    and epsilon branches) and one exactly on it."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-spread, spread, (n, 2))
+    xy[:50] *= 1e-3
+    xy[50] = 0.0
+    z = rng.uniform(0.2, 20.0, (n, 1))
+    return np.concatenate([xy * z, z], axis=1)
+
+
+def _pixels(seed: int, n: int = 2000) -> np.ndarray:
+    """Pixels over the whole image (its border included) and the principal point's neighbourhood."""
+    rng = np.random.default_rng(seed)
+    px = np.stack([rng.uniform(0.0, W, n), rng.uniform(0.0, H, n)], axis=1)
+    px[:50] = [W / 2, H / 2] + rng.uniform(-1e-2, 1e-2, (50, 2))
+    return px
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_project_matches_pycolmap(model: str) -> None:
+    lens, cam = _pair(model)
+    pts = _points(1)
+    ours = project(lens, torch.from_numpy(pts)).numpy()
+    ref = cam.img_from_cam(pts)
+    assert np.isfinite(ref).all()
+    assert np.abs(ours - ref).max() <= 1e-6
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_unproject_matches_pycolmap(model: str) -> None:
+    lens, cam = _pair(model)
+    px = _pixels(2)
+    ours = unproject(lens, torch.from_numpy(px)).numpy()
+    ref = cam.cam_from_img(px)
+    assert np.isfinite(ref).all()
+    f = float(np.mean(lens.focal_and_centre[:2]))
+    # normalized coordinates to 1e-6 px at the focal length, and the same in pixels through a pinhole
+    assert np.abs(ours - ref).max() <= 1e-6 / f
+    assert np.abs(ours - ref).max() * f <= 1e-6
+
+
+@pytest.mark.parametrize(
+    ("model", "params"),
+    [
+        ("FOV", (500.0, 510.0, 321.5, 238.7, 0.005)),  # omega^2 < 1e-4: COLMAP's series in omega
+        ("FOV", (500.0, 510.0, 321.5, 238.7, 0.0)),  # omega = 0: the pinhole
+        ("FOV", (500.0, 510.0, 321.5, 238.7, 1.6)),  # strong: series in the radius near the axis only
+    ],
+)
+def test_fov_branches_match_pycolmap(model: str, params: tuple[float, ...]) -> None:
+    lens, cam = _pair(model, params)
+    pts = _points(3)
+    assert np.abs(project(lens, torch.from_numpy(pts)).numpy() - cam.img_from_cam(pts)).max() <= 1e-6
+    px = _pixels(4)
+    ref = cam.cam_from_img(px)
+    assert np.abs(unproject(lens, torch.from_numpy(px)).numpy() - ref).max() * 500 <= 1e-6
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_round_trip_over_the_image(model: str) -> None:
+    """project(unproject(p)) = p at every pixel centre of the image, border pixels included."""
+    lens, _ = _pair(model)
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    px = torch.stack([xs, ys], dim=-1).to(torch.float64)  # [H, W, 2]
+    n = unproject(lens, px)
+    back = project(lens, torch.cat([n, torch.ones_like(n[..., :1])], dim=-1))
+    assert torch.isfinite(back).all()
+    assert (back - px).abs().max().item() <= 1e-6
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE", "OPENCV", "FULL_OPENCV", "RADIAL", "FOV"])
+def test_zero_distortion_is_K(model: str) -> None:
+    """With no distortion every perspective model is K [x/z, y/z, 1]; its inverse is K^-1."""
+    distorted = Lens(model, W, H, LENSES[model])
+    first = len(distorted.params) - len(distorted.extra_params)
+    lens = Lens(model, W, H, distorted.params[:first] + (0.0,) * len(distorted.extra_params))
+    assert lens.is_pinhole
+    fx, fy, cx, cy = lens.focal_and_centre
+    K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64)
+    pts = torch.from_numpy(_points(5))
+    hom = pts @ K.T
+    assert (project(lens, pts) - hom[:, :2] / hom[:, 2:]).abs().max().item() <= 1e-9
+    px = torch.from_numpy(_pixels(6))
+    ray = torch.cat([px, torch.ones_like(px[:, :1])], dim=1) @ torch.linalg.inv(K).T
+    assert (unproject(lens, px) - ray[:, :2]).abs().max().item() <= 1e-12
+
+
+def _K(lens: Lens) -> np.ndarray:
+    fx, fy, cx, cy = lens.focal_and_centre
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "FULL_OPENCV"])
+def test_project_matches_opencv(model: str) -> None:
+    """OPENCV is OpenCV's (k1, k2, p1, p2); FULL_OPENCV its rational model (k1, k2, p1, p2, k3, k4,
+    k5, k6: eight coefficients select CALIB_RATIONAL_MODEL's formula in projectPoints)."""
+    lens, _ = _pair(model)
+    pts = _points(7)
+    dist = np.array(lens.extra_params, dtype=np.float64)
+    ref, _ = cv2.projectPoints(pts[:, None, :], np.zeros(3), np.zeros(3), _K(lens), dist)
+    assert np.abs(project(lens, torch.from_numpy(pts)).numpy() - ref[:, 0, :]).max() <= 1e-6
+
+
+def test_opencv_fisheye_matches_opencv() -> None:
+    lens, _ = _pair("OPENCV_FISHEYE")
+    pts = _points(8, spread=1.2)  # up to about 60 degrees off the axis
+    D = np.array(lens.extra_params, dtype=np.float64)
+    ref, _ = cv2.fisheye.projectPoints(pts[:, None, :], np.zeros(3), np.zeros(3), _K(lens), D)
+    assert np.abs(project(lens, torch.from_numpy(pts)).numpy() - ref[:, 0, :]).max() <= 1e-6
+
+
+def test_behind_the_camera_is_nan_as_pycolmap() -> None:
+    lens, cam = _pair("OPENCV")
+    pts = np.array([[0.1, 0.2, -1.0], [0.3, 0.0, 0.0], [0.1, 0.2, 1.0]])
+    ref = cam.img_from_cam(pts)
+    ours = project(lens, torch.from_numpy(pts)).numpy()
+    assert np.isnan(ref[:2]).all() and np.isnan(ours[:2]).all()
+    assert np.abs(ours[2] - ref[2]).max() <= 1e-9
+
+
+def test_no_inverse_is_nan_as_pycolmap() -> None:
+    """Beyond the fold of a strong barrel distortion (1 + k r^2 with k = -2 has its maximum radius
+    0.27 at r = 0.41) COLMAP's iteration does not converge: NaN for both; pixels inside converge."""
+    lens, cam = _pair("SIMPLE_RADIAL", (500.0, 320.0, 240.0, -2.0))
+    px = np.array([[320.0 + 500 * 0.4, 240.0], [320.0 + 500 * 0.1, 240.0 + 500 * 0.05]])
+    ref = cam.cam_from_img(px)
+    ours = unproject(lens, torch.from_numpy(px)).numpy()
+    assert np.isnan(ref[0]).all() and np.isnan(ours[0]).all()
+    assert np.abs(ours[1] - ref[1]).max() <= 1e-12
+
+
+def test_fisheye_beyond_90_degrees_follows_colmap() -> None:
+    """A fisheye pixel whose ray is beyond 90 degrees: COLMAP returns the theta vector unscaled."""
+    lens, cam = _pair("OPENCV_FISHEYE", (150.0, 150.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0))
+    px = np.array([[320.0 + 150 * 1.8, 240.0], [5.0, 5.0]])  # theta 1.8 rad, and a corner at theta 2.6
+    assert np.abs(unproject(lens, torch.from_numpy(px)).numpy() - cam.cam_from_img(px)).max() <= 1e-9
+
+
+def test_batch_shapes_and_dtypes() -> None:
+    lens, _ = _pair("OPENCV")
+    pts = torch.from_numpy(_points(9, n=2 * 4 * 25)).reshape(2, 4, 25, 3)
+    flat = project(lens, pts.reshape(-1, 3))
+    assert torch.equal(project(lens, pts), flat.reshape(2, 4, 25, 2))
+    assert project(lens, pts.float()).dtype == torch.float32
+    assert (project(lens, pts.float()).double() - project(lens, pts)).abs().max() <= 1e-3
+    px = flat.reshape(2, 100, 2)
+    assert torch.equal(unproject(lens, px), unproject(lens, flat).reshape(2, 100, 2))
+
+
+def test_bad_shapes_raise() -> None:
+    lens, _ = _pair("OPENCV")
+    with pytest.raises(SurfSplatInputError, match=r"points: expected a tensor of shape \[\.\.\., 3\]"):
+        project(lens, torch.zeros(4, 2))
+    with pytest.raises(SurfSplatInputError, match=r"pixels: expected a tensor of shape \[\.\.\., 2\]"):
+        unproject(lens, torch.zeros(4, 3))
+
+
+def test_pinhole_pixel_centre_convention() -> None:
+    """The top-left pixel's centre (0.5, 0.5) is where a pinhole with cx = cy = 0 sees the ray
+    (0.5/f, 0.5/f): COLMAP's convention, this project's (K' = diag(s, s, 1) K at s-times the size)."""
+    lens = Lens("PINHOLE", 4, 3, (2.0, 2.0, 2.0, 1.5))
+    centre = unproject(lens, torch.tensor([[2.0, 1.5], [0.5, 0.5]], dtype=torch.float64))
+    assert torch.equal(centre[0], torch.zeros(2, dtype=torch.float64))
+    assert torch.allclose(centre[1], torch.tensor([-0.75, -0.5], dtype=torch.float64), atol=0, rtol=0)
+    assert math.isclose(float(project(lens, torch.tensor([0.0, 0.0, 1.0]))[0]), 2.0)
