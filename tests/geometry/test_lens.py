@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 import torch
 
-from surfsplat.geometry.lens import CAMERA_MODELS, Lens, project, unproject
+from surfsplat.geometry.lens import CAMERA_MODELS, Lens, project, undistorted_pinhole, unproject
 from surfsplat.utils.checks import SurfSplatInputError
 
 W, H = 640, 480
@@ -31,6 +31,7 @@ LENSES: dict[str, tuple[float, ...]] = {
     "THIN_PRISM_FISHEYE": (300.0, 305.0, 321.5, 238.7, 0.05, -0.01, 0.001, -0.001, 0.002, 0.0, 0.001, -0.0005),
 }
 MODELS = [name for name, _ in CAMERA_MODELS.values()]
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_every_model_has_a_calibration() -> None:
@@ -104,10 +105,15 @@ def test_fov_branches_match_pycolmap(model: str, params: tuple[float, ...]) -> N
 
 @pytest.mark.parametrize("model", MODELS)
 def test_round_trip_over_the_image(model: str) -> None:
-    """project(unproject(p)) = p at every pixel centre of the image, border pixels included."""
+    """project(unproject(p)) = p over the image: the pixel centres of every third row and column,
+    and every pixel of the border."""
     lens, _ = _pair(model)
-    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
-    px = torch.stack([xs, ys], dim=-1).to(torch.float64)  # [H, W, 2]
+    rows = torch.unique(torch.cat([torch.arange(0, H, 3), torch.tensor([H - 1])]))
+    cols = torch.unique(torch.cat([torch.arange(0, W, 3), torch.tensor([W - 1])]))
+    ys, xs = torch.meshgrid(rows + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    ys2, xs2 = torch.meshgrid(torch.arange(H) + 0.5, cols + 0.5, indexing="ij")
+    px = torch.cat([torch.stack([xs, ys], -1).reshape(-1, 2), torch.stack([xs2, ys2], -1).reshape(-1, 2)])
+    px = px.to(torch.float64)
     n = unproject(lens, px)
     back = project(lens, torch.cat([n, torch.ones_like(n[..., :1])], dim=-1))
     assert torch.isfinite(back).all()
@@ -209,3 +215,80 @@ def test_pinhole_pixel_centre_convention() -> None:
     assert torch.equal(centre[0], torch.zeros(2, dtype=torch.float64))
     assert torch.allclose(centre[1], torch.tensor([-0.75, -0.5], dtype=torch.float64), atol=0, rtol=0)
     assert math.isclose(float(project(lens, torch.tensor([0.0, 0.0, 1.0]))[0]), 2.0)
+
+
+# --- undistorted_pinhole: COLMAP's UndistortCamera ---------------------------------------------
+
+MORE_LENSES = [
+    ("SIMPLE_RADIAL", 100, 75, (80.0, 50.0, 37.5, 0.08)),  # pincushion: the pinhole shrinks
+    ("OPENCV", 100, 75, (80.0, 80.0, 50.0, 37.5, -0.1, 0.05, 0.001, -0.001)),  # the fixtures' lens
+    ("OPENCV", 400, 300, (320.0, 318.0, 207.3, 141.9, -0.25, 0.08, 0.002, 0.001)),  # off-centre
+    ("OPENCV_FISHEYE", 400, 300, (160.0, 160.0, 200.0, 150.0, 0.05, -0.01, 0.002, 0.0)),
+    ("SIMPLE_RADIAL", 640, 480, (500.0, 320.0, 240.0, 5.0)),  # absurd but monotone: clamped to 0.2
+    ("FOV", 333, 111, (150.0, 160.0, 170.0, 50.0, 0.5)),
+]
+
+
+def _check_against_colmap(lens: Lens) -> None:
+    cam = pycolmap.Camera(model=lens.model, width=lens.width, height=lens.height, params=list(lens.params))
+    ref = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    ours = undistorted_pinhole(lens)
+    assert ours.model == "PINHOLE" and ref.model.name == "PINHOLE"
+    assert (ours.width, ours.height) == (ref.width, ref.height)
+    assert np.abs(np.array(ours.params) / np.array(ref.params) - 1).max() <= 1e-6
+
+
+@pytest.mark.parametrize("model", [m for m in MODELS if m not in ("SIMPLE_PINHOLE", "PINHOLE")])
+def test_undistorted_pinhole_matches_colmap(model: str) -> None:
+    lens = Lens(model, W, H, LENSES[model])
+    _check_against_colmap(lens)
+    # the size changes for every one of these lenses (barrel: larger; FOV: wider, shorter)
+    assert (undistorted_pinhole(lens).width, undistorted_pinhole(lens).height) != (W, H)
+
+
+@pytest.mark.parametrize(("model", "width", "height", "params"), MORE_LENSES)
+def test_undistorted_pinhole_matches_colmap_more(model: str, width: int, height: int, params: tuple) -> None:
+    _check_against_colmap(Lens(model, width, height, params))
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE"])
+def test_pinhole_returns_itself(model: str) -> None:
+    lens = Lens(model, W, H, LENSES[model])
+    _check_against_colmap(lens)  # COLMAP too returns a pinhole unchanged
+    fx, fy, cx, cy = lens.focal_and_centre
+    assert undistorted_pinhole(lens) == Lens("PINHOLE", W, H, (fx, fy, cx, cy))
+
+
+def test_zero_distortion_returns_itself_where_colmap_crops_a_pixel() -> None:
+    """The documented difference: a zero-distortion OPENCV camera needs no resampling, so it stays
+    as it is; COLMAP's border search crops it to (W - 1) x (H - 1) (cx / (cx - 0.5) on the left side
+    against 1 on the right)."""
+    lens = Lens("OPENCV", W, H, (500.0, 500.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0))
+    assert undistorted_pinhole(lens) == Lens("PINHOLE", W, H, (500.0, 500.0, 320.0, 240.0))
+    cam = pycolmap.Camera(model="OPENCV", width=W, height=H, params=list(lens.params))
+    ref = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    assert (ref.width, ref.height) == (W - 1, H - 1)
+
+
+@pytest.mark.parametrize(
+    ("model", "width", "height", "params", "reason"),
+    [
+        # 1 - 2 r^2 folds at r = 0.41 (radius 0.27): the corners (radius 0.8) have no inverse
+        ("SIMPLE_RADIAL", 640, 480, (500.0, 320.0, 240.0, -2.0), "the distortion has no inverse at border pixel"),
+        ("OPENCV", 640, 480, (500.0, 500.0, 320.0, 240.0, 0.0, 0.0, 0.3, 0.0), "has no inverse at border pixel"),
+        # theta (1 - 0.5 theta^2) reaches at most 0.54 rad; the corners are at 1.33
+        ("OPENCV_FISHEYE", 640, 480, (300.0, 300.0, 320.0, 240.0, -0.5, 0, 0, 0), "has no inverse at border"),
+        # an equidistant fisheye of 150 px focal length: the corners see 152 degrees off the axis
+        ("OPENCV_FISHEYE", 640, 480, (150.0, 150.0, 320.0, 240.0, 0, 0, 0, 0), r"sees 152\.5 degrees off the axis"),
+        # FOV with omega = 3: tan(r omega) wraps beyond r = 0.52; the corners are at 0.8
+        ("FOV", 640, 480, (500.0, 500.0, 320.0, 240.0, 3.0), "projects 524 px away from it"),
+        # the polynomial in theta turns back near theta = 1; the corners' inverse lies beyond the fold
+        ("OPENCV_FISHEYE", 64, 48, (24.0, 24.0, 32.0, 24.0, 0.33, 1.27, 1.49, -2.06), "Jacobian determinant"),
+    ],
+)
+def test_no_valid_region_raises(model: str, width: int, height: int, params: tuple, reason: str) -> None:
+    lens = Lens(model, width, height, params)
+    with pytest.raises(SurfSplatInputError, match=reason) as err:
+        undistorted_pinhole(lens)
+    line = str(err.value)
+    assert "\n" not in line and line.startswith(f"camera model {model} {list(params)} ({width}x{height}): ")

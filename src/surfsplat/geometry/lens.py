@@ -129,6 +129,53 @@ _NEWTON_REL_RADIUS = 0.1
 _NEWTON_RADIUS = 0.1
 _FOV_EPS = 1e-4  # COLMAP's FOV model: "chosen arbitrarily", the switch to its series expansions
 
+
+class _Jet:
+    """A value with its derivatives by (u, v): ceres' Jet<double, 2>, as COLMAP differentiates the
+    distortions in its Newton iteration. Only the arithmetic the polynomial and rational
+    distortions use (+, -, *, /, with tensors and Python numbers)."""
+
+    __slots__ = ("a", "du", "dv")
+
+    def __init__(self, a: Tensor, du: Tensor | float, dv: Tensor | float) -> None:
+        self.a, self.du, self.dv = a, du, dv
+
+    @staticmethod
+    def lift(x: _Jet | Tensor | float) -> _Jet:
+        return x if isinstance(x, _Jet) else _Jet(x, 0.0, 0.0)
+
+    def __add__(self, o: _Jet | Tensor | float) -> _Jet:
+        o = _Jet.lift(o)
+        return _Jet(self.a + o.a, self.du + o.du, self.dv + o.dv)
+
+    __radd__ = __add__
+
+    def __neg__(self) -> _Jet:
+        return _Jet(-self.a, -self.du, -self.dv)
+
+    def __sub__(self, o: _Jet | Tensor | float) -> _Jet:
+        return self + (-_Jet.lift(o))
+
+    def __rsub__(self, o: _Jet | Tensor | float) -> _Jet:
+        return _Jet.lift(o) + (-self)
+
+    def __mul__(self, o: _Jet | Tensor | float) -> _Jet:
+        if not isinstance(o, _Jet):
+            return _Jet(self.a * o, self.du * o, self.dv * o)
+        return _Jet(self.a * o.a, self.du * o.a + self.a * o.du, self.dv * o.a + self.a * o.dv)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, o: _Jet | Tensor | float) -> _Jet:
+        if not isinstance(o, _Jet):
+            return _Jet(self.a / o, self.du / o, self.dv / o)
+        q = self.a / o.a
+        return _Jet(q, (self.du - q * o.du) / o.a, (self.dv - q * o.dv) / o.a)
+
+    def __rtruediv__(self, o: _Jet | Tensor | float) -> _Jet:
+        return _Jet.lift(o) / self
+
+
 Distortion = Callable[[tuple[float, ...], Tensor, Tensor], tuple[Tensor, Tensor]]
 
 
@@ -250,25 +297,21 @@ def _iterative_undistortion(
     """COLMAP's IterativeUndistortion, vectorized: solve p + d(p) = p0 for p by Newton's method from
     p = p0, the step clipped to max(0.1 |p|, 0.1), converged when the step's squared norm < 1e-10;
     points not converged after 100 iterations are NaN (COLMAP returns false there). The Jacobian is
-    exact (forward-mode derivatives of the distortion, as COLMAP's ceres Jets)."""
+    exact (forward-mode derivatives of the distortion, `_Jet`, as COLMAP's ceres Jets)."""
     x, y = x0.clone(), y0.clone()
     active = torch.arange(x.numel(), device=x.device)
     xf, yf, x0f, y0f = x.view(-1), y.view(-1), x0.reshape(-1), y0.reshape(-1)
     converged = torch.zeros(x.numel(), dtype=torch.bool, device=x.device)
 
-    def d(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-        return distortion(e, a, b)
-
     for _ in range(_NEWTON_ITERATIONS):
         if active.numel() == 0:
             break
         a, b = xf[active], yf[active]
-        one, zero = torch.ones_like(a), torch.zeros_like(a)
-        (da, db), (daa, dba) = torch.func.jvp(d, (a, b), (one, zero))
-        _, (dab, dbb) = torch.func.jvp(d, (a, b), (zero, one))
-        j00, j01, j10, j11 = daa + 1, dab, dba, dbb + 1
-        r0 = a + da - x0f[active]
-        r1 = b + db - y0f[active]
+        ja, jb = distortion(e, _Jet(a, 1.0, 0.0), _Jet(b, 0.0, 1.0))
+        j00, j01 = ja.du + 1, ja.dv
+        j10, j11 = jb.du, jb.dv + 1
+        r0 = a + ja.a - x0f[active]
+        r1 = b + jb.a - y0f[active]
         det = j00 * j11 - j01 * j10
         s0 = (j11 * r0 - j01 * r1) / det
         s1 = (j00 * r1 - j10 * r0) / det
@@ -352,3 +395,136 @@ def unproject(lens: Lens, pixels: Tensor) -> Tensor:
         if model in FISHEYE_MODELS:
             u, v = _normal_from_fisheye(u, v)
     return torch.stack([u, v], dim=-1).to(_out_dtype(pixels))
+
+
+# --- the pinhole a lens is undistorted to -----------------------------------------------------
+
+_FOLD_SAMPLES = 64  # points on each segment from the axis to a border pixel's ray (the fold check)
+_FOLD_RAYS = 512  # border pixels whose segments the fold check samples
+_ROUND_TRIP_PX = 1e-4  # a converged inverse projects back within ~1e-9 px; beyond this the ray is wrong
+
+
+def _border_pixels(width: int, height: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pixel centres UndistortCamera visits: left, right (every row), top, bottom (every column)."""
+    ys = torch.arange(height, dtype=torch.float64) + 0.5
+    xs = torch.arange(width, dtype=torch.float64) + 0.5
+    left = torch.stack([torch.full_like(ys, 0.5), ys], dim=-1)
+    right = torch.stack([torch.full_like(ys, width - 0.5), ys], dim=-1)
+    top = torch.stack([xs, torch.full_like(xs, 0.5)], dim=-1)
+    bottom = torch.stack([xs, torch.full_like(xs, height - 0.5)], dim=-1)
+    return left, right, top, bottom
+
+
+def _projection_jacobian_det(lens: Lens, rays: Tensor) -> Tensor:
+    """det d(pixel)/d(x/z, y/z) of `project` at normalized points rays [N, 2], by central differences
+    (step 1e-6: the fold check needs its sign, which they give far from zero)."""
+    h = 1e-6
+    one = torch.ones_like(rays[:, :1])
+
+    def f(r: Tensor) -> Tensor:
+        return project(lens, torch.cat([r, one], dim=-1))
+
+    ex = torch.tensor([h, 0.0], dtype=torch.float64)
+    ey = torch.tensor([0.0, h], dtype=torch.float64)
+    da = (f(rays + ex) - f(rays - ex)) / (2 * h)
+    db = (f(rays + ey) - f(rays - ey)) / (2 * h)
+    return da[:, 0] * db[:, 1] - da[:, 1] * db[:, 0]
+
+
+def _check_invertible(lens: Lens, border: Tensor, rays: Tensor) -> None:
+    """Raise where the lens has no valid undistorted region (module docs of `undistorted_pinhole`)."""
+    what = f"camera model {lens.model} {list(lens.params)} ({lens.width}x{lens.height})"
+    bad = ~torch.isfinite(rays).all(dim=-1)
+    if lens.model in FISHEYE_MODELS and not bool(bad.any()):
+        fx, fy, cx, cy = lens.focal_and_centre
+        theta_vec = _iterative_undistortion(
+            _DISTORTIONS[lens.model], lens.extra_params, (border[:, 0] - cx) / fx, (border[:, 1] - cy) / fy
+        )
+        theta = torch.sqrt(theta_vec[0] ** 2 + theta_vec[1] ** 2)
+        beyond = theta * torch.cos(theta) <= _EPS
+        if bool(beyond.any()):
+            i = int(torch.nonzero(beyond)[0])
+            raise SurfSplatInputError(
+                f"{what}: no pinhole holds this lens: border pixel ({border[i, 0]:.1f}, {border[i, 1]:.1f}) sees "
+                f"{math.degrees(float(theta[i])):.1f} degrees off the axis (90 or more)"
+            )
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0])
+        raise SurfSplatInputError(
+            f"{what}: no valid undistorted region: the distortion has no inverse at border pixel "
+            f"({border[i, 0]:.1f}, {border[i, 1]:.1f}) (the lens map folds inside the image)"
+        )
+    back = project(lens, torch.cat([rays, torch.ones_like(rays[:, :1])], dim=-1))
+    off = (back - border).norm(dim=-1)
+    astray = ~(off <= _ROUND_TRIP_PX)
+    if bool(astray.any()):
+        i = int(torch.nonzero(astray)[0])
+        raise SurfSplatInputError(
+            f"{what}: no pinhole holds this lens: the ray of border pixel ({border[i, 0]:.1f}, {border[i, 1]:.1f}) "
+            f"projects {float(off[i]):.3g} px away from it (the pixel sees 90 degrees or more off the axis)"
+        )
+    # the fold check on at most _FOLD_RAYS border pixels, evenly spaced (a fold is a smooth, radial
+    # phenomenon: it spans many border pixels), corners included
+    pick = torch.unique(torch.linspace(0, border.shape[0] - 1, min(border.shape[0], _FOLD_RAYS)).round().long())
+    corners = torch.tensor([0, lens.height - 1, lens.height, 2 * lens.height - 1])
+    pick = torch.unique(torch.cat([pick, corners]))
+    t = torch.arange(1, _FOLD_SAMPLES + 1, dtype=torch.float64) / _FOLD_SAMPLES
+    det = _projection_jacobian_det(lens, (t[:, None, None] * rays[pick][None]).reshape(-1, 2))
+    det = det.reshape(_FOLD_SAMPLES, -1)
+    folded = ~(det > 0).all(dim=0)
+    if bool(folded.any()):
+        i = int(pick[torch.nonzero(folded)[0]])
+        raise SurfSplatInputError(
+            f"{what}: no valid undistorted region: the lens map folds between the principal point and border "
+            f"pixel ({border[i, 0]:.1f}, {border[i, 1]:.1f}) (its Jacobian determinant is not positive there)"
+        )
+
+
+def undistorted_pinhole(lens: Lens) -> Lens:
+    """The PINHOLE lens a photo of `lens` is undistorted to: COLMAP's `UndistortCamera` with the
+    default options of `image_undistorter` (blank_pixels 0: the largest image without blank pixels;
+    the scale of the size clamped to [min_scale 0.2, max_scale 2.0]; no ROI, no maximum size).
+
+    The focal lengths are the lens's; the size is scaled (so it may change) and the principal point
+    scaled with it. COLMAP lifts every border pixel centre of the distorted image to the normalized
+    plane, projects it through the pinhole and picks the scale from the innermost of them.
+
+    A lens that projects as a pinhole (`Lens.is_pinhole`) returns itself as PINHOLE, unchanged in
+    size: no resampling is needed (COLMAP would still run its border search for a zero-distortion
+    OPENCV camera and crop it by one pixel, an artefact of its asymmetric border formula).
+
+    No valid region raises SurfSplatInputError naming the model and its parameters:
+    - a border pixel whose distortion has no inverse (COLMAP's iteration does not converge: the
+      distorted radius is beyond the largest the lens reaches, the map folds before the border);
+    - a fisheye border pixel whose ray is 90 degrees or more off the axis (no pinhole image holds it;
+      COLMAP's `NormalFromFisheye` returns a meaningless point there);
+    - a border pixel whose lifted ray does not project back to it (FOV beyond 90 degrees: the
+      closed-form inverse's tan() wraps to the opposite side);
+    - a fold inside the image: the Jacobian determinant of the projection, sampled at 64 points on
+      the segment from the axis to the rays of 512 border pixels evenly spaced along the border, the
+      four corners included (these segments sweep the image's rays), is not positive somewhere (a
+      second preimage: the inverse converged beyond a fold).
+    """
+    fx, fy, cx, cy = lens.focal_and_centre
+    if lens.is_pinhole:
+        return Lens("PINHOLE", lens.width, lens.height, (fx, fy, cx, cy))
+    sides = _border_pixels(lens.width, lens.height)
+    border = torch.cat(sides)
+    rays = unproject(lens, border)
+    _check_invertible(lens, border, rays)
+    # ImgFromCam of the pinhole (fx, fy, cx, cy) at each lifted border point (all finite, checked above)
+    x = fx * rays[:, 0] + cx
+    y = fy * rays[:, 1] + cy
+    n_rows, n_cols = lens.height, lens.width
+    left_x, right_x = x[:n_rows], x[n_rows : 2 * n_rows]
+    top_y, bottom_y = y[2 * n_rows : 2 * n_rows + n_cols], y[2 * n_rows + n_cols :]
+    left_max_x, right_min_x = float(left_x.max()), float(right_x.min())
+    top_max_y, bottom_min_y = float(top_y.max()), float(bottom_y.min())
+    # scale such that there are no blank pixels (blank_pixels = 0 keeps only these two of COLMAP's four)
+    max_scale_x = max(cx / (cx - left_max_x), (lens.width - 0.5 - cx) / (right_min_x - cx))
+    max_scale_y = max(cy / (cy - top_max_y), (lens.height - 0.5 - cy) / (bottom_min_y - cy))
+    scale_x = min(max(1.0 / max_scale_x, 0.2), 2.0)
+    scale_y = min(max(1.0 / max_scale_y, 0.2), 2.0)
+    width = int(max(1.0, scale_x * lens.width))  # C++'s static_cast<size_t>: truncation
+    height = int(max(1.0, scale_y * lens.height))
+    return Lens("PINHOLE", width, height, (fx, fy, cx * width / lens.width, cy * height / lens.height))
