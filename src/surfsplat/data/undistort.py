@@ -1,0 +1,152 @@
+"""Undistortion of photos, masks and depth maps: an image of a lens resampled to its pinhole, once, at load.
+
+    pinhole = undistorted_pinhole(lens)                 # COLMAP's image_undistorter's choice
+    photo = undistort(photo, lens, pinhole)             # [3, H, W] at the lens's size -> the pinhole's
+    depth = undistort(depth, lens, pinhole, "nearest")  # depth is never blended across edges
+
+How: for each pixel centre of the output, the pixel of the input it shows comes from this project's
+own projection (`surfsplat.geometry.lens`, tested against pycolmap and OpenCV to 1e-6 px), and
+OpenCV's `cv2.remap` samples there. Why not pycolmap's `undistort_image`: it warps pycolmap
+`Bitmap`s of 8-bit colour, so masks, float32 photos and depth maps (which must not be interpolated
+bilinearly) would each need a round trip through it; the maps from our projection serve them all,
+and the inverse warp (`distort`, which pycolmap has no function for) is the same code run the other
+way. Why cv2.remap and not a hand-written sampler: it is the library function for this, fast on
+the CPU; its bilinear weights are quantized to 1/32 pixel (OpenCV's INTER_TAB_SIZE), an error of at
+most 1/64 of the local difference between neighbouring pixels.
+
+Where an output pixel shows no pixel of the input (its ray leaves the input image, or has no pixel
+at all), it is 0; the input image's area is [0, W] x [0, H] in pixel coordinates, so a sample within
+half a pixel of the border takes the border pixel's value (OpenCV's BORDER_REPLICATE) rather than
+a blend with black. With the pinhole `undistorted_pinhole` chooses, no output pixel is blank.
+
+The maps are cached per lens pair (`functools.lru_cache`): the photos of one camera compute them once.
+Images are resampled on the host (OpenCV) and returned on the device and in the dtype they came in.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry.lens import Lens, project, unproject
+from ..utils.checks import SurfSplatInputError
+
+MODES = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
+_MAP_CACHE = 16  # lens pairs whose maps are kept (16 maps of a 1920x1080 photo: about 265 MB)
+_ROUND_TRIP_PX = 1e-3  # a pixel whose ray does not project back within this has no ray (fisheye > 90 deg)
+
+
+def _pixel_centres(width: int, height: int) -> Tensor:
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64) + 0.5, torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij"
+    )
+    return torch.stack([xs, ys], dim=-1)  # [H, W, 2], top-left pixel centre (0.5, 0.5)
+
+
+def _to_remap(source: Lens, pixels: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of `source` (top-left centre at 0.5) -> cv2.remap's maps (top-left centre at 0), NaN
+    where the pixel lies outside the source image's area [0, W] x [0, H]."""
+    x, y = pixels[..., 0], pixels[..., 1]
+    inside = (x >= 0) & (x <= source.width) & (y >= 0) & (y <= source.height)  # False for NaN
+    nan = torch.full_like(x, float("nan"))
+    map_x = torch.where(inside, x - 0.5, nan).to(torch.float32).numpy()
+    map_y = torch.where(inside, y - 0.5, nan).to(torch.float32).numpy()
+    map_x.flags.writeable = False
+    map_y.flags.writeable = False
+    return map_x, map_y
+
+
+def _check_pinhole(pinhole: Lens, name: str) -> None:
+    if not isinstance(pinhole, Lens) or not pinhole.is_pinhole:
+        what = pinhole.model if isinstance(pinhole, Lens) else type(pinhole).__name__
+        raise SurfSplatInputError(f"{name}: expected a pinhole Lens (PINHOLE or SIMPLE_PINHOLE), got {what}")
+
+
+@lru_cache(maxsize=_MAP_CACHE)
+def undistort_maps(lens: Lens, pinhole: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of `pinhole`, the pixel of `lens` it shows, as cv2.remap's maps.
+
+    Returns (map_x, map_y), float32 [pinhole.height, pinhole.width], read-only, in cv2.remap's
+    coordinates (the top-left pixel's centre at (0, 0)); NaN where the pixel's ray leaves the lens's
+    image. Each pinhole pixel centre is lifted to its ray (pinhole K^-1) and projected by the lens
+    (`project`, COLMAP's ImgFromCam): no iteration.
+    """
+    _check_pinhole(pinhole, "undistort_maps: pinhole")
+    rays = unproject(pinhole, _pixel_centres(pinhole.width, pinhole.height))
+    return _to_remap(lens, project(lens, torch.cat([rays, torch.ones_like(rays[..., :1])], dim=-1)))
+
+
+@lru_cache(maxsize=_MAP_CACHE)
+def distort_maps(pinhole: Lens, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of `lens`, the pixel of `pinhole` it shows (the inverse warp of `undistort_maps`).
+
+    Each lens pixel centre is lifted by `unproject` (COLMAP's CamFromImg, iterative where COLMAP's
+    is); a pixel whose ray does not project back to it within 1e-3 px (no inverse there, or a fisheye
+    ray at 90 degrees or more, where COLMAP's lift returns no ray) is NaN, as is a ray leaving the pinhole.
+    """
+    _check_pinhole(pinhole, "distort_maps: pinhole")
+    pixels = _pixel_centres(lens.width, lens.height)
+    rays = unproject(lens, pixels)
+    rays3 = torch.cat([rays, torch.ones_like(rays[..., :1])], dim=-1)
+    back = project(lens, rays3)
+    has_ray = (back - pixels).norm(dim=-1) <= _ROUND_TRIP_PX  # False for NaN
+    target = project(pinhole, rays3)
+    target = torch.where(has_ray[..., None], target, torch.full_like(target, float("nan")))
+    return _to_remap(pinhole, target)
+
+
+def _remap(image: Tensor, source: Lens, maps: tuple[np.ndarray, np.ndarray], mode: str, name: str) -> Tensor:
+    if mode not in MODES:
+        raise SurfSplatInputError(f"{name}: mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if not isinstance(image, Tensor) or image.ndim not in (3, 4):
+        shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+        raise SurfSplatInputError(f"{name}: image must be [C, H, W] or [N, C, H, W], got {shape}")
+    if tuple(image.shape[-2:]) != (source.height, source.width):
+        raise SurfSplatInputError(
+            f"{name}: image is {image.shape[-1]}x{image.shape[-2]} but its lens is {source.width}x{source.height}"
+        )
+    if image.dtype not in (torch.float32, torch.float64, torch.uint8, torch.bool):
+        raise SurfSplatInputError(f"{name}: image dtype must be float32, float64, uint8 or bool, got {image.dtype}")
+    map_x, map_y = maps
+    blank = np.isnan(map_x)
+    # cv2.remap needs finite maps: blank pixels sample anywhere, then are set to 0
+    mx = np.where(blank, 0.0, map_x).astype(np.float32)
+    my = np.where(blank, 0.0, map_y).astype(np.float32)
+    batch = image.reshape(-1, *image.shape[-2:])  # [N*C, H, W]
+    host = batch.detach().cpu()
+    if host.dtype == torch.bool:
+        host = host.to(torch.uint8) if mode == "nearest" else host.to(torch.float32)
+    hwc = np.ascontiguousarray(host.permute(1, 2, 0).numpy())  # [H, W, N*C]
+    out = np.empty((mx.shape[0], mx.shape[1], hwc.shape[2]), dtype=hwc.dtype)
+    for start in range(0, hwc.shape[2], 4):  # cv2.remap takes at most 4 channels at a time
+        chunk = np.ascontiguousarray(hwc[:, :, start : start + 4])
+        res = cv2.remap(chunk, mx, my, MODES[mode], borderMode=cv2.BORDER_REPLICATE)
+        out[:, :, start : start + 4] = res.reshape(mx.shape[0], mx.shape[1], -1)
+    if mode == "bicubic" and hwc.size:
+        # cubic weights overshoot: keep the result within the values the image holds ([0, 1] photos stay so)
+        np.clip(out, hwc.min(axis=(0, 1)), hwc.max(axis=(0, 1)), out=out)
+    out[blank] = 0
+    result = torch.from_numpy(out).permute(2, 0, 1).reshape(*image.shape[:-2], *mx.shape)
+    if image.dtype == torch.bool and mode == "nearest":
+        result = result.to(torch.bool)
+    return result.to(image.device)
+
+
+def undistort(image: Tensor, lens: Lens, pinhole: Lens, mode: str = "bilinear") -> Tensor:
+    """An image of `lens` resampled to `pinhole`: [C, H, W] or [N, C, H, W] at the lens's size ->
+    the same at the pinhole's size. "bilinear" for photos and masks (float32 photos stay in [0, 1]:
+    bilinear weights are convex; COLMAP's undistorter is bilinear too), "bicubic" for sharper photos
+    (OpenCV's cubic, clipped to each channel's range in the image), "nearest" for depth maps. Pixels showing nothing of the lens's
+    image are 0 (see the module docs). A bool mask comes back float32 under "bilinear" (its coverage)."""
+    return _remap(image, lens, undistort_maps(lens, pinhole), mode, "undistort")
+
+
+def distort(image: Tensor, pinhole: Lens, lens: Lens, mode: str = "bilinear") -> Tensor:
+    """The inverse warp: an image of `pinhole` resampled to what `lens` would have seen, [C, H, W] or
+    [N, C, H, W] at the pinhole's size -> the lens's size. For tests and benchmarks: distorted photos
+    with known coefficients, made from pinhole ones."""
+    return _remap(image, pinhole, distort_maps(pinhole, lens), mode, "distort")
