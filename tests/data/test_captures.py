@@ -369,3 +369,42 @@ def test_camera_file_records_each_views_lens_and_pinhole(tmp_path: Path) -> None
     frames = json.loads((tmp_path / "c.json").read_text())["frames"]
     assert frames[0]["lens"] == lens.to_dict() and frames[0]["pinhole"] == pinhole.to_dict()
     assert load_cameras(tmp_path / "c.json").lenses == [lens, lens]
+
+
+# ------------------------------------------------------------------ the distorted DTU fixture
+DISTORTED = Path(__file__).resolve().parent / "distorted"
+
+
+@pytest.mark.parametrize("given", ["sparse/0", "sparse/text", "sparse/0/images.bin", "transforms.json", "instant_ngp"])
+def test_distorted_fixture_is_read_by_every_file_of_it(given: str) -> None:
+    """The fixture's COLMAP model (binary and text), nerfstudio and instant-ngp transforms.json: one lens,
+    the pinhole COLMAP's undistorter chooses, the poses its truth.json holds."""
+    truth = json.loads((DISTORTED / "truth.json").read_text())
+    lens = Lens.from_dict(truth["lens"])
+    cam_set = load_cameras(DISTORTED / given)
+    assert cam_set.names == [Path(v["image"]).name for v in truth["views"]]
+    assert cam_set.lenses == [lens] * len(truth["views"])
+    _assert_pinhole_K(cam_set.cameras.K, reference_pinhole(lens))
+    c2w = torch.tensor([v["c2w"] for v in truth["views"]], dtype=torch.float64)
+    torch.testing.assert_close(cam_set.cameras.c2w.double(), c2w, atol=1e-9, rtol=0)
+
+
+def test_distorted_fixture_photos_come_back_to_their_source() -> None:
+    """Each distorted photo undistorted at load equals its DTU source photo seen by the new pinhole (the
+    source resampled by the homography K_pinhole K_source^-1: same rotation, other intrinsics)."""
+    truth = json.loads((DISTORTED / "truth.json").read_text())
+    scene = load_scene(DISTORTED / "sparse" / "0")
+    pinhole = reference_pinhole(Lens.from_dict(truth["lens"]))
+    h, w = scene.height, scene.width
+    j, i = torch.meshgrid(torch.arange(w) + 0.5, torch.arange(h) + 0.5, indexing="xy")
+    errors = []
+    for view, image in zip(truth["views"], scene.images):
+        source, _ = read_image(DISTORTED.parent / view["source"], background=None)
+        K_src = lens_matrix(Lens.from_dict(view["pinhole"]))
+        rays = torch.stack([j, i, torch.ones_like(j)], -1).double() @ torch.linalg.inv(lens_matrix(pinhole)).T
+        uv = rays @ K_src.T
+        H, W = source.shape[1:]
+        grid = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], -1).float()[None]
+        expected = torch.nn.functional.grid_sample(source[None], grid, align_corners=False)[0]
+        errors.append((image - expected)[:, 2:-2, 2:-2].abs().mean().item())  # the border: half a pixel of blank
+    assert max(errors) < 3 / 255, errors  # three resamplings of 8-bit photos (distort, undistort, this one)

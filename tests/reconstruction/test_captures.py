@@ -158,3 +158,39 @@ def test_reconstruct_a_capture_with_a_lens(tmp_path: Path, dtu: CameraSet, model
     )
     torch.testing.assert_close(again.cameras.K, scene.cameras.K)
     assert isinstance(again.cameras, Cameras) and again.lenses == scene.lenses
+
+
+DISTORTED = Path(__file__).resolve().parents[1] / "data" / "distorted"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("given", ["sparse/0", "transforms.json"])
+def test_reconstruct_command_on_the_distorted_fixture(tmp_path: Path, given: str, capsys) -> None:
+    """`surfsplat reconstruct --cameras` the fixture's COLMAP model or transforms.json: the lines the user
+    reads name the lens, the pinhole and the working size; the folder records them."""
+    from surfsplat.cli import main
+    from surfsplat.model import save_checkpoint
+
+    torch.manual_seed(0)
+    weights, _ = save_checkpoint(SurfSplat.from_preset("tiny"), tmp_path / "tiny")
+    out = tmp_path / "out"
+    argv = ["reconstruct", "--checkpoint", str(weights), "--images", str(DISTORTED / "images")]
+    argv += ["--cameras", str(DISTORTED / given), "--out", str(out), "--size", "32", "48", "--formats", "ply"]
+    code = main(
+        [*argv, "--raw-3dgs", "--optimize-steps", "0", "--refine-steps", "0", "--no-progress", "--device", "cpu"]
+    )
+    shown = capsys.readouterr()
+    assert code == 0, shown.err
+    truth = json.loads((DISTORTED / "truth.json").read_text())
+    lens = Lens.from_dict(truth["lens"])
+    pinhole = reference_pinhole(lens)
+    fx, fy, cx, cy = pinhole.params
+    line = (
+        "lens OPENCV (fx 190, fy 190, cx 51.5, cy 38.7, k1 -0.3, k2 0.1, p1 0.002, p2 -0.001) at 100x75, 5 views: "
+        f"photos undistorted to a {pinhole.width}x{pinhole.height} pinhole (fx {fx:.6g}, fy {fy:.6g}, cx {cx:.6g}, "
+        f"cy {cy:.6g}), then rescaled and cropped to the 48x32 working size"
+    )
+    assert line in shown.out.splitlines(), shown.out
+    summary = json.loads((out / "reconstruction.json").read_text())
+    assert summary["lenses"][0]["source"] == lens.to_dict() and summary["lenses"][0]["pinhole"] == pinhole.to_dict()
+    assert load_cameras(out / "cameras.json").lenses == [lens] * 5
