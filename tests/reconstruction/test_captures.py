@@ -16,12 +16,14 @@ from surfsplat.data import load_scene_cameras
 from surfsplat.data.cameras import CameraSet, load_cameras
 from surfsplat.data.formats.common import lens_matrix
 from surfsplat.data.images import read_image
+from surfsplat.data.transforms import rescale_and_crop
 from surfsplat.export.flow import ExportOptions
 from surfsplat.geometry.cameras import Cameras
 from surfsplat.geometry.lens import Lens
 from surfsplat.model import SurfSplat
 from surfsplat.reconstruction.inputs import read_capture
 from surfsplat.reconstruction.pipeline import _undistorted_views, reconstruct
+from surfsplat.reconstruction.scene_fit import load_reconstruction
 from surfsplat.utils.checks import SurfSplatInputError
 from tests.helpers.lenses import (
     distort_photo,
@@ -101,7 +103,7 @@ def model() -> SurfSplat:
 
 
 def _save(scene, out: Path) -> dict:
-    scene.save(out, options=ExportOptions(formats=(), bake=None, progress=False))
+    scene.save(out, options=ExportOptions(formats=("ply",), bake=None, progress=False))
     return json.loads((out / "reconstruction.json").read_text())
 
 
@@ -158,6 +160,13 @@ def test_reconstruct_a_capture_with_a_lens(tmp_path: Path, dtu: CameraSet, model
     )
     torch.testing.assert_close(again.cameras.K, scene.cameras.K)
     assert isinstance(again.cameras, Cameras) and again.lenses == scene.lenses
+    # what `surfsplat optimize` reads back: the context photos undistorted, then the working crop
+    loaded, photos = load_reconstruction(tmp_path / "out")
+    assert loaded.lenses == scene.lenses and loaded.crop == scene.crop
+    for path, image in zip(paths, photos):
+        rgb, _ = read_image(path, background=None)
+        expected, _, _ = rescale_and_crop(reference_undistort(rgb, lens, pinhole)[None], torch.eye(3)[None], (32, 48))
+        assert (image - expected[0].clamp(0, 1)).abs().mean() < 2 / 255
 
 
 DISTORTED = Path(__file__).resolve().parents[1] / "data" / "distorted"
