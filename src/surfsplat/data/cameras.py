@@ -238,10 +238,6 @@ def _json_kind(data: object, path: Path) -> str:
         found = f"'frames' that is not a list of objects ({type(frames).__name__})"
     else:
         found = f"keys {keys} and no 'frames'"
-    return _unknown(path, found)
-
-
-def _unknown(path: Path, found: str) -> str:
     raise SurfSplatInputError(f"{path}: not a camera file this package reads: it has {found}; accepted: {ACCEPTED}")
 
 

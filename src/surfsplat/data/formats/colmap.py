@@ -11,9 +11,9 @@ and size are that pinhole's. A registered image whose photo file is missing is l
 warning (`common.present_views`).
 
 The binary and text layouts are read here rather than through pycolmap's `Reconstruction.read`
-so that a truncated or malformed file is reported with its path, line and field (pycolmap raises
-one C++ check message for the whole model), and so that the camera files alone (`load_cameras`)
-are read without images or points; the tests check this reader against models written by pycolmap.
+so that a truncated or malformed file is reported as one line naming its path, line and field, and
+so that a model's cameras and poses are read without its points (`load_cameras`); the tests check
+this reader against models written by pycolmap (text and binary, every camera model).
 Per-view near/far come from the depths of the view's own triangulated points (0.1 and 99.9
 percentiles, as LLFF's imgs2poses does) when points3D is present and every view sees at least
 one point in front of it (a view whose points all share one depth gets far = 1.01 near);
