@@ -11,25 +11,11 @@ import pytest
 import torch
 
 from surfsplat.geometry.lens import CAMERA_MODELS, Lens, project, undistorted_pinhole, unproject
+from surfsplat.testing.lenses import CALIBRATIONS, HEIGHT, WIDTH
 from surfsplat.utils.checks import SurfSplatInputError
 
-W, H = 640, 480
-# Realistic calibrations for every model 0-10 (a 640x480 sensor, about 65 degrees across for the
-# perspective models, about 110 degrees for the fisheye ones; coefficients of the size COLMAP and
-# OpenCV calibrations of phone and action cameras give).
-LENSES: dict[str, tuple[float, ...]] = {
-    "SIMPLE_PINHOLE": (500.0, 320.0, 240.0),
-    "PINHOLE": (500.0, 510.0, 321.5, 238.7),
-    "SIMPLE_RADIAL": (500.0, 320.0, 240.0, -0.1),
-    "RADIAL": (500.0, 320.0, 240.0, -0.1, 0.03),
-    "OPENCV": (500.0, 510.0, 321.5, 238.7, -0.1, 0.05, 0.001, -0.001),
-    "OPENCV_FISHEYE": (300.0, 305.0, 321.5, 238.7, 0.05, -0.01, 0.002, 0.0),
-    "FULL_OPENCV": (500.0, 510.0, 321.5, 238.7, -0.1, 0.05, 0.001, -0.001, 0.01, 0.02, 0.003, 0.001),
-    "FOV": (500.0, 510.0, 321.5, 238.7, 0.9),
-    "SIMPLE_RADIAL_FISHEYE": (300.0, 320.0, 240.0, 0.03),
-    "RADIAL_FISHEYE": (300.0, 320.0, 240.0, 0.03, -0.005),
-    "THIN_PRISM_FISHEYE": (300.0, 305.0, 321.5, 238.7, 0.05, -0.01, 0.001, -0.001, 0.002, 0.0, 0.001, -0.0005),
-}
+W, H = WIDTH, HEIGHT
+LENSES = CALIBRATIONS  # every model 0-10, realistic (see surfsplat.testing.lenses)
 MODELS = [name for name, _ in CAMERA_MODELS.values()]
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

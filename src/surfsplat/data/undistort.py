@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..geometry.lens import Lens, project, unproject
+from ..geometry.lens import Lens, image_from_normalized, project, unproject
 from ..utils.checks import SurfSplatInputError
 
 MODES = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
@@ -47,10 +47,9 @@ def _pixel_centres(width: int, height: int) -> Tensor:
     return torch.stack([xs, ys], dim=-1)  # [H, W, 2], top-left pixel centre (0.5, 0.5)
 
 
-def _to_remap(source: Lens, pixels: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels of `source` (top-left centre at 0.5) -> cv2.remap's maps (top-left centre at 0), NaN
-    where the pixel lies outside the source image's area [0, W] x [0, H]."""
-    x, y = pixels[..., 0], pixels[..., 1]
+def _to_remap(source: Lens, x: Tensor, y: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (x, y) of `source` (top-left centre at 0.5) -> cv2.remap's maps (top-left centre at 0),
+    NaN where the pixel lies outside the source image's area [0, W] x [0, H]."""
     inside = (x >= 0) & (x <= source.width) & (y >= 0) & (y <= source.height)  # False for NaN
     nan = torch.full_like(x, float("nan"))
     map_x = torch.where(inside, x - 0.5, nan).to(torch.float32).numpy()
@@ -73,11 +72,19 @@ def undistort_maps(lens: Lens, pinhole: Lens) -> tuple[np.ndarray, np.ndarray]:
     Returns (map_x, map_y), float32 [pinhole.height, pinhole.width], read-only, in cv2.remap's
     coordinates (the top-left pixel's centre at (0, 0)); NaN where the pixel's ray leaves the lens's
     image. Each pinhole pixel centre is lifted to its ray (pinhole K^-1) and projected by the lens
-    (`project`, COLMAP's ImgFromCam): no iteration.
+    (`project`'s `image_from_normalized`, COLMAP's ImgFromCam): no iteration.
     """
     _check_pinhole(pinhole, "undistort_maps: pinhole")
-    rays = unproject(pinhole, _pixel_centres(pinhole.width, pinhole.height))
-    return _to_remap(lens, project(lens, torch.cat([rays, torch.ones_like(rays[..., :1])], dim=-1)))
+    fx, fy, cx, cy = pinhole.focal_and_centre
+    # the pinhole's rays, K^-1 of its pixel centres: x/z depends on the column only, y/z on the row
+    u = ((torch.arange(pinhole.width, dtype=torch.float64) + 0.5 - cx) / fx)[None, :]
+    v = ((torch.arange(pinhole.height, dtype=torch.float64) + 0.5 - cy) / fy)[:, None]
+    x, y = image_from_normalized(lens, u, v)
+    x, y = (
+        torch.broadcast_to(x, (pinhole.height, pinhole.width)),
+        torch.broadcast_to(y, (pinhole.height, pinhole.width)),
+    )
+    return _to_remap(lens, x, y)
 
 
 @lru_cache(maxsize=_MAP_CACHE)
@@ -96,7 +103,7 @@ def distort_maps(pinhole: Lens, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
     has_ray = (back - pixels).norm(dim=-1) <= _ROUND_TRIP_PX  # False for NaN
     target = project(pinhole, rays3)
     target = torch.where(has_ray[..., None], target, torch.full_like(target, float("nan")))
-    return _to_remap(pinhole, target)
+    return _to_remap(pinhole, target[..., 0], target[..., 1])
 
 
 def _remap(image: Tensor, source: Lens, maps: tuple[np.ndarray, np.ndarray], mode: str, name: str) -> Tensor:

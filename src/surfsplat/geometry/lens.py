@@ -350,11 +350,19 @@ def project(lens: Lens, points: Tensor) -> Tensor:
     camera plane) give NaN, as pycolmap's `Camera.img_from_cam` with its default cheirality check.
     """
     p = _float64(points, 3, "project: points")
-    fx, fy, cx, cy = lens.focal_and_centre
     w = p[..., 2]
     in_front = w >= _EPS
     w = torch.where(in_front, w, torch.ones_like(w))
-    u, v = p[..., 0] / w, p[..., 1] / w
+    x, y = image_from_normalized(lens, p[..., 0] / w, p[..., 1] / w)
+    out = torch.stack([x, y], dim=-1)
+    out = torch.where(in_front[..., None], out, torch.full_like(out, math.nan))
+    return out.to(_out_dtype(points))
+
+
+def image_from_normalized(lens: Lens, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """`project` of the rays (u, v, 1), float64 tensors of shapes that broadcast (a row of columns
+    and a column of rows make a grid without building it first): pixel x, pixel y."""
+    fx, fy, cx, cy = lens.focal_and_centre
     model, e = lens.model, lens.extra_params
     if model == "FOV":
         x, y = _fov_distort(e[0], u, v)
@@ -367,9 +375,7 @@ def project(lens: Lens, points: Tensor) -> Tensor:
     else:
         du, dv = _DISTORTIONS[model](e, u, v)
         x, y = u + du, v + dv
-    out = torch.stack([fx * x + cx, fy * y + cy], dim=-1)
-    out = torch.where(in_front[..., None], out, torch.full_like(out, math.nan))
-    return out.to(_out_dtype(points))
+    return fx * x + cx, fy * y + cy
 
 
 def unproject(lens: Lens, pixels: Tensor) -> Tensor:
