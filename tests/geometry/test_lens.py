@@ -278,3 +278,25 @@ def test_no_valid_region_raises(model: str, width: int, height: int, params: tup
         undistorted_pinhole(lens)
     line = str(err.value)
     assert "\n" not in line and line.startswith(f"camera model {model} {list(params)} ({width}x{height}): ")
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_gradients_are_finite_on_the_axis(model: str) -> None:
+    """project is differentiable everywhere in front of the camera, the axis (the models' epsilon
+    and series branches) included: the unused branch of each switch stays finite."""
+    lens, _ = _pair(model)
+    pts = torch.tensor([[0.0, 0.0, 2.0], [1e-9, -1e-9, 1.0], [0.3, -0.2, 1.5]], dtype=torch.float64, requires_grad=True)
+    project(lens, pts).sum().backward()
+    assert torch.isfinite(pts.grad).all()
+    # and it is the derivative: a central difference at the off-axis point
+    h = 1e-6
+    step = torch.tensor([h, 0.0, 0.0], dtype=torch.float64)
+    num = (project(lens, pts[2].detach() + step) - project(lens, pts[2].detach() - step)).sum() / (2 * h)
+    assert abs(float(num) - float(pts.grad[2, 0])) <= 1e-5 * max(1.0, abs(float(num)))
+
+
+def test_focal_length_must_be_positive() -> None:
+    with pytest.raises(SurfSplatInputError, match="camera model OPENCV: focal length fy is 0.0 "):
+        Lens("OPENCV", W, H, (500.0, 0.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0))
+    with pytest.raises(SurfSplatInputError, match="camera model SIMPLE_RADIAL: focal length f is -1.0 "):
+        Lens("SIMPLE_RADIAL", W, H, (-1.0, 320.0, 240.0, 0.0))

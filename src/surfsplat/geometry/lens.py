@@ -73,6 +73,10 @@ class Lens:
         bad = [n for n, v in zip(names, self.params) if not math.isfinite(v)]
         if bad:
             raise SurfSplatInputError(f"camera model {self.model}: parameter {bad[0]} is NaN or inf")
+        focal = [(n, v) for n, v in zip(names, self.params) if n in ("f", "fx", "fy")]
+        if any(v <= 0 for _, v in focal):
+            name, value = next((n, v) for n, v in focal if v <= 0)
+            raise SurfSplatInputError(f"camera model {self.model}: focal length {name} is {value} (must be positive)")
         if self.width < 1 or self.height < 1:
             raise SurfSplatInputError(f"camera model {self.model}: size {self.width}x{self.height} is not positive")
 
@@ -256,7 +260,7 @@ def _fov_distort(omega: float, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     else:
         tan_half = math.tan(omega / 2)
         small = (-2 * tan_half * (4 * r2 * tan_half * tan_half - 3)) / (3 * omega)  # series in the radius
-        radius = torch.sqrt(r2)
+        radius = torch.sqrt(torch.where(r2 < _FOV_EPS, 1.0, r2))  # the unused branch kept finite (gradients)
         factor = torch.where(r2 < _FOV_EPS, small, torch.atan(radius * 2 * tan_half) / (radius * omega))
     return u * factor, v * factor
 
@@ -270,24 +274,28 @@ def _fov_undistort(omega: float, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     else:
         tan_half = math.tan(omega / 2)
         small = (omega * (omega * omega * r2 + 3)) / (6 * tan_half)
-        radius = torch.sqrt(r2)
+        radius = torch.sqrt(torch.where(r2 < _FOV_EPS, 1.0, r2))
         factor = torch.where(r2 < _FOV_EPS, small, torch.tan(radius * omega) / (radius * 2 * tan_half))
     return u * factor, v * factor
 
 
 def _fisheye_from_normal(u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     """(u, v) on the normalized plane -> theta * direction (COLMAP's FisheyeFromNormal)."""
-    r = torch.sqrt(u * u + v * v)
-    scale = torch.where(r > _EPS, torch.atan(r) / r, torch.ones_like(r))
+    r2 = u * u + v * v
+    far = r2 > _EPS * _EPS  # COLMAP's r > eps; the other branch kept finite so gradients stay finite
+    r = torch.sqrt(torch.where(far, r2, 1.0))
+    scale = torch.where(far, torch.atan(r) / r, 1.0)
     return u * scale, v * scale
 
 
 def _normal_from_fisheye(uu: Tensor, vv: Tensor) -> tuple[Tensor, Tensor]:
     """theta * direction -> the normalized plane (COLMAP's NormalFromFisheye). As COLMAP, a point at
     theta >= pi/2 (theta cos theta <= eps) is returned unscaled: such rays have no point on the plane."""
-    theta = torch.sqrt(uu * uu + vv * vv)
+    t2 = uu * uu + vv * vv
+    theta = torch.sqrt(torch.where(t2 > 0, t2, 1.0))
     t_cos = theta * torch.cos(theta)
-    scale = torch.where(t_cos > _EPS, torch.sin(theta) / t_cos, torch.ones_like(theta))
+    scaled = (t2 > 0) & (t_cos > _EPS)
+    scale = torch.where(scaled, torch.sin(theta) / torch.where(scaled, t_cos, 1.0), 1.0)
     return uu * scale, vv * scale
 
 
