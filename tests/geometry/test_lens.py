@@ -212,6 +212,9 @@ MORE_LENSES = [
     ("OPENCV_FISHEYE", 400, 300, (160.0, 160.0, 200.0, 150.0, 0.05, -0.01, 0.002, 0.0)),
     ("SIMPLE_RADIAL", 640, 480, (500.0, 320.0, 240.0, 5.0)),  # absurd but monotone: clamped to 0.2
     ("FOV", 333, 111, (150.0, 160.0, 170.0, 50.0, 0.5)),
+    # the principal point on the left border's pixel centres: COLMAP divides by zero there (IEEE inf)
+    ("OPENCV", 100, 75, (100.0, 100.0, 0.5, 37.5, 0.01, 0.0, 0.0, 0.0)),
+    ("OPENCV", 100, 75, (100.0, 100.0, 50.0, 74.5, -0.01, 0.0, 0.0, 0.0)),
 ]
 
 

@@ -494,6 +494,13 @@ def _check_invertible(lens: Lens, border: Tensor, rays: Tensor) -> None:
         )
 
 
+def _div(a: float, b: float) -> float:
+    """a / b in IEEE arithmetic, as COLMAP's C++ computes it (x / 0 is +-inf, 0 / 0 NaN; no exception)."""
+    if b != 0:
+        return a / b
+    return math.nan if a == 0 or math.isnan(a) else math.copysign(math.inf, a) * math.copysign(1.0, b)
+
+
 def undistorted_pinhole(lens: Lens) -> Lens:
     """The PINHOLE lens a photo of `lens` is undistorted to: COLMAP's `UndistortCamera` with the
     default options of `image_undistorter` (blank_pixels 0: the largest image without blank pixels;
@@ -535,10 +542,10 @@ def undistorted_pinhole(lens: Lens) -> Lens:
     left_max_x, right_min_x = float(left_x.max()), float(right_x.min())
     top_max_y, bottom_min_y = float(top_y.max()), float(bottom_y.min())
     # scale such that there are no blank pixels (blank_pixels = 0 keeps only these two of COLMAP's four)
-    max_scale_x = max(cx / (cx - left_max_x), (lens.width - 0.5 - cx) / (right_min_x - cx))
-    max_scale_y = max(cy / (cy - top_max_y), (lens.height - 0.5 - cy) / (bottom_min_y - cy))
-    scale_x = min(max(1.0 / max_scale_x, 0.2), 2.0)
-    scale_y = min(max(1.0 / max_scale_y, 0.2), 2.0)
+    max_scale_x = max(_div(cx, cx - left_max_x), _div(lens.width - 0.5 - cx, right_min_x - cx))
+    max_scale_y = max(_div(cy, cy - top_max_y), _div(lens.height - 0.5 - cy, bottom_min_y - cy))
+    scale_x = min(max(_div(1.0, max_scale_x), 0.2), 2.0)
+    scale_y = min(max(_div(1.0, max_scale_y), 0.2), 2.0)
     width = int(max(1.0, scale_x * lens.width))  # C++'s static_cast<size_t>: truncation
     height = int(max(1.0, scale_y * lens.height))
     return Lens("PINHOLE", width, height, (fx, fy, cx * width / lens.width, cy * height / lens.height))
