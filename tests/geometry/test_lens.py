@@ -303,3 +303,22 @@ def test_focal_length_must_be_positive() -> None:
         Lens("OPENCV", W, H, (500.0, 0.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0))
     with pytest.raises(SurfSplatInputError, match="camera model SIMPLE_RADIAL: focal length f is -1.0 "):
         Lens("SIMPLE_RADIAL", W, H, (-1.0, 320.0, 240.0, 0.0))
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_device_is_the_inputs(model: str) -> None:
+    """On an accelerator (the stand-in device of surfsplat.testing) the results stay there, equal to
+    the CPU's; project waits on the host nowhere (unproject: twice per Newton iteration)."""
+    from surfsplat.testing.standin_device import StandinDevice, standin
+
+    lens, _ = _pair(model)
+    pts = torch.from_numpy(_points(10, n=64))
+    px = torch.from_numpy(_pixels(11, n=64))
+    with StandinDevice() as dev:
+        on_pts, on_px = standin(pts), standin(px)
+        projected = project(lens, on_pts)
+        waits_project = [s for s in dev.syncs if "lens.py" in s.where]
+        lifted = unproject(lens, on_px)
+        assert projected.device == on_pts.device and lifted.device == on_px.device
+        assert not waits_project
+        assert torch.equal(projected.cpu(), project(lens, pts)) and torch.equal(lifted.cpu(), unproject(lens, px))
