@@ -322,3 +322,18 @@ def test_device_is_the_inputs(model: str) -> None:
         assert projected.device == on_pts.device and lifted.device == on_px.device
         assert not waits_project
         assert torch.equal(projected.cpu(), project(lens, pts)) and torch.equal(lifted.cpu(), unproject(lens, px))
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_rescaled_matches_colmap(model: str) -> None:
+    """Lens.rescaled is pycolmap's Camera.rescale(new_width, new_height), and a photo resized with it
+    projects where the resized pixels are (x' = x * W'/W)."""
+    lens, cam = _pair(model)
+    small = lens.rescaled(160, 121)
+    cam.rescale(160, 121)
+    assert (small.width, small.height) == (cam.width, cam.height)
+    assert np.abs(np.array(small.params) - np.array(cam.params)).max() <= 1e-12
+    if lens.param_names[0] != "f":  # one focal length cannot follow two different factors exactly
+        pts = torch.from_numpy(_points(12, n=100))
+        scale = torch.tensor([160 / W, 121 / H], dtype=torch.float64)
+        assert (project(small, pts) - project(lens, pts) * scale).abs().max().item() <= 1e-9

@@ -108,6 +108,20 @@ class Lens:
             return all(v == 0 for v in self.extra_params)
         return False
 
+    def rescaled(self, width: int, height: int) -> Lens:
+        """The same lens for photos resized to width x height (COLMAP's `Camera::Rescale`): fx and cx
+        scale by width's factor, fy and cy by height's, a single focal length f by their mean; the
+        distortion parameters, on the normalized plane, stay."""
+        sx, sy = width / self.width, height / self.height
+        p = list(self.params)
+        if self.param_names[0] == "f":
+            p[0] *= 0.5 * (sx + sy)
+            p[1] *= sx
+            p[2] *= sy
+        else:
+            p[0], p[1], p[2], p[3] = p[0] * sx, p[1] * sy, p[2] * sx, p[3] * sy
+        return Lens(self.model, width, height, tuple(p))
+
     def to_dict(self) -> dict:
         return {"model": self.model, "width": self.width, "height": self.height, "params": list(self.params)}
 
