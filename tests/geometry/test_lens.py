@@ -113,8 +113,9 @@ def test_zero_distortion_is_K(model: str) -> None:
     first = len(distorted.params) - len(distorted.extra_params)
     lens = Lens(model, W, H, distorted.params[:first] + (0.0,) * len(distorted.extra_params))
     assert lens.is_pinhole
+    K = lens.intrinsics()
     fx, fy, cx, cy = lens.focal_and_centre
-    K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64)
+    assert torch.equal(K, torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64))
     pts = torch.from_numpy(_points(5))
     hom = pts @ K.T
     assert (project(lens, pts) - hom[:, :2] / hom[:, 2:]).abs().max().item() <= 1e-9

@@ -92,6 +92,11 @@ class Lens:
             return p[0], p[0], p[1], p[2]
         return p[0], p[1], p[2], p[3]
 
+    def intrinsics(self, dtype: torch.dtype = torch.float64) -> Tensor:
+        """K [3, 3] in pixels (fx, fy, cx, cy; no skew): a pinhole's whole projection, a lens's linear part."""
+        fx, fy, cx, cy = self.focal_and_centre
+        return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
     @property
     def extra_params(self) -> tuple[float, ...]:
         """The distortion parameters (COLMAP's extra_params), after focal length and principal point."""
