@@ -16,7 +16,9 @@ pinhole, IDR cameras) are resampled to one OPENCV lens (`LENS` below, known coef
 - `instant_ngp/transforms.json`: instant-ngp's dialect (no camera_model; k1, k2, p1, p2 at the top
   level; w and h floats; fl_x without fl_y; camera_angle_x; paths relative to its folder);
 - `truth.json`: the lens, and per view the source photo, its pinhole K (IDR's, skew dropped) and its
-  camera-to-world (OpenCV axes), so a reader's undistortion can be checked against the source.
+  camera-to-world (OpenCV axes), so a reader's undistortion can be checked against the source;
+- `fisheye/`: the same views through an OPENCV_FISHEYE lens (`FISHEYE`), with nerfstudio's
+  `transforms.json` (camera_model OPENCV_FISHEYE, k1..k4) and its own `truth.json`.
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ WIDTH, HEIGHT = 100, 75
 # principal point near DTU's (51.5, 38.7), so the lens sees nothing beyond the pinhole photos (no blank
 # pixel); a barrel distortion of 2-3 px at the corners (k1 -0.3: DTU's lens is narrow, 31 degrees).
 LENS = Lens("OPENCV", WIDTH, HEIGHT, (190.0, 190.0, 51.5, 38.7, -0.3, 0.1, 0.002, -0.001))
+# The fisheye set: an equidistant lens (theta = r / f) long enough to stay within the pinhole photos.
+FISHEYE = Lens("OPENCV_FISHEYE", WIDTH, HEIGHT, (188.0, 188.0, 51.5, 38.7, 0.05, -0.01, 0.002, 0.0))
 POINTS = 60
 SEED = 0
 
@@ -60,32 +64,35 @@ def _gl(c2w: np.ndarray) -> list[list[float]]:
     return [[round(float(v), 12) for v in row] for row in out]
 
 
-def build(out: Path) -> None:
-    scene = load_dtu(SOURCE, images="images_16", dtype=torch.float64)
-    if out.exists():
-        shutil.rmtree(out)
-    (out / "images").mkdir(parents=True)
-    names = [f"{i:06d}.png" for i in range(len(VIEWS))]
-    fx, fy, cx, cy = LENS.focal_and_centre
-    truth_views = []
-    c2ws = []
+def _distort_views(scene, lens: Lens, folder: Path, names: list[str]) -> list[dict]:
+    """Write each view's photo as `lens` sees it into folder/images; the views' truth."""
+    (folder / "images").mkdir(parents=True)
+    views = []
     for name, view in zip(names, VIEWS):
         K = scene.cameras.K[view]
         pinhole = Lens("PINHOLE", WIDTH, HEIGHT, (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
-        photo = scene.images[view].to(torch.float32)
-        cover = distort(torch.ones(1, HEIGHT, WIDTH), pinhole, LENS)
+        cover = distort(torch.ones(1, HEIGHT, WIDTH), pinhole, lens)
         assert bool((cover == 1).all()), f"view {view}: the lens sees beyond the pinhole photo"
-        _png(distort(photo, pinhole, LENS, "bicubic"), out / "images" / name)
-        c2w = scene.cameras.c2w[view].numpy()
-        c2ws.append(c2w)
-        truth_views.append(
+        _png(distort(scene.images[view].to(torch.float32), pinhole, lens, "bicubic"), folder / "images" / name)
+        views.append(
             {
                 "image": f"images/{name}",
                 "source": f"dtu_scan24/images_16/{scene.names[view]}",
                 "pinhole": pinhole.to_dict(),
-                "c2w": [[float(v) for v in row] for row in c2w],
+                "c2w": [[float(v) for v in row] for row in scene.cameras.c2w[view].numpy()],
             }
         )
+    return views
+
+
+def build(out: Path) -> None:
+    scene = load_dtu(SOURCE, images="images_16", dtype=torch.float64)
+    if out.exists():
+        shutil.rmtree(out)
+    names = [f"{i:06d}.png" for i in range(len(VIEWS))]
+    fx, fy, cx, cy = LENS.focal_and_centre
+    truth_views = _distort_views(scene, LENS, out, names)
+    c2ws = [scene.cameras.c2w[view].numpy() for view in VIEWS]
 
     # COLMAP: one OPENCV camera, a trivial rig and frame per image (COLMAP >= 3.12's layout)
     rec = pycolmap.Reconstruction()
@@ -135,6 +142,21 @@ def build(out: Path) -> None:
     (out / "instant_ngp" / "transforms.json").write_text(json.dumps(ngp, indent=2) + "\n")
     truth = {"lens": LENS.to_dict(), "resampling": "surfsplat.data.undistort.distort, bicubic", "views": truth_views}
     (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+
+    # nerfstudio's fisheye dialect: the same views through an OPENCV_FISHEYE lens
+    fisheye = out / "fisheye"
+    fish_views = _distort_views(scene, FISHEYE, fisheye, names)
+    ffx, ffy, fcx, fcy = FISHEYE.focal_and_centre
+    f1, f2, f3, f4 = FISHEYE.extra_params
+    nerfstudio_fisheye = {
+        "camera_model": "OPENCV_FISHEYE",
+        **{"fl_x": ffx, "fl_y": ffy, "cx": fcx, "cy": fcy, "w": WIDTH, "h": HEIGHT},
+        **{"k1": f1, "k2": f2, "k3": f3, "k4": f4},
+        "frames": frames,
+    }
+    (fisheye / "transforms.json").write_text(json.dumps(nerfstudio_fisheye, indent=2) + "\n")
+    truth = {"lens": FISHEYE.to_dict(), "resampling": "surfsplat.data.undistort.distort, bicubic", "views": fish_views}
+    (fisheye / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
 
 
 def main() -> None:
