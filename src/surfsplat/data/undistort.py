@@ -38,22 +38,34 @@ from ..utils.checks import SurfSplatInputError
 MODES = {"bilinear": cv2.INTER_LINEAR, "bicubic": cv2.INTER_CUBIC, "nearest": cv2.INTER_NEAREST}
 _MAP_CACHE = 16  # lens pairs whose maps are kept (16 maps of a 1920x1080 photo: about 265 MB)
 _ROUND_TRIP_PX = 1e-3  # a pixel whose ray does not project back within this has no ray (fisheye > 90 deg)
+_BLOCK_PIXELS = 1 << 19  # pixels of the maps computed at once (about 40 MB of float64 temporaries)
 
 
-def _pixel_centres(width: int, height: int) -> Tensor:
-    ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=torch.float64) + 0.5, torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij"
-    )
-    return torch.stack([xs, ys], dim=-1)  # [H, W, 2], top-left pixel centre (0.5, 0.5)
+def _pixel_centres(width: int, rows: Tensor) -> Tensor:
+    """[R, W, 2] pixel centres (x, y) of the given rows, top-left pixel centre (0.5, 0.5)."""
+    ys, xs = torch.meshgrid(rows.to(torch.float64) + 0.5, torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij")
+    return torch.stack([xs, ys], dim=-1)
 
 
-def _to_remap(source: Lens, x: Tensor, y: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (x, y) of `source` (top-left centre at 0.5) -> cv2.remap's maps (top-left centre at 0),
-    NaN where the pixel lies outside the source image's area [0, W] x [0, H]."""
+def _remap_coords(source: Lens, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixels (x, y) of `source` (top-left centre at 0.5) -> cv2.remap's coordinates (top-left centre
+    at 0), float32, NaN where the pixel lies outside the source image's area [0, W] x [0, H]."""
     inside = (x >= 0) & (x <= source.width) & (y >= 0) & (y <= source.height)  # False for NaN
     nan = torch.full_like(x, float("nan"))
-    map_x = torch.where(inside, x - 0.5, nan).to(torch.float32).numpy()
-    map_y = torch.where(inside, y - 0.5, nan).to(torch.float32).numpy()
+    return torch.where(inside, x - 0.5, nan).to(torch.float32), torch.where(inside, y - 0.5, nan).to(torch.float32)
+
+
+def _maps_by_rows(width: int, height: int, rows_to_maps) -> tuple[np.ndarray, np.ndarray]:
+    """Maps [height, width] filled block of rows by block (memory bounded: float64 temporaries of at
+    most _BLOCK_PIXELS pixels at a time), returned read-only."""
+    map_x = np.empty((height, width), dtype=np.float32)
+    map_y = np.empty((height, width), dtype=np.float32)
+    step = max(1, _BLOCK_PIXELS // width)
+    for start in range(0, height, step):
+        rows = torch.arange(start, min(height, start + step))
+        bx, by = rows_to_maps(rows)
+        map_x[start : start + len(rows)] = bx.numpy()
+        map_y[start : start + len(rows)] = by.numpy()
     map_x.flags.writeable = False
     map_y.flags.writeable = False
     return map_x, map_y
@@ -78,13 +90,14 @@ def undistort_maps(lens: Lens, pinhole: Lens) -> tuple[np.ndarray, np.ndarray]:
     fx, fy, cx, cy = pinhole.focal_and_centre
     # the pinhole's rays, K^-1 of its pixel centres: x/z depends on the column only, y/z on the row
     u = ((torch.arange(pinhole.width, dtype=torch.float64) + 0.5 - cx) / fx)[None, :]
-    v = ((torch.arange(pinhole.height, dtype=torch.float64) + 0.5 - cy) / fy)[:, None]
-    x, y = image_from_normalized(lens, u, v)
-    x, y = (
-        torch.broadcast_to(x, (pinhole.height, pinhole.width)),
-        torch.broadcast_to(y, (pinhole.height, pinhole.width)),
-    )
-    return _to_remap(lens, x, y)
+
+    def rows_to_maps(rows: Tensor) -> tuple[Tensor, Tensor]:
+        v = ((rows.to(torch.float64) + 0.5 - cy) / fy)[:, None]
+        x, y = image_from_normalized(lens, u, v)
+        shape = (len(rows), pinhole.width)
+        return _remap_coords(lens, torch.broadcast_to(x, shape), torch.broadcast_to(y, shape))
+
+    return _maps_by_rows(pinhole.width, pinhole.height, rows_to_maps)
 
 
 @lru_cache(maxsize=_MAP_CACHE)
@@ -96,14 +109,17 @@ def distort_maps(pinhole: Lens, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
     ray at 90 degrees or more, where COLMAP's lift returns no ray) is NaN, as is a ray leaving the pinhole.
     """
     _check_pinhole(pinhole, "distort_maps: pinhole")
-    pixels = _pixel_centres(lens.width, lens.height)
-    rays = unproject(lens, pixels)
-    rays3 = torch.cat([rays, torch.ones_like(rays[..., :1])], dim=-1)
-    back = project(lens, rays3)
-    has_ray = (back - pixels).norm(dim=-1) <= _ROUND_TRIP_PX  # False for NaN
-    target = project(pinhole, rays3)
-    target = torch.where(has_ray[..., None], target, torch.full_like(target, float("nan")))
-    return _to_remap(pinhole, target[..., 0], target[..., 1])
+
+    def rows_to_maps(rows: Tensor) -> tuple[Tensor, Tensor]:
+        pixels = _pixel_centres(lens.width, rows)
+        rays = unproject(lens, pixels)
+        rays3 = torch.cat([rays, torch.ones_like(rays[..., :1])], dim=-1)
+        has_ray = (project(lens, rays3) - pixels).norm(dim=-1) <= _ROUND_TRIP_PX  # False for NaN
+        target = project(pinhole, rays3)
+        target = torch.where(has_ray[..., None], target, torch.full_like(target, float("nan")))
+        return _remap_coords(pinhole, target[..., 0], target[..., 1])
+
+    return _maps_by_rows(lens.width, lens.height, rows_to_maps)
 
 
 def _remap(image: Tensor, source: Lens, maps: tuple[np.ndarray, np.ndarray], mode: str, name: str) -> Tensor:
