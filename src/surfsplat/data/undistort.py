@@ -130,7 +130,8 @@ def _remap(image: Tensor, source: Lens, maps: tuple[np.ndarray, np.ndarray], mod
         raise SurfSplatInputError(f"{name}: image must be [C, H, W] or [N, C, H, W], got {shape}")
     if tuple(image.shape[-2:]) != (source.height, source.width):
         raise SurfSplatInputError(
-            f"{name}: image is {image.shape[-1]}x{image.shape[-2]} but its lens is {source.width}x{source.height}"
+            f"{name}: image is {image.shape[-1]}x{image.shape[-2]} but its lens is {source.width}x{source.height} "
+            "(a lens calibrated at another size: Lens.rescaled)"
         )
     if image.dtype not in (torch.float32, torch.float64, torch.uint8, torch.bool):
         raise SurfSplatInputError(f"{name}: image dtype must be float32, float64, uint8 or bool, got {image.dtype}")
