@@ -14,6 +14,9 @@ way. Why cv2.remap and not a hand-written sampler: it is the library function fo
 the CPU; its bilinear weights are quantized to 1/32 pixel (OpenCV's INTER_TAB_SIZE), an error of at
 most 1/64 of the local difference between neighbouring pixels.
 
+On 8-bit photos the result is COLMAP's `image_undistorter`'s (pycolmap's `undistort_image`): the
+same size and, for every model 2-10, every value within one level (tests/data/test_undistort.py).
+
 Where an output pixel shows no pixel of the input (its ray leaves the input image, or has no pixel
 at all), it is 0; the input image's area is [0, W] x [0, H] in pixel coordinates, so a sample within
 half a pixel of the border takes the border pixel's value (OpenCV's BORDER_REPLICATE) rather than
