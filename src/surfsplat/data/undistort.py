@@ -149,7 +149,7 @@ def _remap(image: Tensor, source: Lens, maps: tuple[np.ndarray, np.ndarray], mod
         host = host.to(torch.uint8) if mode == "nearest" else host.to(torch.float32)
     hwc = np.ascontiguousarray(host.permute(1, 2, 0).numpy())  # [H, W, N*C]
     out = np.empty((mx.shape[0], mx.shape[1], hwc.shape[2]), dtype=hwc.dtype)
-    for start in range(0, hwc.shape[2], 4):  # cv2.remap takes at most 4 channels at a time
+    for start in range(0, hwc.shape[2], 4):  # cv2.remap's cubic refuses more than 4 channels (OpenCV 5)
         chunk = np.ascontiguousarray(hwc[:, :, start : start + 4])
         res = cv2.remap(chunk, mx, my, MODES[mode], borderMode=cv2.BORDER_REPLICATE)
         out[:, :, start : start + 4] = res.reshape(mx.shape[0], mx.shape[1], -1)
@@ -167,8 +167,9 @@ def undistort(image: Tensor, lens: Lens, pinhole: Lens, mode: str = "bilinear") 
     """An image of `lens` resampled to `pinhole`: [C, H, W] or [N, C, H, W] at the lens's size ->
     the same at the pinhole's size. "bilinear" for photos and masks (float32 photos stay in [0, 1]:
     bilinear weights are convex; COLMAP's undistorter is bilinear too), "bicubic" for sharper photos
-    (OpenCV's cubic, clipped to each channel's range in the image), "nearest" for depth maps. Pixels showing nothing of the lens's
-    image are 0 (see the module docs). A bool mask comes back float32 under "bilinear" (its coverage)."""
+    (OpenCV's cubic, clipped to each channel's range in the image), "nearest" for depth maps.
+    Pixels showing nothing of the lens's image are 0 (see the module docs). A bool mask comes back
+    float32 under "bilinear" (its coverage) and bool under "nearest"."""
     return _remap(image, lens, undistort_maps(lens, pinhole), mode, "undistort")
 
 
