@@ -18,7 +18,6 @@ from surfsplat import Cameras
 from surfsplat.data import load_scene, load_scene_cameras
 from surfsplat.data.cameras import load_cameras, save_cameras
 from surfsplat.data.formats.blender import read_transforms
-from surfsplat.data.formats.common import lens_matrix, rescaled_lens
 from surfsplat.data.images import read_image
 from surfsplat.data.transforms import WorkingCrop, rescale_and_crop, working_crop
 from surfsplat.geometry.lens import CAMERA_MODELS, Lens
@@ -75,7 +74,7 @@ def test_colmap_every_model_is_read_into_its_lens(tmp_path: Path, model: str, bi
     torch.testing.assert_close(cam_set.cameras.c2w, cams.c2w[order], atol=1e-9, rtol=0)
     if model in PINHOLES:
         assert cam_set.lenses is None and (cam_set.width, cam_set.height) == (W, H)
-        torch.testing.assert_close(cam_set.cameras.K, lens_matrix(lens).expand(3, 3, 3))
+        torch.testing.assert_close(cam_set.cameras.K, lens.intrinsics().expand(3, 3, 3))
         return
     assert cam_set.lenses == [lens] * 3  # COLMAP's parameters, in its order, at its size
     pinhole = reference_pinhole(lens)
@@ -98,7 +97,7 @@ def test_colmap_zero_distortion_perspective_models_are_pinholes(tmp_path: Path) 
     write_images(tmp_path / "images", ["a.png", "b.png"], W, H, seed=3)
     cam_set = load_scene_cameras(tmp_path)
     assert cam_set.lenses is None
-    torch.testing.assert_close(cam_set.cameras.K, lens_matrix(lens).expand(2, 3, 3))
+    torch.testing.assert_close(cam_set.cameras.K, lens.intrinsics().expand(2, 3, 3))
 
 
 def test_colmap_lens_follows_a_downscaled_photo_folder(tmp_path: Path) -> None:
@@ -111,7 +110,7 @@ def test_colmap_lens_follows_a_downscaled_photo_folder(tmp_path: Path) -> None:
     camera = colmap_camera(lens)
     camera.rescale(50, 38)
     half = Lens("OPENCV", 50, 38, tuple(camera.params))
-    assert cam_set.lenses == [half] * 2 and rescaled_lens(lens, 50, 38) == half
+    assert cam_set.lenses == [half] * 2 and lens.rescaled(50, 38) == half
     assert half.params[0] == 45.0 and half.params[4:] == lens.params[4:]  # focal halved, distortion kept
     _assert_pinhole_K(cam_set.cameras.K, reference_pinhole(half))
 
@@ -364,7 +363,7 @@ def test_camera_file_of_a_working_crop_is_accepted_with_its_photos(tmp_path: Pat
 def test_camera_file_records_each_views_lens_and_pinhole(tmp_path: Path) -> None:
     lens = _lens("SIMPLE_RADIAL")
     pinhole = reference_pinhole(lens)
-    cams = Cameras(random_cameras(2, 9, W, H).c2w, lens_matrix(pinhole).expand(2, 3, 3))
+    cams = Cameras(random_cameras(2, 9, W, H).c2w, pinhole.intrinsics().expand(2, 3, 3))
     save_cameras(tmp_path / "c.json", cams, pinhole.width, pinhole.height, ["a.png", "b.png"], lenses=[lens, lens])
     frames = json.loads((tmp_path / "c.json").read_text())["frames"]
     assert frames[0]["lens"] == lens.to_dict() and frames[0]["pinhole"] == pinhole.to_dict()
@@ -375,11 +374,16 @@ def test_camera_file_records_each_views_lens_and_pinhole(tmp_path: Path) -> None
 DISTORTED = Path(__file__).resolve().parent / "distorted"
 
 
-@pytest.mark.parametrize("given", ["sparse/0", "sparse/text", "sparse/0/images.bin", "transforms.json", "instant_ngp"])
+@pytest.mark.parametrize(
+    "given",
+    ["sparse/0", "sparse/text", "sparse/0/images.bin", "transforms.json", "instant_ngp", "fisheye/transforms.json"],
+)
 def test_distorted_fixture_is_read_by_every_file_of_it(given: str) -> None:
-    """The fixture's COLMAP model (binary and text), nerfstudio and instant-ngp transforms.json: one lens,
-    the pinhole COLMAP's undistorter chooses, the poses its truth.json holds."""
-    truth = json.loads((DISTORTED / "truth.json").read_text())
+    """The fixture's COLMAP model (binary and text), nerfstudio and instant-ngp transforms.json, and its
+    fisheye set's nerfstudio OPENCV_FISHEYE transforms.json: one lens, the pinhole COLMAP's undistorter
+    chooses, the poses its truth.json holds."""
+    folder = DISTORTED / "fisheye" if given.startswith("fisheye") else DISTORTED
+    truth = json.loads((folder / "truth.json").read_text())
     lens = Lens.from_dict(truth["lens"])
     cam_set = load_cameras(DISTORTED / given)
     assert cam_set.names == [Path(v["image"]).name for v in truth["views"]]
@@ -389,19 +393,21 @@ def test_distorted_fixture_is_read_by_every_file_of_it(given: str) -> None:
     torch.testing.assert_close(cam_set.cameras.c2w.double(), c2w, atol=1e-9, rtol=0)
 
 
-def test_distorted_fixture_photos_come_back_to_their_source() -> None:
+@pytest.mark.parametrize("given", ["sparse/0", "fisheye/transforms.json"])
+def test_distorted_fixture_photos_come_back_to_their_source(given: str) -> None:
     """Each distorted photo undistorted at load equals its DTU source photo seen by the new pinhole (the
     source resampled by the homography K_pinhole K_source^-1: same rotation, other intrinsics)."""
-    truth = json.loads((DISTORTED / "truth.json").read_text())
-    scene = load_scene(DISTORTED / "sparse" / "0")
+    folder = DISTORTED / "fisheye" if given.startswith("fisheye") else DISTORTED
+    truth = json.loads((folder / "truth.json").read_text())
+    scene = load_scene(DISTORTED / given)
     pinhole = reference_pinhole(Lens.from_dict(truth["lens"]))
     h, w = scene.height, scene.width
     j, i = torch.meshgrid(torch.arange(w) + 0.5, torch.arange(h) + 0.5, indexing="xy")
     errors = []
     for view, image in zip(truth["views"], scene.images):
         source, _ = read_image(DISTORTED.parent / view["source"], background=None)
-        K_src = lens_matrix(Lens.from_dict(view["pinhole"]))
-        rays = torch.stack([j, i, torch.ones_like(j)], -1).double() @ torch.linalg.inv(lens_matrix(pinhole)).T
+        K_src = Lens.from_dict(view["pinhole"]).intrinsics()
+        rays = torch.stack([j, i, torch.ones_like(j)], -1).double() @ torch.linalg.inv(pinhole.intrinsics()).T
         uv = rays @ K_src.T
         H, W = source.shape[1:]
         grid = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], -1).float()[None]

@@ -14,7 +14,6 @@ import torch
 from surfsplat.capture import FrameConfig
 from surfsplat.data import load_scene_cameras
 from surfsplat.data.cameras import CameraSet, load_cameras
-from surfsplat.data.formats.common import lens_matrix
 from surfsplat.data.images import read_image
 from surfsplat.data.transforms import rescale_and_crop
 from surfsplat.export.flow import ExportOptions
@@ -70,7 +69,7 @@ def test_views_with_a_lens_are_undistorted_as_they_are_read(tmp_path: Path, dtu:
     views, K = _undistorted_views(read_capture(paths, FrameConfig()), given.select(VIEWS, "test"), "test")
     pinhole = reference_pinhole(lens)
     assert (views.width, views.height) == (pinhole.width, pinhole.height) != (lens.width, lens.height)
-    torch.testing.assert_close(K, lens_matrix(pinhole).expand(2, 3, 3))
+    torch.testing.assert_close(K, pinhole.intrinsics().expand(2, 3, 3))
     photo, _ = read_image(paths[1], background=None)
     assert (views.image(1) - reference_undistort(photo, lens, pinhole)).abs().mean() < 2 / 255
     # a uniform downscale of the photos: the lens follows them (COLMAP's Camera.rescale)
@@ -152,7 +151,7 @@ def test_reconstruct_a_capture_with_a_lens(tmp_path: Path, dtu: CameraSet, model
     # the pinhole K of the crop: the undistorted photos' K taken through the working crop
     crop = scene.crop
     torch.testing.assert_close(
-        crop.uncrop(scene.cameras.K.double()), lens_matrix(pinhole).expand(2, 3, 3), rtol=1e-6, atol=1e-5
+        crop.uncrop(scene.cameras.K.double()), pinhole.intrinsics().expand(2, 3, 3), rtol=1e-6, atol=1e-5
     )
     # given back with the distorted photos: the same cameras
     again = reconstruct(

@@ -113,9 +113,9 @@ def pinhole_of(lens: Lens) -> Lens:
     """The pinhole a lens's photos are undistorted to: the lens itself where it is one (as PINHOLE), else
     `undistorted_pinhole` (COLMAP image_undistorter's choice)."""
     if lens.is_pinhole:
-        from .formats.common import lens_matrix, pinhole_lens
+        from .formats.common import pinhole_lens
 
-        return pinhole_lens(lens_matrix(lens), lens.width, lens.height)
+        return pinhole_lens(lens.intrinsics(), lens.width, lens.height)
     from ..geometry.lens import undistorted_pinhole
 
     return undistorted_pinhole(lens)

@@ -389,10 +389,9 @@ def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
 def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[CaptureInput, torch.Tensor]:
     """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), and their K [V, 3, 3]:
     each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled with it,
-    as COLMAP's Camera.rescale does) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
+    `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
     pinhole's, so every stage after this one sees pinhole photos and cameras."""
     from ..data.cameras import pinhole_of
-    from ..data.formats.common import lens_matrix, rescaled_lens
 
     pairs, Ks = [], []
     for name, lens in zip(views.names, given.lenses, strict=True):
@@ -403,10 +402,10 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
                     f"{source}: image {name!r} is {size[0]}x{size[1]} but its {lens.model} lens is calibrated for "
                     f"{lens.width}x{lens.height} (the photos must be that size or a uniform downscale of it)"
                 )
-            lens = rescaled_lens(lens, *size)
+            lens = lens.rescaled(*size)
         pinhole = pinhole_of(lens)
         pairs.append((lens, pinhole))
-        Ks.append(lens_matrix(pinhole))
+        Ks.append(pinhole.intrinsics())
     sizes = sorted({(p.width, p.height) for _, p in pairs})
     if len(sizes) != 1:
         raise SurfSplatInputError(

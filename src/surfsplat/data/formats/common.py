@@ -146,28 +146,6 @@ def present_views(paths: list[Path], source: str) -> list[int]:
     return keep
 
 
-def lens_matrix(lens: Lens) -> Tensor:
-    """K [3, 3] float64 from a lens's focal lengths and principal point (every COLMAP model starts with
-    f, cx, cy or fx, fy, cx, cy; the distortion parameters follow)."""
-    p = lens.params
-    if lens.param_names[0] == "f":
-        fx = fy = p[0]
-        cx, cy = p[1], p[2]
-    else:
-        fx, fy, cx, cy = p[:4]
-    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-
-
-def rescaled_lens(lens: Lens, width: int, height: int) -> Lens:
-    """The lens of a uniformly downscaled copy of its photos: COLMAP's `Camera.rescale` (focal lengths and
-    principal point scale with the size; the distortion acts on normalized coordinates and stays)."""
-    import pycolmap
-
-    camera = pycolmap.Camera(model=lens.model, width=lens.width, height=lens.height, params=list(lens.params))
-    camera.rescale(int(width), int(height))
-    return Lens(lens.model, int(width), int(height), tuple(float(v) for v in camera.params))
-
-
 def lens_view(
     lens: Lens, image_size: tuple[int, int], source: str, allow_downscale: bool
 ) -> tuple[Tensor, Lens | None, tuple[int, int]]:
@@ -175,16 +153,17 @@ def lens_view(
 
     A pinhole lens (or a perspective model with zero distortion) is its K, fitted to the photo's size as
     `fit_intrinsics` allows; any other lens is rescaled with the photo and undistorted to the pinhole
-    COLMAP's image_undistorter chooses, whose K and size the view then has."""
-    K = fit_intrinsics(lens_matrix(lens), (lens.width, lens.height), image_size, source, allow_downscale)
+    COLMAP's image_undistorter chooses, whose K and size the view then has. Photos in a downscaled folder
+    carry the lens rescaled with them (`Lens.rescaled`, COLMAP's Camera::Rescale)."""
+    K = fit_intrinsics(lens.intrinsics(), (lens.width, lens.height), image_size, source, allow_downscale)
     if lens.is_pinhole:
         return K, None, image_size
     if image_size != (lens.width, lens.height):
-        lens = rescaled_lens(lens, *image_size)
+        lens = lens.rescaled(*image_size)
     from ..cameras import pinhole_of
 
     pinhole = pinhole_of(lens)
-    return lens_matrix(pinhole), lens, (pinhole.width, pinhole.height)
+    return pinhole.intrinsics(), lens, (pinhole.width, pinhole.height)
 
 
 def view_lenses(
