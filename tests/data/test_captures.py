@@ -279,6 +279,22 @@ def test_colmap_registered_images_without_photo_are_left_out(tmp_path: Path, cap
     ]
 
 
+def test_realestate10k_timestamps_without_frame_are_left_out(tmp_path: Path, caplog) -> None:
+    cams = random_cameras(4, 10, 32, 18)
+    stamps = [1001, 2002, 3003, 4004]
+    rows = [" ".join([str(ts), *(repr(v) for v in row.tolist())]) for ts, row in zip(stamps, cams.to_re10k(32, 18))]
+    (tmp_path / "key.txt").write_text("\n".join(["https://www.youtube.com/watch?v=x", *rows]) + "\n")
+    write_images(tmp_path / "key", ["1001.jpg", "3003.jpg", "4004.jpg"], 32, 18, seed=10)
+    with caplog.at_level(logging.WARNING):
+        scene = load_scene(tmp_path / "key.txt", dtype=torch.float64)
+    assert scene.names == ["1001", "3003", "4004"]
+    assert scene.extras["timestamps"].tolist() == [1001, 3003, 4004]
+    torch.testing.assert_close(scene.cameras.c2w, cams.c2w[[0, 2, 3]], atol=1e-9, rtol=0)
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"1 of 4 frames listed in {tmp_path / 'key.txt'} has no photo (2002.jpg); they are left out"
+    ]
+
+
 def test_a_photo_that_exists_but_cannot_be_decoded_stays_an_error(tmp_path: Path) -> None:
     _transforms(tmp_path, {"camera_angle_x": 0.9}, n=3)
     (tmp_path / "images" / "frame_00002.png").write_bytes(b"not a png")

@@ -282,7 +282,7 @@ CASES = [
     ("colmap_missing_image", _case_colmap_missing_image, "1 of 2 listed frames has no photo (b.png)"),
     ("re10k_short_line", _case_re10k_short_line, "vid.txt:3: expected a timestamp and 18 numbers, got 18 fields"),
     ("re10k_nan", _case_re10k_nan, "vid.txt: camera row 0 contains NaN or inf"),
-    ("re10k_missing_frame", _case_re10k_missing_frame, "no frame image for timestamp 20"),
+    ("re10k_missing_frame", _case_re10k_missing_frame, "vid.txt: 1 of 2 listed frames has no photo (20.png)"),
 ]
 
 
