@@ -120,6 +120,23 @@ def _small_pair(tmp: Path, w: World) -> tuple[Path, Path, Path]:
     return a, b, tmp / "small.json"
 
 
+def _colmap_cameras(tmp: Path, w: World, camera_line: str) -> Path:
+    """A COLMAP text model of the world's two views whose one camera is `camera_line`'s model and parameters."""
+    model = tmp / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text(f"1 {camera_line}\n")
+    rows = [f"{i + 1} 1 0 0 0 {0.1 * i} 0 0 1 {p.name}\n\n" for i, p in enumerate(w.images)]
+    (model / "images.txt").write_text("".join(rows))
+    return model
+
+
+def _listed_photos_missing(tmp: Path, w: World) -> Path:
+    """A transforms.json whose photos were all left out by its publisher."""
+    frames = [{"file_path": f"images/{p.name}", "transform_matrix": np.eye(4).tolist()} for p in w.images]
+    (tmp / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    return tmp / "transforms.json"
+
+
 def _odd_size(tmp: Path, w: World) -> Path:
     path = tmp / "view1.png"
     iio.imwrite(path, np.full((48, SIZE, 3), 90, np.uint8))
@@ -257,6 +274,28 @@ CASES = [
         "camera",
         lambda w, t: _reconstruct(w, cameras=_nan_cameras(t, w), out=t / "o"),
         ["nan_cameras.json", "NaN"],
+    ),
+    (
+        "reconstruct-nan-distortion",
+        "camera",
+        lambda w, t: _reconstruct(
+            w, cameras=_colmap_cameras(t, w, f"OPENCV {SIZE} {SIZE} 60 60 32 32 nan 0 0 0"), out=t / "o"
+        ),
+        ["cameras.txt:1: camera 1: camera model OPENCV: parameter k1 is NaN"],
+    ),
+    (
+        "reconstruct-unknown-camera-model",
+        "camera",
+        lambda w, t: _reconstruct(
+            w, cameras=_colmap_cameras(t, w, f"DIVISION {SIZE} {SIZE} 60 60 32 32 0.1"), out=t / "o"
+        ),
+        ["cameras.txt:1: camera 1 has camera model DIVISION, which is not supported"],
+    ),
+    (
+        "reconstruct-every-listed-photo-missing",
+        "camera",
+        lambda w, t: _reconstruct(w, cameras=_listed_photos_missing(t, w), out=t / "o"),
+        ["transforms.json: every photo listed in it is missing"],
     ),
     (
         "reconstruct-camera-file-missing",
@@ -745,3 +784,25 @@ def test_viewer_serves_only_its_page(world, tmp_path, caplog):
         viewer = SurfelViewer(host="0.0.0.0", port=0)
         viewer.stop()
     assert any("reachable from other machines" in r.getMessage() for r in caplog.records)
+
+
+def _has_lens_functions() -> bool:
+    import importlib.util
+
+    import surfsplat.geometry.lens as lens
+
+    return hasattr(lens, "undistorted_pinhole") and importlib.util.find_spec("surfsplat.data.undistort") is not None
+
+
+@pytest.mark.skipif(
+    not _has_lens_functions(), reason="needs surfsplat.geometry.lens.undistorted_pinhole (the lens math)"
+)
+def test_absurd_distortion_is_one_line_exit_2(world, tmp_path, capsys, monkeypatch):
+    """A lens whose distortion leaves no valid region (k1 50, k2 -80 folds the image): one line naming the
+    model, before anything is read or written."""
+    monkeypatch.chdir(tmp_path)
+    model = _colmap_cameras(tmp_path, world, f"OPENCV {SIZE} {SIZE} 60 60 32 32 50 -80 0 0")
+    code = main(_reconstruct(world, cameras=model, out=tmp_path / "o"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "OPENCV" in err, err
+    assert not (tmp_path / "o").exists()

@@ -68,6 +68,35 @@ def test_dl3dv_converter(tmp_path: Path) -> None:
     torch.testing.assert_close(scene_b.cameras.c2w.double(), c2w_b, atol=1e-5, rtol=0)
 
 
+def test_dl3dv_converter_undistorts_photos_with_a_lens(tmp_path: Path, monkeypatch) -> None:
+    """A DL3DV scene whose transforms.json has an OPENCV lens: the chunk holds the photos undistorted to
+    the pinhole COLMAP's undistorter chooses, and that pinhole's K."""
+    from surfsplat.data.images import decode_image_bytes, read_image
+    from surfsplat.geometry.lens import Lens
+    from tests.helpers.lenses import colmap_camera, install_lens_references, reference_pinhole, reference_undistort
+
+    install_lens_references(monkeypatch)
+    _dl3dv_scene(tmp_path / "dl3dv", "cccc", 2, nested=False)
+    meta = json.loads((tmp_path / "dl3dv" / "cccc" / "transforms.json").read_text())
+    meta.update(k1=-0.1, k2=0.05)
+    (tmp_path / "dl3dv" / "cccc" / "transforms.json").write_text(json.dumps(meta))
+    convert("dl3dv", tmp_path / "dl3dv", tmp_path / "out")
+    ex = load_example(tmp_path / "out", "cccc")
+    lens = Lens("OPENCV", 64, 48, (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], -0.1, 0.05, 0.0, 0.0))
+    camera = colmap_camera(lens)  # the photos are images_8: the lens rescaled as COLMAP does
+    camera.rescale(8, 6)
+    small = Lens("OPENCV", 8, 6, tuple(camera.params))
+    pinhole = reference_pinhole(small)
+    scene = example_to_scene(ex)
+    assert scene.images.shape[2:] == (pinhole.height, pinhole.width)
+    fx, fy, cx, cy = pinhole.params
+    expected = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]], dtype=torch.float64)
+    torch.testing.assert_close(scene.cameras.K[0].double(), expected, atol=1e-4, rtol=1e-6)
+    photo, _ = read_image(tmp_path / "dl3dv" / "cccc" / "images_8" / "frame_00002.png", background=None)
+    stored = decode_image_bytes(ex["images"][0], "chunk")
+    assert (stored - reference_undistort(photo, small, pinhole)).abs().mean() < 2 / 255
+
+
 def _scannet_scene(root: Path, name: str, n: int, bad: set[int]) -> torch.Tensor:
     cams = random_cameras(n, 7, 16, 12)
     scene = root / name

@@ -155,8 +155,27 @@ def _case_blender_no_intrinsics(tmp: Path) -> Path:
     return _blender(tmp, lambda m: m.pop("camera_angle_x"))
 
 
-def _case_blender_distortion(tmp: Path) -> Path:
-    return _blender(tmp, lambda m: m.update({"k1": 0.1}))
+def _case_blender_r8_term(tmp: Path) -> Path:
+    # nerfstudio's k4 of a perspective lens is an r^8 term, which no COLMAP model has
+    return _blender(tmp, lambda m: m.update({"camera_model": "OPENCV", "k1": 0.1, "k4": 0.01}))
+
+
+def _case_blender_fisheye_tangential(tmp: Path) -> Path:
+    return _blender(tmp, lambda m: m.update({"camera_model": "OPENCV_FISHEYE", "k1": 0.1, "p1": 0.01}))
+
+
+def _case_blender_unknown_model(tmp: Path) -> Path:
+    return _blender(tmp, lambda m: m.update({"camera_model": "EQUIRECTANGULAR"}))
+
+
+def _case_blender_every_photo_missing(tmp: Path) -> Path:
+    root = _blender(tmp, lambda m: None)
+    shutil.rmtree(root / "train")
+    return root
+
+
+def _case_blender_fractional_size(tmp: Path) -> Path:
+    return _blender(tmp, lambda m: m.update({"w": 8.5}))
 
 
 def _case_blender_bad_json(tmp: Path) -> Path:
@@ -174,8 +193,24 @@ def _colmap(tmp: Path, **kw) -> Path:
     return tmp
 
 
-def _case_colmap_distortion(tmp: Path) -> Path:
-    return _colmap(tmp, binary=False, model="OPENCV", extra=[0.05, 0.0, 0.0, 0.0])
+def _case_colmap_unknown_model(tmp: Path) -> Path:
+    root = _colmap(tmp, binary=False)
+    path = root / "sparse" / "0" / "cameras.txt"
+    path.write_text(path.read_text().replace(" PINHOLE ", " RAD_TAN_THIN_PRISM_FISHEYE "))
+    return root
+
+
+def _case_colmap_unknown_model_id(tmp: Path) -> Path:
+    root = _colmap(tmp, binary=True)
+    path = root / "sparse" / "0" / "cameras.bin"
+    data = bytearray(path.read_bytes())
+    data[12:16] = (12).to_bytes(4, "little")  # the model id after the count (8 bytes) and camera id (4)
+    path.write_bytes(bytes(data))
+    return root
+
+
+def _case_colmap_nan_distortion(tmp: Path) -> Path:
+    return _colmap(tmp, binary=False, model="OPENCV", extra=[float("nan"), 0.0, 0.0, 0.0])
 
 
 def _case_colmap_truncated(tmp: Path) -> Path:
@@ -234,14 +269,20 @@ CASES = [
     ("blender_no_frames", _case_blender_no_frames, "transforms.json: missing key 'frames'"),
     ("blender_no_matrix", _case_blender_no_matrix, "transforms.json: frame 1: missing key 'transform_matrix'"),
     ("blender_no_intrinsics", _case_blender_no_intrinsics, "frame 0: no intrinsics"),
-    ("blender_distortion", _case_blender_distortion, "non-zero distortion"),
+    ("blender_r8_term", _case_blender_r8_term, "frame 0: field 'k4' is 0.01"),
+    ("blender_fisheye_tangential", _case_blender_fisheye_tangential, "frame 0: field 'p1' is 0.01"),
+    ("blender_unknown_model", _case_blender_unknown_model, "field 'camera_model' is 'EQUIRECTANGULAR'"),
+    ("blender_every_photo_missing", _case_blender_every_photo_missing, "every photo listed in it is missing"),
+    ("blender_fractional_size", _case_blender_fractional_size, "field 'w' must be a positive whole number"),
     ("blender_bad_json", _case_blender_bad_json, "transforms.json: not valid JSON"),
-    ("colmap_distortion", _case_colmap_distortion, "camera model OPENCV has non-zero distortion"),
+    ("colmap_unknown_model", _case_colmap_unknown_model, "cameras.txt:2: camera 1 has camera model RAD_TAN"),
+    ("colmap_unknown_model_id", _case_colmap_unknown_model_id, "cameras.bin: camera 1 has camera model id 12"),
+    ("colmap_nan_distortion", _case_colmap_nan_distortion, "camera 1: camera model OPENCV: parameter k1 is NaN"),
     ("colmap_truncated", _case_colmap_truncated, "images.bin: truncated file"),
-    ("colmap_missing_image", _case_colmap_missing_image, "b.png: image file not found"),
+    ("colmap_missing_image", _case_colmap_missing_image, "1 of 2 listed frames has no photo (b.png)"),
     ("re10k_short_line", _case_re10k_short_line, "vid.txt:3: expected a timestamp and 18 numbers, got 18 fields"),
     ("re10k_nan", _case_re10k_nan, "vid.txt: camera row 0 contains NaN or inf"),
-    ("re10k_missing_frame", _case_re10k_missing_frame, "no frame image for timestamp 20"),
+    ("re10k_missing_frame", _case_re10k_missing_frame, "vid.txt: 1 of 2 listed frames has no photo (20.png)"),
 ]
 
 

@@ -131,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         near=cams.near,
         far=cams.far,
         write_surfels="ply" in options.formats,
+        crop=cams.crop,
+        lenses=cams.lenses,
     )
     print_written(written)
     return 0

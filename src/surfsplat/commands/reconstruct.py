@@ -5,9 +5,13 @@
     surfsplat reconstruct --checkpoint depthsplat_small.ckpt --trust-pickle --preset small \\
         --images scan24/images_4/000000.png scan24/images_4/000001.png --cameras scan24 --images-folder images_4
 
-CAMS is a JSON camera file (see `surfsplat.data.cameras.load_cameras`), a COLMAP model folder, or a
-scene folder of any format `load_scene` reads (LLFF, DTU, transforms.json, COLMAP, RE10K); the
-images are matched to its cameras by file name. Images are rescaled and centre-cropped to a size
+CAMS is a camera file or folder recognised by its content (see `surfsplat.data.cameras.load_cameras`):
+a transforms.json of nerfstudio, instant-ngp or Blender, a COLMAP model (its folder or one of its files),
+this package's camera file (reconstruct's cameras.json, accepted back with the photos it was written
+for), or a scene folder of any format `load_scene` reads; the images are matched to its cameras by file
+name, and frames the file lists without a photo are left out with one warning. Cameras with a lens
+(COLMAP models 0-10, OPENCV / OPENCV_FISHEYE transforms) have their photos undistorted to a pinhole as
+they are read. Images are rescaled and centre-cropped to a size
 the network accepts (multiples of 16; `--size` to choose), with K following exactly. Without
 `--cameras` the cameras are estimated from the images first (`surfsplat poses`): the output folder
 then also holds estimated_cameras.json, poses.json and report.html (each photo beside its camera).
@@ -47,8 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--video", type=Path, help="a video of the scene (frames chosen by motion and sharpness)")
     add_cameras(
         parser,
-        "JSON camera file, COLMAP model or scene folder (default: the cameras of a capture folder given as --images "
-        "that holds a transforms.json or sparse/0, else estimated from the images)",
+        "camera file or folder, recognised by its content: a transforms.json (nerfstudio, instant-ngp, Blender), "
+        "a COLMAP model (folder or its cameras/images file), reconstruct's cameras.json, or a scene folder "
+        "(default: the cameras of a capture folder given as --images that holds a transforms.json or sparse/0, "
+        "else estimated from the images)",
     )
     parser.add_argument("--out", type=Path, default=Path("outputs/reconstruction"), help="output folder")
     parser.add_argument(
@@ -241,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if scene.video is not None:
         print("\n".join(scene.video.lines()))
+    if scene.lenses is not None:
+        print("\n".join(scene.lens_lines()))
     if scene.poses is not None:
         print("\n".join(scene.poses.lines()))
     if scene.network != "ran":

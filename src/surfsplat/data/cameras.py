@@ -1,9 +1,28 @@
 """Camera files: `CameraSet` (cameras with the image size their K is in pixels of), `load_cameras`
-for a JSON camera file, a bare COLMAP model or any scene folder `load_scene` reads (from the
-format's camera records and image headers: no pixel is decoded), and `save_cameras`.
+for any camera file or folder, recognised by its content (from the format's camera records and image
+headers: no pixel is decoded), and `save_cameras`.
 
-    cams = load_cameras("cameras.json")          # or a COLMAP model folder, or a scene folder
+    cams = load_cameras("cameras.json")          # this package's camera file
+    cams = load_cameras("capture/transforms.json")  # nerfstudio / instant-ngp / Blender
+    cams = load_cameras("capture/sparse/0")      # a COLMAP model (or its cameras.bin / images.txt ...)
+    cams = load_cameras("capture/")              # any scene folder load_scene reads
     save_cameras("cameras.json", cams.cameras, cams.width, cams.height, cams.names)
+
+What a given path is read as:
+- a JSON file whose `frames` entries have `transform_matrix`: a transforms.json (its folder is the
+  photos' root);
+- a JSON file with `format: surfsplat-cameras`, or `width`, `height` and `frames` with `K` and `c2w`:
+  this package's camera file;
+- `cameras.{bin,txt}`, `images.{bin,txt}` or `points3D.{bin,txt}`: the COLMAP model of its folder;
+- a folder: a COLMAP model folder (or a capture with `sparse/0` and no photos beside it), or any
+  scene folder `load_scene` reads.
+Anything else is one error saying what was found and what is accepted.
+
+The camera file this package writes records, beside K and c2w, the working crop its K is in pixels
+of (`crop`: the photos' size and what `rescale_and_crop` did to them) and, for a capture with a lens,
+each view's source lens and the pinhole its photos were undistorted to (`lens`, `pinhole`); read
+back, `CameraSet.resized` takes the cameras back to the source photos' size, and `lenses` says how
+to undistort them.
 """
 
 from __future__ import annotations
@@ -18,8 +37,8 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.lens import Lens
-from ..geometry.rotations import quat_to_matrix
 from ..utils.checks import SurfSplatInputError, read_json
+from .transforms import WorkingCrop
 
 # ----------------------------------------------------------------------------------------- camera files
 CAMERA_FILE_FORMAT = "surfsplat-cameras"
@@ -38,6 +57,9 @@ class CameraSet:
     # the lens of each view as the source states it (None: the views are pinhole, K says it all);
     # a reader undistorts such views to the pinhole K before any stage after it sees a pixel
     lenses: list[Lens] | None = None
+    # the working crop K is in pixels of (a camera file written by reconstruct): `resized` to the
+    # crop's source size undoes it (None: K is in pixels of the photos themselves)
+    crop: WorkingCrop | None = None
 
     def select(self, wanted: list[str], source: str) -> CameraSet:
         """The cameras of the named images, in that order (matched by file name or stem)."""
@@ -62,20 +84,46 @@ class CameraSet:
             self.near,
             self.far,
             None if self.lenses is None else [self.lenses[i] for i in picked],
+            self.crop,
         )
 
     def resized(self, width: int, height: int, source: str) -> Cameras:
-        """K for images of width x height: a uniform rescale of the calibrated size (K' = diag(sx, sy, 1) K)."""
+        """K for images of width x height: the calibrated size, a uniform rescale of it (K' = diag(sx, sy, 1) K),
+        or, for cameras of a working crop, the crop's source photos (the crop undone) or a uniform rescale of them."""
         if (width, height) == (self.width, self.height):
             return self.cameras
-        sx, sy = width / self.width, height / self.height
-        if abs(self.height * sx - height) > 0.5 + 1e-9:
+        cameras, cw, ch = self.cameras, self.width, self.height
+        crop = self.crop
+        if crop is not None and _uniform(crop.source_width, crop.source_height, width, height):
+            cameras = Cameras(cameras.c2w, crop.uncrop(cameras.K), validate=False)
+            cw, ch = crop.source_width, crop.source_height
+            if (width, height) == (cw, ch):
+                return cameras
+        if not _uniform(cw, ch, width, height):
+            also = f" or the {crop.source_width}x{crop.source_height} photos they were cropped from" if crop else ""
             raise SurfSplatInputError(
-                f"{source}: images are {width}x{height} but the cameras are for {self.width}x{self.height} "
+                f"{source}: images are {width}x{height} but the cameras are for {self.width}x{self.height}{also} "
                 "(only a uniform rescale of the calibrated size is accepted)"
             )
-        S = torch.tensor([sx, sy, 1.0], dtype=self.cameras.K.dtype)
-        return Cameras(self.cameras.c2w, self.cameras.K * S[:, None], validate=False)
+        S = torch.tensor([width / cw, height / ch, 1.0], dtype=cameras.K.dtype)
+        return Cameras(cameras.c2w, cameras.K * S[:, None], validate=False)
+
+
+def pinhole_of(lens: Lens) -> Lens:
+    """The pinhole a lens's photos are undistorted to: the lens itself where it is one (as PINHOLE), else
+    `undistorted_pinhole` (COLMAP image_undistorter's choice)."""
+    if lens.is_pinhole:
+        from .formats.common import pinhole_lens
+
+        return pinhole_lens(lens.intrinsics(), lens.width, lens.height)
+    from ..geometry.lens import undistorted_pinhole
+
+    return undistorted_pinhole(lens)
+
+
+def _uniform(cw: int, ch: int, width: int, height: int) -> bool:
+    """Whether width x height is cw x ch rescaled uniformly (the height within the half pixel of rounding)."""
+    return abs(ch * width / cw - height) <= 0.5 + 1e-9
 
 
 def save_cameras(
@@ -86,56 +134,115 @@ def save_cameras(
     names: list[str] | None = None,
     near: float | None = None,
     far: float | None = None,
+    *,
+    crop: WorkingCrop | None = None,
+    lenses: list[Lens] | None = None,
 ) -> Path:
-    """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height."""
+    """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height.
+
+    crop: the working crop of the photos K is in pixels of (`surfsplat.data.transforms.working_crop`),
+        recorded so that the file is accepted back with those photos.
+    lenses: each view's source lens (`CameraSet.lenses`), recorded with the pinhole its photo was
+        undistorted to (`undistorted_pinhole`), so that renders can be compared with the original photos
+        and the file is read back with them.
+    """
     from ..utils.atomic import write_text
 
     names = names or [f"view_{i:03d}" for i in range(len(cameras))]
     if len(names) != len(cameras):
         raise SurfSplatInputError(f"names: expected {len(cameras)} names, got {len(names)}")
+    if lenses is not None and len(lenses) != len(cameras):
+        raise SurfSplatInputError(f"lenses: expected {len(cameras)} lenses (one a view), got {len(lenses)}")
+    if crop is not None and (crop.width, crop.height) != (int(width), int(height)):
+        raise SurfSplatInputError(f"crop: a crop of {crop.width}x{crop.height} for cameras of {width}x{height}")
+    frames = []
+    for i, (n, k, c) in enumerate(zip(names, cameras.K.to(torch.float64), cameras.c2w.to(torch.float64))):
+        frame: dict[str, object] = {"name": n, "K": k.tolist(), "c2w": c.tolist()}
+        if lenses is not None:
+            frame["lens"], frame["pinhole"] = lenses[i].to_dict(), pinhole_of(lenses[i]).to_dict()
+        frames.append(frame)
     document: dict[str, object] = {
         "format": CAMERA_FILE_FORMAT,
         "convention": "opencv",
         "width": int(width),
         "height": int(height),
-        "frames": [
-            {"name": n, "K": k.tolist(), "c2w": c.tolist()}
-            for n, k, c in zip(names, cameras.K.to(torch.float64), cameras.c2w.to(torch.float64))
-        ],
+        "frames": frames,
     }
+    if crop is not None:
+        document["crop"] = crop.to_dict()
     if near is not None and far is not None:
         document["near"], document["far"] = float(near), float(far)
     return write_text(path, json.dumps(document, indent=1) + "\n")
 
 
-def load_cameras(path: str | os.PathLike, images: str | None = None) -> CameraSet:
-    """Cameras from a JSON camera file, a COLMAP model folder, or any scene folder `load_scene` reads.
+COLMAP_FILES = tuple(f"{stem}.{ext}" for stem in ("cameras", "images", "points3D") for ext in ("bin", "txt"))
+ACCEPTED = (
+    "a transforms.json (frames with transform_matrix), this package's camera file (format surfsplat-cameras: "
+    "width, height, frames with K and c2w), a COLMAP model folder or its cameras/images .bin/.txt, or a scene folder"
+)
 
-    JSON: {"width": W, "height": H, "convention": "opencv" | "opengl", "near": n, "far": f,
-    "frames": [{"name": "a.png", "K": 3x3 pixels, "c2w": 4x4 or 3x4}, ...]} (near/far optional).
-    `images` picks the image folder of a scene folder (e.g. images_4 for DTU).
+
+def load_cameras(path: str | os.PathLike, images: str | None = None) -> CameraSet:
+    """Cameras from a camera file or folder, recognised by its content (see the module doc).
+
+    This package's JSON: {"format": "surfsplat-cameras", "width": W, "height": H, "convention": "opencv" |
+    "opengl", "near": n, "far": f, "crop": {...}, "frames": [{"name": "a.png", "K": 3x3 pixels, "c2w": 4x4 or
+    3x4, "lens": {...}, "pinhole": {...}}, ...]} (near/far, crop and lens optional).
+    `images` picks the image folder of a scene folder (e.g. images_4 for DTU, images_2 for nerfstudio).
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: camera file or scene folder not found")
-    if path.is_file():
-        if path.suffix.lower() != ".json":
-            raise SurfSplatInputError(f"{path}: expected a .json camera file, a COLMAP model folder or a scene folder")
-        return _load_camera_json(path)
-    from .formats.colmap import find_model
+    from .formats.colmap import find_model, model_cameras, model_root
 
+    if path.is_file():
+        if path.name in COLMAP_FILES:
+            return model_cameras(path.parent)
+        if path.suffix.lower() != ".json":
+            raise SurfSplatInputError(f"{path}: a {path.suffix or 'suffix-less'} file; accepted: {ACCEPTED}")
+        data = read_json(path)
+        kind = _json_kind(data, path)
+        if kind == "transforms":
+            from .formats.blender import load_blender
+
+            return load_blender(path, images=images, cameras_only=True, dtype=torch.float64)
+        return _load_camera_json(path, data)
     model = find_model(path)
-    if model is not None and model == path and not (path / "images").is_dir():
-        return _load_colmap_model(path)
+    if model is not None and not (model_root(model) / (images or "images")).is_dir():
+        from .load import detect_format
+
+        if detect_format(path) == "colmap":  # a model without photos beside it: its cameras alone
+            return model_cameras(model)
     from .load import load_scene_cameras
 
     return load_scene_cameras(path, images=images)
 
 
-def _load_camera_json(path: Path) -> CameraSet:
-    data = read_json(path)
+def _json_kind(data: object, path: Path) -> str:
+    """ "transforms" or "surfsplat" from a JSON camera file's content, or an error saying what it holds."""
     if not isinstance(data, dict):
-        raise SurfSplatInputError(f"{path}: expected a JSON object with 'width', 'height' and 'frames'")
+        raise SurfSplatInputError(f"{path}: a JSON {type(data).__name__}, not an object; accepted: {ACCEPTED}")
+    frames = data.get("frames")
+    entries = [f for f in frames if isinstance(f, dict)] if isinstance(frames, list) else []
+    if data.get("format") == CAMERA_FILE_FORMAT:
+        return "surfsplat"
+    if entries and all("transform_matrix" in f for f in entries):
+        return "transforms"
+    if entries and all("K" in f and "c2w" in f for f in entries) and ("width" in data or "height" in data):
+        return "surfsplat"
+    keys = ", ".join(sorted(map(str, data))[:12]) or "none"
+    if isinstance(frames, list) and entries:
+        held = ", ".join(sorted({str(k) for f in entries for k in f})[:12])
+        found = f"'frames' whose entries hold {held} (no transform_matrix, nor K and c2w with a width and height)"
+    elif "frames" in data:
+        found = f"'frames' that is not a list of objects ({type(frames).__name__})"
+    else:
+        found = f"keys {keys} and no 'frames'"
+    raise SurfSplatInputError(f"{path}: not a camera file this package reads: it has {found}; accepted: {ACCEPTED}")
+
+
+def _load_camera_json(path: Path, data: dict) -> CameraSet:
+    """This package's camera file (see load_cameras), `data` its parsed JSON object."""
     for key in ("width", "height"):
         if not isinstance(data.get(key), int) or isinstance(data.get(key), bool) or data[key] < 1:
             raise SurfSplatInputError(f"{path}: field '{key}' must be a positive integer, got {data.get(key)!r}")
@@ -145,7 +252,7 @@ def _load_camera_json(path: Path) -> CameraSet:
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise SurfSplatInputError(f"{path}: field 'frames' must be a non-empty list")
-    Ks, c2ws, names = [], [], []
+    Ks, c2ws, names, lenses = [], [], [], []
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise SurfSplatInputError(f"{path}: frames[{i}] must be an object with 'K' and 'c2w'")
@@ -161,6 +268,17 @@ def _load_camera_json(path: Path) -> CameraSet:
         if not isinstance(name, str):
             raise SurfSplatInputError(f"{path}: frames[{i}].name must be a string, got {name!r}")
         names.append(name)
+        if "lens" in frame:
+            lenses.append(Lens.from_dict(frame["lens"], f"{path}: frames[{i}].lens"))
+    if lenses and len(lenses) != len(frames):
+        raise SurfSplatInputError(
+            f"{path}: {len(lenses)} of {len(frames)} frames have a 'lens'; give every frame one or none"
+        )
+    crop = WorkingCrop.from_dict(data["crop"], f"{path}: crop") if "crop" in data else None
+    if crop is not None and (crop.width, crop.height) != (data["width"], data["height"]):
+        raise SurfSplatInputError(
+            f"{path}: 'crop' is {crop.width}x{crop.height} but 'width' x 'height' is {data['width']}x{data['height']}"
+        )
     c2w_t, K_t = torch.stack(c2ws), torch.stack(Ks)
     from ..geometry.cameras import validate_c2w, validate_intrinsics
 
@@ -175,7 +293,7 @@ def _load_camera_json(path: Path) -> CameraSet:
             raise SurfSplatInputError(
                 f"{path}: 'near' and 'far' must be numbers with 0 < near < far, got {near!r}, {far!r}"
             )
-    return CameraSet(cameras, data["width"], data["height"], names, near, far)
+    return CameraSet(cameras, data["width"], data["height"], names, near, far, lenses or None, crop)
 
 
 def _matrix(value: object, shape: tuple[int, int] | None, where: str) -> Tensor:
@@ -188,30 +306,3 @@ def _matrix(value: object, shape: tuple[int, int] | None, where: str) -> Tensor:
     if not bool(torch.isfinite(t).all()):
         raise SurfSplatInputError(f"{where}: contains NaN or inf")
     return t
-
-
-def _load_colmap_model(model_dir: Path) -> CameraSet:
-    """Cameras of a bare COLMAP model folder (cameras/images .bin or .txt, no image folder)."""
-    from ..geometry.cameras import rigid_inverse
-    from .formats.colmap import pinhole_matrix, read_model
-
-    cameras, records, _ = read_model(model_dir)
-    if not records:
-        raise SurfSplatInputError(f"{model_dir}: the model has no registered images")
-    ordered = sorted(records.values(), key=lambda r: r.name)
-    sizes = set()
-    Ks, w2c = [], torch.eye(4, dtype=torch.float64).repeat(len(ordered), 1, 1)
-    for i, r in enumerate(ordered):
-        if r.camera_id not in cameras:
-            raise SurfSplatInputError(f"{model_dir}: image '{r.name}' refers to missing camera {r.camera_id}")
-        cam = cameras[r.camera_id]
-        sizes.add((cam.width, cam.height))
-        Ks.append(pinhole_matrix(cam, f"{model_dir}/cameras: camera {r.camera_id}").to(torch.float64))
-        w2c[i, :3, :3] = quat_to_matrix(torch.tensor(r.qvec, dtype=torch.float64))
-        w2c[i, :3, 3] = torch.tensor(r.tvec, dtype=torch.float64)
-    if len(sizes) != 1:
-        raise SurfSplatInputError(
-            f"{model_dir}: cameras of different image sizes {sorted(sizes)}; give a JSON camera file instead"
-        )
-    ((width, height),) = sizes
-    return CameraSet(Cameras(rigid_inverse(w2c), torch.stack(Ks)), width, height, [r.name for r in ordered])

@@ -107,7 +107,18 @@ def dl3dv_example(scene_dir: Path, images: str = "images_8") -> Example:
     """One DL3DV scene as a chunk example (raw image bytes, cameras normalized by image size)."""
     base = scene_dir / "nerfstudio" if (scene_dir / "nerfstudio" / "transforms.json").is_file() else scene_dir
     parsed = read_transforms(base, images=images, dtype=torch.float64)
-    width, height = image_bytes_size(_read_bytes(parsed.paths[0]), str(parsed.paths[0]))
+    if parsed.lenses is None:  # the photos' bytes as they are
+        photos = [_read_bytes(p) for p in parsed.paths]
+        width, height = image_bytes_size(photos[0], str(parsed.paths[0]))
+    else:  # a lens: each photo undistorted to its pinhole (the cameras' K) and stored as PNG
+        from .formats.common import undistort_photo
+        from .images import encode_image, read_image
+
+        photos = [
+            encode_image(undistort_photo(read_image(p, background=(0.0, 0.0, 0.0))[0], lens).clamp(0, 1), "png")
+            for p, lens in zip(parsed.paths, parsed.lenses)
+        ]
+        width, height = parsed.sizes[0]
     timestamps = torch.tensor(
         [_frame_number(str(f["file_path"]), str(parsed.json_path)) for f in parsed.frames], dtype=torch.int64
     )
@@ -115,7 +126,7 @@ def dl3dv_example(scene_dir: Path, images: str = "images_8") -> Example:
         "url": scene_dir.name,
         "timestamps": timestamps,
         "cameras": parsed.cameras.to_re10k(width, height).to(torch.float32),
-        "images": [_read_bytes(p) for p in parsed.paths],
+        "images": photos,
         "key": scene_dir.name,
     }
     return validate_example(example, str(parsed.json_path))

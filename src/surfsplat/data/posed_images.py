@@ -33,7 +33,9 @@ class PosedImages:
     masks: Tensor | None = None  # [N, 1, H, W]
     depths: Tensor | None = None  # [N, 1, H, W]
     source: str = ""
-    extras: dict[str, object] = field(default_factory=dict)  # format-specific metadata (e.g. DTU scale matrix)
+    # format-specific metadata (e.g. DTU scale matrix; "lenses": each view's source Lens where its photo was
+    # undistorted at load)
+    extras: dict[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         where = self.source or "scene"
@@ -80,6 +82,10 @@ class PosedImages:
         def pick(t: Tensor | None) -> Tensor | None:
             return None if t is None else t[idx]
 
+        extras = dict(self.extras)
+        if "lenses" in extras:  # one per view, like the tensors
+            extras["lenses"] = [extras["lenses"][i] for i in idx.tolist()]
+
         return PosedImages(
             images=self.images[idx],
             cameras=self.cameras[idx],
@@ -89,7 +95,7 @@ class PosedImages:
             masks=pick(self.masks),
             depths=pick(self.depths),
             source=self.source,
-            extras=dict(self.extras),
+            extras=extras,
         )
 
 

@@ -10,6 +10,7 @@ images, then centre-crops; `rescale_and_crop` does the same with pixel K kept co
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass, fields
 from typing import Literal
 
 import numpy as np
@@ -88,6 +89,59 @@ def center_crop(
     return images, K, depths
 
 
+@dataclass(frozen=True)
+class WorkingCrop:
+    """What `rescale_and_crop` does to photos of source_width x source_height: a resize to
+    scaled_width x scaled_height, then the window of width x height whose top-left pixel is (top, left)."""
+
+    source_width: int
+    source_height: int
+    scaled_width: int
+    scaled_height: int
+    left: int
+    top: int
+    width: int
+    height: int
+
+    def to_dict(self) -> dict:
+        return {k: int(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: object, source: str) -> WorkingCrop:
+        names = [f.name for f in fields(cls)]
+        if not isinstance(data, dict) or set(data) != set(names):
+            raise SurfSplatInputError(f"{source}: expected an object with {', '.join(names)}, got {data!r}")
+        if not all(isinstance(data[n], int) and not isinstance(data[n], bool) and data[n] >= 0 for n in names):
+            raise SurfSplatInputError(f"{source}: every field must be a non-negative integer, got {data!r}")
+        crop = cls(**{n: data[n] for n in names})
+        if crop != working_crop(crop.source_width, crop.source_height, (crop.height, crop.width)):
+            raise SurfSplatInputError(
+                f"{source}: {crop.width}x{crop.height} is not the working crop of "
+                f"{crop.source_width}x{crop.source_height} photos (rescale_and_crop)"
+            )
+        return crop
+
+    def uncrop(self, K: Tensor) -> Tensor:
+        """K [..., 3, 3] in pixels of the crop -> K in pixels of the source photos (the inverse of the crop)."""
+        K = K.clone()
+        K[..., 0, 2] += self.left
+        K[..., 1, 2] += self.top
+        S = torch.tensor(
+            [self.source_width / self.scaled_width, self.source_height / self.scaled_height, 1.0],
+            dtype=K.dtype,
+            device=K.device,
+        )
+        return K * S[:, None]
+
+
+def working_crop(width: int, height: int, shape: tuple[int, int]) -> WorkingCrop:
+    """The resize and window `rescale_and_crop` applies to width x height photos for shape = (height, width)."""
+    h, w = _check_size("shape", shape)
+    scale = max(h / height, w / width)
+    sh, sw = max(h, round(height * scale)), max(w, round(width * scale))
+    return WorkingCrop(int(width), int(height), int(sw), int(sh), (sw - w) // 2, (sh - h) // 2, w, h)
+
+
 def rescale_and_crop(
     images: Tensor,  # [V, 3, H, W]
     K: Tensor,  # [V, 3, 3]
@@ -97,12 +151,10 @@ def rescale_and_crop(
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The release's crop shim with exact pixel K: scale by max(h/H, w/W) (rounded sizes, K
     scaled by the realised per-axis factors), then centre-crop to shape = (height, width)."""
-    h, w = _check_size("shape", shape)
     H, W = images.shape[-2:]
-    scale = max(h / H, w / W)
-    size = (max(h, round(H * scale)), max(w, round(W * scale)))
-    images, K, depths = resize_views(images, K, size, method, depths)
-    return center_crop(images, K, (h, w), depths)
+    crop = working_crop(W, H, shape)
+    images, K, depths = resize_views(images, K, (crop.scaled_height, crop.scaled_width), method, depths)
+    return center_crop(images, K, (crop.height, crop.width), depths)
 
 
 def horizontal_flip(

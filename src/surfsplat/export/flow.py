@@ -83,11 +83,13 @@ def export_reconstruction(
     far: float | None = None,
     write_surfels: bool = True,
     seconds: dict[str, float] | None = None,
+    crop=None,  # surfsplat.data.transforms.WorkingCrop of the photos the cameras' K is in pixels of
+    lenses=None,  # each view's source Lens (a capture with a lens), recorded in cameras.json
 ) -> dict[str, Path]:
     """Write what people look at for one reconstruction; returns {what: path}. Each file is written
     under a temporary name and renamed, so an interrupted export leaves no half-written file.
     `seconds`, when given, receives the wall time of each step (ply, bake, renders, path, turntable,
-    mesh)."""
+    mesh). `crop` and `lenses` are recorded in cameras.json (see `save_cameras`)."""
     import time
 
     from ..data.cameras import save_cameras
@@ -117,7 +119,9 @@ def export_reconstruction(
         lap("ply")
         written.update(write_viewer_ply(gaussians, cameras, width, height, out, options))
         lap("bake" if options.bake is not None else "3dgs ply")
-    written["cameras"] = save_cameras(out / "cameras.json", cameras, width, height, names, near, far)
+    written["cameras"] = save_cameras(
+        out / "cameras.json", cameras, width, height, names, near, far, crop=crop, lenses=lenses
+    )
 
     s = options.scale
     w, h = max(1, round(width * s)), max(1, round(height * s))

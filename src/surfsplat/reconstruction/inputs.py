@@ -39,6 +39,9 @@ class CaptureInput:
     sources: list[str] = field(default_factory=list)  # what each view came from, for the summary
     sizes: list[tuple[int, int]] = field(default_factory=list)  # (width, height) of each view as displayed
     orientations: list[int] = field(default_factory=list)  # EXIF orientation of each view's file (1: none)
+    # each view's (source lens, pinhole) where the cameras have a lens: its photo is undistorted to the
+    # pinhole as it is read, and width x height are the pinhole's (None: the photos are pinhole)
+    lenses: list[tuple] | None = None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -58,16 +61,23 @@ class CaptureInput:
             pick(self.sources),
             pick(self.sizes),
             pick(self.orientations),
+            None if self.lenses is None else pick(self.lenses),
         )
 
     def image(self, i: int) -> Tensor:
-        """View i as float32 [3, H, W] in [0, 1] (transparent photos composited on black, as the model saw in training)."""
+        """View i as float32 [3, H, W] in [0, 1] (transparent photos composited on black, as the model saw in
+        training), undistorted to its pinhole where the cameras have a lens."""
         from ..data.images import read_image
 
         if self.paths[i] is not None:
             rgb, _ = read_image(self.paths[i], background=(0.0, 0.0, 0.0))
-            return rgb
-        return torch.from_numpy(np.ascontiguousarray(self.arrays[i])).permute(2, 0, 1).float() / 255
+        else:
+            rgb = torch.from_numpy(np.ascontiguousarray(self.arrays[i])).permute(2, 0, 1).float() / 255
+        if self.lenses is not None and not self.lenses[i][0].is_pinhole:
+            from ..data.undistort import undistort
+
+            rgb = undistort(rgb, *self.lenses[i])
+        return rgb
 
     def pose_inputs(self) -> list:
         """What pose estimation reads: the files where there are files (EXIF focal), else the arrays."""

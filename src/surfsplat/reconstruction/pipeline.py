@@ -169,10 +169,14 @@ def reconstruct(
         given, source = given
     from .sizes import crop_report, view_cameras
 
-    # each view's K in pixels of its own photo as displayed (photos may differ in size and orientation)
-    own = cameras is None or isinstance(cameras, Cameras)  # estimated K: each in its own photo's pixels
-    per_view = view_cameras(given, views.sizes, views.orientations, views.names, source, own_pixels=own)
-    K, c2w = per_view.K, per_view.c2w
+    if given.lenses is not None:  # every stage after this sees the pinhole photos
+        views, K = _undistorted_views(views, given, source)
+        c2w = given.cameras.c2w
+    else:
+        # each view's K in pixels of its own photo as displayed (photos may differ in size and orientation)
+        own = cameras is None or isinstance(cameras, Cameras)  # estimated K: each in its own photo's pixels
+        per_view = view_cameras(given, views.sizes, views.orientations, views.names, source, own_pixels=own)
+        K, c2w = per_view.K, per_view.c2w
     near, far = _depth_range(near, far, given)
 
     # ---- held-out views and context sets
@@ -251,6 +255,8 @@ def reconstruct(
         checkpoint=_checkpoint_name(checkpoint, label),
         sources=[views.sources[i] for i in context],
         cameras_source=source,
+        source_size=(views.width, views.height),
+        lenses=None if views.lenses is None else dict(zip(views.names, (pair[0] for pair in views.lenses))),
         passes=[[views.names[context[j]] for j in members] for members in built.passes],
         seconds=seconds,
         compact_level=compact if not skipped else None,
@@ -506,6 +512,45 @@ def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
     raise SurfSplatInputError(
         f"cameras: expected None, a camera file or folder, a CameraSet or Cameras, got {type(cameras).__name__}"
     )
+
+
+def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[CaptureInput, torch.Tensor]:
+    """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), and their K [V, 3, 3]:
+    each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled with it,
+    `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
+    pinhole's, so every stage after this one sees pinhole photos and cameras."""
+    from ..data.cameras import pinhole_of
+
+    pairs, Ks = [], []
+    for i, (name, lens) in enumerate(zip(views.names, given.lenses, strict=True)):
+        size = views.sizes[i] if views.sizes else (views.width, views.height)
+        if size != (lens.width, lens.height):
+            if size[0] > lens.width or abs(lens.height * size[0] / lens.width - size[1]) > 0.5:
+                raise SurfSplatInputError(
+                    f"{source}: image {name!r} is {size[0]}x{size[1]} but its {lens.model} lens is calibrated for "
+                    f"{lens.width}x{lens.height} (the photos must be that size or a uniform downscale of it)"
+                )
+            lens = lens.rescaled(*size)
+        pinhole = pinhole_of(lens)
+        pairs.append((lens, pinhole))
+        Ks.append(pinhole.intrinsics())
+    sizes = sorted({(p.width, p.height) for _, p in pairs})
+    if len(sizes) != 1:
+        raise SurfSplatInputError(
+            f"{source}: the views' lenses undistort to different sizes {[f'{w}x{h}' for w, h in sizes]}; "
+            "a reconstruction has one size"
+        )
+    ((width, height),) = sizes
+    undistorted = views.subset(list(range(len(views))))
+    undistorted.width, undistorted.height, undistorted.lenses = width, height, pairs
+    undistorted.sizes = [(width, height)] * len(pairs)
+    models = sorted({lens.model for lens, _ in pairs if not lens.is_pinhole})
+    if models:
+        logger.info(
+            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {width}x{height} pinholes "
+            f"as they are read (from {views.width}x{views.height})"
+        )
+    return undistorted, torch.stack(Ks).to(given.cameras.K.dtype)
 
 
 def _depth_range(near: float | None, far: float | None, cams) -> tuple[float, float]:

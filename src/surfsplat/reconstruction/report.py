@@ -77,7 +77,13 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
 
         # `surfsplat optimize` of this folder scores the same views again from these
         written["held-out cameras"] = save_cameras(
-            out / "capture" / "held_out_cameras.json", h.cameras, scene.width, scene.height, list(h.names)
+            out / "capture" / "held_out_cameras.json",
+            h.cameras,
+            scene.width,
+            scene.height,
+            list(h.names),
+            crop=scene.crop,
+            lenses=scene.view_lenses(list(h.names)),
         )
         fitted = "the optimized scene" if scene.optimize_stats else "the fused scene"
         report.heading(f"Held-out views: never a context view, rendered from {fitted}")

@@ -167,6 +167,60 @@ class Scene:
     # then `model` is "", `passes` empty, `precision` "none", `mode` "surfel", and the surfels before the
     # optimization, which the held-out views' `before` figures score, are that start)
     network: str = "ran"
+    # (width, height) of the photos the working crop was taken from (after undistortion; None: unknown)
+    source_size: tuple[int, int] | None = None
+    # each view's source lens by name, context and held-out (None: the photos were pinhole); the
+    # photos were undistorted to `pinhole_of(lens)` before the working crop
+    lenses: dict | None = None
+
+    def lens_lines(self) -> list[str]:
+        """One line per distinct source lens: its model and parameters, the pinhole its photos were
+        undistorted to, and the working crop of that."""
+        lines = []
+        for group in self.lens_summary() or []:
+            source, pinhole = group["source"], group["pinhole"]
+            if source["model"] == "PINHOLE":
+                continue
+            from ..geometry.lens import Lens
+
+            names = Lens.from_dict(source).param_names
+            params = ", ".join(f"{n} {v:.6g}" for n, v in zip(names, source["params"]))
+            fx, fy, cx, cy = pinhole["params"]
+            lines.append(
+                f"lens {source['model']} ({params}) at {source['width']}x{source['height']}, {len(group['views'])} "
+                f"view{'s' if len(group['views']) > 1 else ''}: photos undistorted to a {pinhole['width']}x"
+                f"{pinhole['height']} pinhole (fx {fx:.6g}, fy {fy:.6g}, cx {cx:.6g}, cy {cy:.6g}), "
+                f"then rescaled and cropped to the {self.width}x{self.height} working size"
+            )
+        return lines
+
+    @property
+    def crop(self):
+        """The WorkingCrop from the photos (after undistortion) to the scene's width x height, or None."""
+        if self.source_size is None:
+            return None
+        from ..data.transforms import working_crop
+
+        return working_crop(*self.source_size, (self.height, self.width))
+
+    def view_lenses(self, names: list[str]) -> list | None:
+        """The source lens of each named view (None where the scene has no lenses)."""
+        return None if self.lenses is None else [self.lenses[n] for n in names]
+
+    def lens_summary(self) -> list[dict] | None:
+        """What reconstruction.json records of the lenses: each distinct source lens (COLMAP model and
+        parameters), the pinhole its photos were undistorted to, and the views that had it."""
+        if self.lenses is None:
+            return None
+        from ..data.cameras import pinhole_of
+
+        groups: dict = {}
+        for name, lens in self.lenses.items():
+            groups.setdefault(lens, []).append(name)
+        return [
+            {"source": lens.to_dict(), "pinhole": pinhole_of(lens).to_dict(), "views": names}
+            for lens, names in groups.items()
+        ]
 
     @property
     def device(self) -> torch.device:
@@ -251,6 +305,10 @@ class Scene:
             "precision": self.precision,
             "network": self.network,
         }
+        if self.crop is not None:
+            out["working_crop"] = self.crop.to_dict()
+        if self.lenses is not None:
+            out["lenses"] = self.lens_summary()
         if self.optimize_stats:
             out["optimize"] = self.optimize_stats
             if "versus_input" in self.optimize_stats:  # a saved scene optimized again: is it the better one?
@@ -322,6 +380,8 @@ class Scene:
             near=self.near,
             far=self.far,
             seconds=seconds,
+            crop=self.crop,
+            lenses=self.view_lenses(self.names),
         )
         tick = time.perf_counter()
         if self.poses is not None:

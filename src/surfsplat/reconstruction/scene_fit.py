@@ -156,7 +156,7 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
             f"{cameras_file}: cameras of {cams.width}x{cams.height}, the scene is {width}x{height}"
         )
 
-    def photo(source: str, what: str) -> Tensor:
+    def photo(source: str, what: str, lens) -> Tensor:
         path = Path(source)
         if not path.is_absolute() and not path.is_file():
             path = folder / path
@@ -166,13 +166,24 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
                 "the reconstruction was made from)"
             )
         rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))  # as reconstruct composites them
+        if lens is not None:  # undistorted to its pinhole first, as reconstruct read it
+            from ..data.formats.common import undistort_photo
+
+            if (rgb.shape[2], rgb.shape[1]) != (lens.width, lens.height):
+                raise SurfSplatInputError(
+                    f"{path}: photo is {rgb.shape[2]}x{rgb.shape[1]} but its {lens.model} lens in {cameras_file} "
+                    f"is for {lens.width}x{lens.height}"
+                )
+            rgb = undistort_photo(rgb, lens)
         resized, _, _ = rescale_and_crop(rgb[None].float(), torch.eye(3)[None], (height, width))
         return resized[0].clamp(0, 1)
 
-    photos = [photo(source, "context") for source in summary["images"]]
-    if len(photos) != len(cams.names):
-        raise SurfSplatInputError(f"{summary_file}: {len(photos)} photos for {len(cams.names)} cameras")
+    context_lenses = cams.lenses or [None] * len(cams.names)
+    if len(summary["images"]) != len(context_lenses):
+        raise SurfSplatInputError(f"{summary_file}: {len(summary['images'])} photos for {len(cams.names)} cameras")
+    photos = [photo(source, "context", lens) for source, lens in zip(summary["images"], context_lenses)]
     gaussians = load_ply(ply)
+    lenses = dict(zip(cams.names, cams.lenses)) if cams.lenses is not None else {}
     holdout = None
     held = (summary.get("capture") or {}).get("held_out") or {}
     held_cameras = folder / "capture" / "held_out_cameras.json"
@@ -180,12 +191,19 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         from .scene import HeldOut
 
         held_set = load_cameras(held_cameras)
+        held_lenses = held_set.lenses or [None] * len(held_set.names)
+        if len(held["sources"]) != len(held_lenses):
+            raise SurfSplatInputError(
+                f"{summary_file}: {len(held['sources'])} held-out photos for {len(held_lenses)} cameras"
+            )
         holdout = HeldOut(
             list(held_set.names),
             held_set.cameras.to(torch.float32),
-            torch.stack([photo(source, "held-out") for source in held["sources"]]),
+            torch.stack([photo(source, "held-out", lens) for source, lens in zip(held["sources"], held_lenses)]),
             sources=list(held["sources"]),
         )
+        if held_set.lenses is not None:
+            lenses.update(zip(held_set.names, held_set.lenses))
     scene = Scene(
         gaussians=gaussians,
         cameras=cams.cameras.to(torch.float32),
@@ -205,6 +223,8 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         compact_level=summary.get("compact_level"),
         holdout=holdout,
         network=summary.get("network", "ran"),
+        source_size=None if cams.crop is None else (cams.crop.source_width, cams.crop.source_height),
+        lenses=lenses or None,
     )
     return scene, torch.stack(photos)
 

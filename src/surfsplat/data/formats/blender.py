@@ -1,9 +1,28 @@
-"""Blender (NeRF synthetic) and nerfstudio `transforms.json` captures.
+"""Blender (NeRF synthetic), nerfstudio and instant-ngp `transforms.json` captures.
 
 Each frame has `file_path` (relative to the JSON file; Blender omits the `.png` suffix) and
 `transform_matrix`, a camera-to-world matrix with OpenGL/Blender axes (x right, y up, z back).
-Intrinsics: Blender gives `camera_angle_x` (horizontal field of view, principal point at the
-image centre); nerfstudio gives `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` at the top level or per frame.
+Intrinsics, at the top level or per frame (a frame's own keys override the top level's):
+- Blender: `camera_angle_x` (horizontal field of view in radians; `camera_angle_y` optional),
+  principal point at the image centre;
+- nerfstudio / instant-ngp: `fl_x` (`fl_y` defaults to it), `cx`, `cy` (default the centre), `w`, `h`
+  (the calibrated size; instant-ngp writes them as floats);
+- the lens: nerfstudio's `camera_model` (`PINHOLE`, `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`,
+  `OPENCV`: one perspective model with k1, k2, k3, p1, p2; `OPENCV_FISHEYE`: k1..k4), or, without
+  `camera_model`, instant-ngp's: any non-zero k1, k2, k3, p1, p2 is its OpenCV model, and
+  `is_fisheye: true` makes k1..k4 the OpenCV fisheye model's.
+As COLMAP models (`surfsplat.geometry.lens`): a perspective lens is OPENCV (fx, fy, cx, cy, k1, k2,
+p1, p2), or FULL_OPENCV (k3 its r^6 term) when k3 is non-zero: nerfstudio's radial factor is
+1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 (`camera_utils.radial_and_tangential_distort`), OpenCV's and
+FULL_OPENCV's numerator the same up to r^6, so k3 carries over; nerfstudio's k4 (an r^8 term) has no
+COLMAP model and is an error where non-zero (nerfstudio itself refuses it when undistorting). A
+fisheye lens is OPENCV_FISHEYE (k1..k4 of theta, as both tools and COLMAP define it); tangential terms
+there are an error. instant-ngp stores k3/k4 and p1/p2 in the same two slots and so drops k3 when
+p1/p2 are present; its own colmap2nerf never writes a non-zero k3 for a perspective camera, so a
+non-zero k3 is read with nerfstudio's (and OpenCV's) meaning. nerfstudio's `applied_transform` and
+`applied_scale` are informational (the poses are used as the file gives them).
+Lenses are undistorted at load to a pinhole (see `common.lens_view`); frames whose photo is missing
+are left out with one warning (`common.present_views`).
 RGBA images are composited on a background colour and their alpha becomes the scene's masks.
 """
 
@@ -17,11 +36,25 @@ from typing import Any
 import torch
 
 from ...geometry.cameras import Cameras
+from ...geometry.lens import Lens
 from ...utils.checks import SurfSplatInputError, read_json
-from ..posed_images import PosedImages, check_finite_rows, downscale_from_folder, fit_intrinsics
-from .common import camera_set, image_sizes, load_image_stack, make_cameras
+from ..posed_images import PosedImages, check_finite_rows, downscale_from_folder
+from .common import (
+    camera_set,
+    image_sizes,
+    lens_view,
+    load_image_stack,
+    make_cameras,
+    present_views,
+    undistort_views,
+    view_lenses,
+)
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+# nerfstudio's camera_model values of perspective cameras (its CAMERA_MODEL_TO_TYPE): one model whose
+# distortion is whatever k1..k4, p1, p2 the file gives
+PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+FISHEYE_MODELS = ("OPENCV_FISHEYE",)
 
 
 def find_transforms(path: Path, split: str) -> Path | None:
@@ -45,6 +78,66 @@ def _number(entry: dict[str, Any], key: str, source: str) -> float:
     return float(value)
 
 
+def _size(entry: dict[str, Any], key: str, source: str) -> int:
+    """A calibrated size in pixels: an integer, or a float holding one (instant-ngp writes 800.0)."""
+    value = _number(entry, key, source)
+    if value != round(value) or value < 1:
+        raise SurfSplatInputError(f"{source}: field '{key}' must be a positive whole number of pixels, got {value!r}")
+    return int(round(value))
+
+
+def frame_lens(entry: dict[str, Any], image_size: tuple[int, int], source: str) -> Lens:
+    """The lens of one frame (its keys over the top level's) at its calibrated size, as a COLMAP model."""
+    w, h = image_size
+    if "fl_x" in entry:
+        fx = _number(entry, "fl_x", source)
+        fy = _number(entry, "fl_y", source) if "fl_y" in entry else fx
+        cw = _size(entry, "w", source) if "w" in entry else w
+        ch = _size(entry, "h", source) if "h" in entry else h
+        cx = _number(entry, "cx", source) if "cx" in entry else cw / 2
+        cy = _number(entry, "cy", source) if "cy" in entry else ch / 2
+    elif "camera_angle_x" in entry:
+        cw = _size(entry, "w", source) if "w" in entry else w
+        ch = _size(entry, "h", source) if "h" in entry else h
+        fx = 0.5 * cw / math.tan(0.5 * _number(entry, "camera_angle_x", source))
+        angle_y = "camera_angle_y" in entry
+        fy = 0.5 * ch / math.tan(0.5 * _number(entry, "camera_angle_y", source)) if angle_y else fx
+        cx, cy = cw / 2, ch / 2
+    else:
+        raise SurfSplatInputError(f"{source}: no intrinsics (expected 'fl_x' or 'camera_angle_x')")
+    for key, value in (("fl_x", fx), ("fl_y", fy)):
+        if not value > 0:
+            raise SurfSplatInputError(f"{source}: field '{key}' must be a positive focal length, got {value!r}")
+    k = {key: _number(entry, key, source) for key in DISTORTION_KEYS if key in entry}
+    k1, k2, k3, k4, p1, p2 = (k.get(key, 0.0) for key in DISTORTION_KEYS)
+    model = entry.get("camera_model")
+    if model is None:  # instant-ngp: the keys present decide
+        fisheye = entry.get("is_fisheye", False)
+        if not isinstance(fisheye, bool):
+            raise SurfSplatInputError(f"{source}: field 'is_fisheye' must be true or false, got {fisheye!r}")
+        model = "OPENCV_FISHEYE" if fisheye else "OPENCV"
+    elif model not in PERSPECTIVE_MODELS + FISHEYE_MODELS:
+        supported = ", ".join(PERSPECTIVE_MODELS + FISHEYE_MODELS)
+        raise SurfSplatInputError(f"{source}: field 'camera_model' is {model!r}, which is not supported ({supported})")
+    if model in FISHEYE_MODELS:
+        for key in ("p1", "p2"):
+            if k.get(key, 0.0) != 0:
+                raise SurfSplatInputError(
+                    f"{source}: field '{key}' is {k[key]!r}, but the OpenCV fisheye model has no tangential terms"
+                )
+        return Lens("OPENCV_FISHEYE", cw, ch, (fx, fy, cx, cy, k1, k2, k3, k4))
+    if k4 != 0:
+        raise SurfSplatInputError(
+            f"{source}: field 'k4' is {k4!r}: a perspective lens's r^8 term has no COLMAP camera model "
+            "(k1, k2, k3, p1, p2 are read); undistort these photos first"
+        )
+    if k3 != 0:
+        return Lens("FULL_OPENCV", cw, ch, (fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0))
+    if (k1, k2, p1, p2) == (0.0, 0.0, 0.0, 0.0):
+        return Lens("PINHOLE", cw, ch, (fx, fy, cx, cy))
+    return Lens("OPENCV", cw, ch, (fx, fy, cx, cy, k1, k2, p1, p2))
+
+
 def _resolve_image(json_dir: Path, file_path: str, images: str | None) -> Path:
     rel = Path(file_path)
     if images is not None and rel.parts and rel.parts[0].startswith("images"):
@@ -63,7 +156,9 @@ class TransformsCameras:
     json_path: Path
     paths: list[Path]
     cameras: Cameras
-    frames: list[dict[str, Any]]  # the JSON frame entries, in file order
+    frames: list[dict[str, Any]]  # the JSON frame entries with a photo, in file order
+    lenses: list[Lens] | None = None  # each view's lens (None: all pinhole), undistorted to `cameras` at load
+    sizes: list[tuple[int, int]] | None = None  # (width, height) of each view once read (after undistortion)
 
 
 def read_transforms(
@@ -104,47 +199,24 @@ def read_transforms(
         paths.append(_resolve_image(json_path.parent, str(frame["file_path"]), images))
     c2w_gl_t = torch.stack(c2w_gl)
     check_finite_rows(c2w_gl_t, str(json_path), "frame")
-    for p in paths:
-        if not p.is_file():
-            raise FileNotFoundError(f"{p}: image file not found (listed in {json_path})")
+    keep = present_views(paths, str(json_path))  # frames whose photo the publisher left out are dropped
+    frames = [frames[i] for i in keep]
+    paths = [paths[i] for i in keep]
+    c2w_gl_t = c2w_gl_t[keep]
 
     sizes = image_sizes(paths)
-    Ks = []
-    for i, (frame, size) in enumerate(zip(frames, sizes)):
+    views = []
+    for i, frame, path, size in zip(keep, frames, paths, sizes):
         entry = {**meta, **frame}  # per-frame intrinsics override the shared ones
-        where = f"{json_path}: frame {i}"
-        model = entry.get("camera_model", "PINHOLE")
-        distortion = {k: float(entry[k]) for k in DISTORTION_KEYS if k in entry}
-        if any(v != 0 for v in distortion.values()):
-            raise SurfSplatInputError(
-                f"{where}: camera_model {model} has non-zero distortion {distortion}; "
-                "undistort the images first (e.g. ns-process-data or COLMAP's image_undistorter)"
-            )
-        w, h = size
-        if "fl_x" in entry:
-            fx = _number(entry, "fl_x", where)
-            fy = _number(entry, "fl_y", where) if "fl_y" in entry else fx
-            cw = int(_number(entry, "w", where)) if "w" in entry else w
-            ch = int(_number(entry, "h", where)) if "h" in entry else h
-            cx = _number(entry, "cx", where) if "cx" in entry else cw / 2
-            cy = _number(entry, "cy", where) if "cy" in entry else ch / 2
-        elif "camera_angle_x" in entry:
-            cw, ch = w, h
-            fx = 0.5 * w / math.tan(0.5 * _number(entry, "camera_angle_x", where))
-            fy = 0.5 * h / math.tan(0.5 * _number(entry, "camera_angle_y", where)) if "camera_angle_y" in entry else fx
-            cx, cy = w / 2, h / 2
-        else:
-            raise SurfSplatInputError(f"{where}: no intrinsics (expected 'fl_x' or 'camera_angle_x')")
-        K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        Ks.append(
-            fit_intrinsics(K, (cw, ch), size, str(paths[i]), allow_downscale=downscale_from_folder(paths[i].parent))
-        )
+        lens = frame_lens(entry, size, f"{json_path}: frame {i}")
+        views.append(lens_view(lens, size, str(path), downscale_from_folder(path.parent)))
+    Ks, lenses, view_sizes = view_lenses(views)
 
     # OpenGL -> OpenCV flips the camera's y and z axes (the same matrix as Cameras.from_opengl,
     # applied here so that validation errors name the JSON file).
     c2w_cv = c2w_gl_t @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
-    cameras = make_cameras(c2w_cv, torch.stack(Ks), str(json_path), dtype)
-    return TransformsCameras(json_path, paths, cameras, frames)
+    cameras = make_cameras(c2w_cv, Ks, str(json_path), dtype)
+    return TransformsCameras(json_path, paths, cameras, frames, lenses, view_sizes)
 
 
 def load_blender(
@@ -161,12 +233,14 @@ def load_blender(
     parsed = read_transforms(path, split=split, images=images, dtype=dtype)
     if cameras_only:
         names = [p.name for p in parsed.paths]
-        return camera_set(parsed.cameras, parsed.paths, image_sizes(parsed.paths), names)
+        return camera_set(parsed.cameras, parsed.paths, parsed.sizes, names, lenses=parsed.lenses)
     rgb, alpha = load_image_stack(parsed.paths, background=background)
+    rgb, alpha = undistort_views(rgb, alpha, parsed.lenses, parsed.paths)
     return PosedImages(
         images=rgb,
         cameras=parsed.cameras,
         names=[p.name for p in parsed.paths],
         masks=alpha,
         source=str(parsed.json_path),
+        extras={} if parsed.lenses is None else {"lenses": parsed.lenses},  # each view's lens before undistortion
     )

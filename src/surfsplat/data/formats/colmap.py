@@ -3,8 +3,17 @@
 Layout: `<root>/images/` and `<root>/sparse/0/{cameras,images,points3D}.{bin,txt}` (a model folder
 can also be passed directly). Image poses are world-to-camera (R(q) X + t, q = (w, x, y, z)) with
 OpenCV axes; COLMAP puts the centre of the top-left pixel at (0.5, 0.5), our convention, so K is
-used as is. PINHOLE and SIMPLE_PINHOLE cameras are read directly, as is any model whose
-distortion parameters are all zero; anything else is an error asking for undistorted images.
+used as is. Every camera model COLMAP writes (ids 0-10, `surfsplat.geometry.lens.CAMERA_MODELS`)
+becomes a `Lens`: PINHOLE and SIMPLE_PINHOLE cameras, and any model whose distortion parameters are
+all zero, are read as their K; any other lens is undistorted at load to the pinhole COLMAP's
+`image_undistorter` would choose (`undistorted_pinhole`), photos and masks alike, and the scene's K
+and size are that pinhole's. A registered image whose photo file is missing is left out with one
+warning (`common.present_views`).
+
+The binary and text layouts are read here rather than through pycolmap's `Reconstruction.read`
+so that a truncated or malformed file is reported as one line naming its path, line and field, and
+so that a model's cameras and poses are read without its points (`load_cameras`); the tests check
+this reader against models written by pycolmap (text and binary, every camera model).
 Per-view near/far come from the depths of the view's own triangulated points (0.1 and 99.9
 percentiles, as LLFF's imgs2poses does) when points3D is present and every view sees at least
 one point in front of it (a view whose points all share one depth gets far = 1.01 near);
@@ -21,44 +30,22 @@ import numpy as np
 import torch
 
 from ...geometry.cameras import rigid_inverse
+from ...geometry.lens import CAMERA_MODELS, MODEL_IDS, Lens
 from ...geometry.rotations import quat_to_matrix
 from ...utils.checks import SurfSplatInputError
-from ..posed_images import PosedImages, downscale_from_folder, fit_intrinsics
-from .common import camera_set, image_sizes, load_image_stack, make_cameras
+from ..posed_images import PosedImages, downscale_from_folder
+from .common import (
+    camera_set,
+    image_sizes,
+    lens_view,
+    load_image_stack,
+    make_cameras,
+    present_views,
+    undistort_views,
+    view_lenses,
+)
 
-# model id -> (name, number of parameters, indices of the distortion parameters); COLMAP's table.
-CAMERA_MODELS: dict[int, tuple[str, int, tuple[int, ...]]] = {
-    0: ("SIMPLE_PINHOLE", 3, ()),
-    1: ("PINHOLE", 4, ()),
-    2: ("SIMPLE_RADIAL", 4, (3,)),
-    3: ("RADIAL", 5, (3, 4)),
-    4: ("OPENCV", 8, (4, 5, 6, 7)),
-    5: ("OPENCV_FISHEYE", 8, (4, 5, 6, 7)),
-    6: ("FULL_OPENCV", 12, tuple(range(4, 12))),
-    7: ("FOV", 5, (4,)),
-    8: ("SIMPLE_RADIAL_FISHEYE", 4, (3,)),
-    9: ("RADIAL_FISHEYE", 5, (3, 4)),
-    10: ("THIN_PRISM_FISHEYE", 12, tuple(range(4, 12))),
-    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16, tuple(range(4, 16))),
-}
-MODEL_IDS = {name: i for i, (name, _, _) in CAMERA_MODELS.items()}
-# Fisheye models are not pinhole even with zero distortion (equidistant projection).
-_FISHEYE = {
-    "OPENCV_FISHEYE",
-    "SIMPLE_RADIAL_FISHEYE",
-    "RADIAL_FISHEYE",
-    "THIN_PRISM_FISHEYE",
-    "RAD_TAN_THIN_PRISM_FISHEYE",
-    "FOV",
-}
-
-
-@dataclass
-class ColmapCamera:
-    model: str
-    width: int
-    height: int
-    params: list[float]
+SUPPORTED = ", ".join(f"{i} {name}" for i, (name, _) in CAMERA_MODELS.items())
 
 
 @dataclass
@@ -118,16 +105,27 @@ class _Reader:
         return out
 
 
-def read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
+def _lens(model: str, width: int, height: int, params: list[float], where: str) -> Lens:
+    """The Lens of one camera record, its errors prefixed with the file and camera."""
+    try:
+        return Lens(model, int(width), int(height), tuple(float(v) for v in params))
+    except SurfSplatInputError as err:
+        raise SurfSplatInputError(f"{where}: {err}") from None
+
+
+def read_cameras_binary(path: Path) -> dict[int, Lens]:
     r = _Reader(path)
     (count,) = r.read("Q")
     cameras = {}
     for _ in range(count):
         camera_id, model_id, width, height = r.read("iiQQ")
         if model_id not in CAMERA_MODELS:
-            raise SurfSplatInputError(f"{path}: camera {camera_id} has unknown model id {model_id}")
-        name, num_params, _ = CAMERA_MODELS[model_id]
-        cameras[camera_id] = ColmapCamera(name, width, height, list(r.read("d" * num_params)))
+            raise SurfSplatInputError(
+                f"{path}: camera {camera_id} has camera model id {model_id}, which is not supported (supported: {SUPPORTED})"
+            )
+        name, names = CAMERA_MODELS[model_id]
+        params = list(r.read("d" * len(names)))
+        cameras[camera_id] = _lens(name, width, height, params, f"{path}: camera {camera_id}")
     return cameras
 
 
@@ -171,7 +169,7 @@ def _parse(tokens: list[str], types: list[type], path: Path, line_no: int) -> li
         raise SurfSplatInputError(f"{path}:{line_no}: {err}") from None
 
 
-def read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
+def read_cameras_text(path: Path) -> dict[int, Lens]:
     cameras = {}
     for line_no, line in _data_lines(path):
         if not line:
@@ -179,10 +177,17 @@ def read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
         tokens = line.split()
         camera_id, model, width, height = _parse(tokens, [int, str, int, int], path, line_no)
         if model not in MODEL_IDS:
-            raise SurfSplatInputError(f"{path}:{line_no}: unknown camera model {model}")
-        num_params = CAMERA_MODELS[MODEL_IDS[model]][1]
-        params = _parse(tokens[4:], [float] * num_params, path, line_no)
-        cameras[camera_id] = ColmapCamera(model, width, height, params)
+            raise SurfSplatInputError(
+                f"{path}:{line_no}: camera {camera_id} has camera model {model}, which is not supported (supported: {SUPPORTED})"
+            )
+        names = CAMERA_MODELS[MODEL_IDS[model]][1]
+        if len(tokens) - 4 != len(names):
+            raise SurfSplatInputError(
+                f"{path}:{line_no}: camera {camera_id} ({model}) has {len(tokens) - 4} parameters, "
+                f"expected {len(names)} ({', '.join(names)})"
+            )
+        params = _parse(tokens[4:], [float] * len(names), path, line_no)
+        cameras[camera_id] = _lens(model, width, height, params, f"{path}:{line_no}: camera {camera_id}")
     return cameras
 
 
@@ -217,7 +222,7 @@ def read_points_text(path: Path) -> dict[int, np.ndarray]:
     return points
 
 
-def read_model(model_dir: Path) -> tuple[dict[int, ColmapCamera], dict[int, ColmapImage], dict[int, np.ndarray] | None]:
+def read_model(model_dir: Path) -> tuple[dict[int, Lens], dict[int, ColmapImage], dict[int, np.ndarray] | None]:
     """(cameras, images, points or None) from a model folder, binary preferred over text."""
     ext = "bin" if (model_dir / "cameras.bin").is_file() else "txt"
     readers = {
@@ -234,62 +239,19 @@ def read_model(model_dir: Path) -> tuple[dict[int, ColmapCamera], dict[int, Colm
     return cameras, images, points
 
 
-def pinhole_matrix(camera: ColmapCamera, source: str) -> torch.Tensor:
-    """K [3, 3] of a pinhole-compatible camera, or an error naming the model."""
-    if camera.model in _FISHEYE:
-        raise SurfSplatInputError(
-            f"{source}: camera model {camera.model} is not a pinhole model; undistort the images "
-            "first (colmap image_undistorter writes PINHOLE cameras)"
-        )
-    _, _, distortion = CAMERA_MODELS[MODEL_IDS[camera.model]]
-    if any(camera.params[i] != 0 for i in distortion):
-        raise SurfSplatInputError(
-            f"{source}: camera model {camera.model} has non-zero distortion "
-            f"{[camera.params[i] for i in distortion]}; undistort the images first "
-            "(colmap image_undistorter writes PINHOLE cameras)"
-        )
-    p = camera.params
-    if camera.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        fx = fy = p[0]
-        cx, cy = p[1], p[2]
-    else:
-        fx, fy, cx, cy = p[0], p[1], p[2], p[3]
-    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-
-
-def load_colmap(
-    path: Path,
-    images: str | None = None,
-    dtype: torch.dtype = torch.float32,
-    cameras_only: bool = False,
-) -> PosedImages:
-    """Read a COLMAP capture (see module doc); `images` names the image folder under the root
-    (default `images`; `images_N` folders are accepted as uniform downscales)."""
-    model_dir = find_model(path)
-    if model_dir is None:
-        raise FileNotFoundError(f"{path}: no COLMAP model (cameras.bin or cameras.txt) in it, sparse/0 or sparse")
+def model_root(model_dir: Path) -> Path:
+    """The capture folder of a model folder: <root>/sparse/0, <root>/sparse, or the model folder itself."""
     if model_dir.parent.name == "sparse":  # <root>/sparse/0
-        root = model_dir.parent.parent
-    elif model_dir.name == "sparse":  # <root>/sparse
-        root = model_dir.parent
-    else:  # model files directly in <root>
-        root = model_dir
-    folder = root / (images or "images")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: image folder not found (pass images=... to choose another)")
+        return model_dir.parent.parent
+    if model_dir.name == "sparse":  # <root>/sparse
+        return model_dir.parent
+    return model_dir
 
-    cameras, records, points = read_model(model_dir)
-    if not records:
-        raise SurfSplatInputError(f"{model_dir}: the model has no registered images")
-    ordered = sorted(records.values(), key=lambda r: r.name)
-    paths = [folder / r.name for r in ordered]
-    for p in paths:
-        if not p.is_file():
-            raise FileNotFoundError(f"{p}: image file not found (registered in {model_dir})")
 
+def _poses(ordered: list[ColmapImage], src: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(c2w [N, 4, 4], R [N, 3, 3], t [N, 3]) of the registered images, each pose checked."""
     q = torch.tensor([r.qvec for r in ordered], dtype=torch.float64)
     t = torch.tensor([r.tvec for r in ordered], dtype=torch.float64)
-    src = f"{model_dir}/images"
     bad = ~torch.isfinite(torch.cat([q, t], 1)).all(1)
     if bool(bad.any()):
         i = int(bad.nonzero()[0])
@@ -305,19 +267,75 @@ def load_colmap(
     w2c = torch.eye(4, dtype=torch.float64).repeat(len(ordered), 1, 1)
     w2c[:, :3, :3] = R
     w2c[:, :3, 3] = t
-    c2w = rigid_inverse(w2c)
+    return rigid_inverse(w2c), R, t
 
-    sizes = image_sizes(paths)
-    Ks = []
-    for r, p, size in zip(ordered, paths, sizes):
-        if r.camera_id not in cameras:
-            raise SurfSplatInputError(f"{src}: image '{r.name}' refers to missing camera {r.camera_id}")
-        cam = cameras[r.camera_id]
-        K = pinhole_matrix(cam, f"{model_dir}/cameras: camera {r.camera_id}")
-        Ks.append(
-            fit_intrinsics(K, (cam.width, cam.height), size, str(p), allow_downscale=downscale_from_folder(folder))
+
+def _camera_of(cameras: dict[int, Lens], record: ColmapImage, src: str) -> Lens:
+    if record.camera_id not in cameras:
+        raise SurfSplatInputError(f"{src}: image '{record.name}' refers to missing camera {record.camera_id}")
+    return cameras[record.camera_id]
+
+
+def model_cameras(model_dir: Path, dtype: torch.dtype = torch.float64):
+    """The CameraSet of a bare model folder (no photos read): each camera's K at its calibrated size,
+    or, for a lens, the pinhole its photos are undistorted to, with `lenses` set."""
+    cameras, records, _ = read_model(model_dir)
+    if not records:
+        raise SurfSplatInputError(f"{model_dir}: the model has no registered images")
+    ordered = sorted(records.values(), key=lambda r: r.name)
+    src = f"{model_dir}/images"
+    c2w, _, _ = _poses(ordered, src)
+    views = []
+    for r in ordered:
+        lens = _camera_of(cameras, r, src)
+        views.append(lens_view(lens, (lens.width, lens.height), f"{model_dir}/cameras: camera {r.camera_id}", False))
+    Ks, lenses, sizes = view_lenses(views)
+    sizes_set = sorted(set(sizes))
+    if len(sizes_set) != 1:
+        raise SurfSplatInputError(
+            f"{model_dir}/cameras: cameras of different image sizes {sizes_set} (after undistortion); "
+            "give a JSON camera file instead"
         )
-    cams = make_cameras(c2w, torch.stack(Ks), src, dtype)
+    from ..cameras import CameraSet
+
+    cams = make_cameras(c2w, Ks, src, dtype)
+    (width, height) = sizes_set[0]
+    return CameraSet(cams, width, height, [r.name for r in ordered], lenses=lenses)
+
+
+def load_colmap(
+    path: Path,
+    images: str | None = None,
+    dtype: torch.dtype = torch.float32,
+    cameras_only: bool = False,
+) -> PosedImages:
+    """Read a COLMAP capture (see module doc); `images` names the image folder under the root
+    (default `images`; `images_N` folders are accepted as uniform downscales)."""
+    model_dir = find_model(path)
+    if model_dir is None:
+        raise FileNotFoundError(f"{path}: no COLMAP model (cameras.bin or cameras.txt) in it, sparse/0 or sparse")
+    root = model_root(model_dir)
+    folder = root / (images or "images")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: image folder not found (pass images=... to choose another)")
+
+    cameras, records, points = read_model(model_dir)
+    if not records:
+        raise SurfSplatInputError(f"{model_dir}: the model has no registered images")
+    ordered = sorted(records.values(), key=lambda r: r.name)
+    keep = present_views([folder / r.name for r in ordered], f"{model_dir} (registered images)")
+    ordered = [ordered[i] for i in keep]
+    paths = [folder / r.name for r in ordered]
+
+    src = f"{model_dir}/images"
+    c2w, R, t = _poses(ordered, src)
+    sizes = image_sizes(paths)
+    views = []
+    for r, p, size in zip(ordered, paths, sizes):
+        lens = _camera_of(cameras, r, src)
+        views.append(lens_view(lens, size, str(p), downscale_from_folder(folder)))
+    Ks, lenses, view_sizes = view_lenses(views)
+    cams = make_cameras(c2w, Ks, src, dtype)
 
     near = far = None
     if points is not None:
@@ -339,15 +357,12 @@ def load_colmap(
             far = torch.tensor([b[1] for b in bounds], dtype=dtype)
             far = torch.where(far > near, far, near * 1.01)
 
+    names = [r.name for r in ordered]
     if cameras_only:
-        return camera_set(cams, paths, sizes, [r.name for r in ordered], near, far)
+        return camera_set(cams, paths, view_sizes, names, near, far, lenses)
     rgb, alpha = load_image_stack(paths, background=(0.0, 0.0, 0.0))
+    rgb, alpha = undistort_views(rgb, alpha, lenses, paths)
+    extras = {} if lenses is None else {"lenses": lenses}  # the source lens of each view, before undistortion
     return PosedImages(
-        images=rgb,
-        cameras=cams,
-        names=[r.name for r in ordered],
-        near=near,
-        far=far,
-        masks=alpha,
-        source=str(root),
+        images=rgb, cameras=cams, names=names, near=near, far=far, masks=alpha, source=str(root), extras=extras
     )

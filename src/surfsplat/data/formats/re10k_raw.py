@@ -3,7 +3,8 @@
 The first line of the .txt is the video URL; every other line is a timestamp (microseconds)
 followed by 18 numbers: fx, fy, cx, cy normalized by the image width/height, two zeros, and the
 row-major 3x4 world-to-camera matrix (OpenCV axes). Frames are image files named by timestamp
-(`<timestamp>.png` / `.jpg`) in `<key>/`, `frames/<key>/` or `frames/` beside the .txt.
+(`<timestamp>.png` / `.jpg`) in `<key>/`, `frames/<key>/` or `frames/` beside the .txt. A listed
+timestamp without its frame is left out with one warning that counts them (`common.present_views`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from ...geometry.cameras import Cameras, rigid_inverse, validate_c2w
 from ...utils.checks import SurfSplatInputError
 from ..images import is_image_file
 from ..posed_images import PosedImages, check_finite_rows
-from .common import camera_set, image_sizes, load_image_stack, make_cameras
+from .common import camera_set, image_sizes, load_image_stack, make_cameras, present_views
 
 
 def find_camera_file(path: Path) -> Path | None:
@@ -107,11 +108,12 @@ def load_re10k_raw(
     for p in folder.iterdir():
         if is_image_file(p) and p.stem.isdigit():
             by_stamp[int(p.stem)] = p
-    paths = []
-    for ts in timestamps.tolist():
-        if ts not in by_stamp:
-            raise FileNotFoundError(f"{folder}: no frame image for timestamp {ts} (listed in {txt})")
-        paths.append(by_stamp[ts])
+    # a listed timestamp whose frame was not extracted is left out (one warning counts them), as in the
+    # other camera files that list photos; its name in the warning takes the extracted frames' suffix
+    suffix = next(iter(by_stamp.values())).suffix if by_stamp else ".png"
+    paths = [by_stamp.get(ts, folder / f"{ts}{suffix}") for ts in timestamps.tolist()]
+    keep = present_views(paths, str(txt))
+    paths, timestamps, rows = [paths[i] for i in keep], timestamps[keep], rows[keep]
     sizes = image_sizes(paths)
     if len(set(sizes)) != 1:
         raise SurfSplatInputError(f"{folder}: frames have different sizes {sorted(set(sizes))}")
