@@ -19,6 +19,7 @@ from surfsplat.data.synthetic.render import render_synthetic
 from surfsplat.data.synthetic.scene import WORLD_DOWN, Lighting, SyntheticConfig, SyntheticScene, make_scene
 from surfsplat.data.synthetic.textures import random_texture
 from surfsplat.geometry.cameras import Cameras, look_at
+from surfsplat.geometry.lens import Lens
 from surfsplat.poses import PoseConfig, estimate_cameras, exif_focal, relative_pose_errors
 from surfsplat.utils.checks import SurfSplatInputError
 
@@ -121,7 +122,10 @@ def test_synthetic_room_two_views_with_focal(room):
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     assert rot[0] < 1.0 and trans[0] < 2.5, (rot, trans)
     assert summary.points > 500 and summary.reprojection_error < 0.5
-    assert torch.allclose(cams.cameras.K, truth.K)  # the given focal, principal point at the centre
+    # the given focal, principal point at the centre, a SIMPLE_RADIAL lens whose k is (nearly) the room's zero
+    f, cx, cy, k = summary.lens.params
+    assert summary.lens.model == "SIMPLE_RADIAL" and (f, cx, cy) == (float(truth.K[0, 0, 0]), W / 2, H / 2)
+    assert abs(k) < 0.01, k
 
 
 DTU_PAIRS = [(23, 24), (12, 13), (30, 31)]
@@ -325,6 +329,7 @@ def test_config_checks_name_the_option():
 @pytest.mark.slow
 def test_poses_command_writes_a_camera_file_load_cameras_reads(orbit_views, tmp_path, capsys):
     from surfsplat.data.cameras import load_cameras
+    from surfsplat.geometry.lens import undistorted_pinhole
 
     paths = _save(orbit_views[0][:2], tmp_path)
     focal = float(orbit_views[1].K[0, 0, 0])
@@ -333,10 +338,17 @@ def test_poses_command_writes_a_camera_file_load_cameras_reads(orbit_views, tmp_
     printed = capsys.readouterr().out
     assert "registered 2 of 2 images (two-view)" in printed and "given (--focal)" in printed
     assert "view0.png - view1.png:" in printed and "inliers" in printed
+    assert "camera SIMPLE_RADIAL: f " in printed  # the default model, with its parameters
     cams = load_cameras(out)
-    assert cams.names == ["view0.png", "view1.png"] and (cams.width, cams.height) == (W, H)
-    assert cams.far == 30 and 0 < cams.near < 4
-    assert float(cams.cameras.K[0, 0, 0]) == pytest.approx(focal)
+    assert cams.names == ["view0.png", "view1.png"] and cams.far == 30 and 0 < cams.near < 4
+    frames = json.loads(out.read_text())["frames"]
+    lens, pinhole = (Lens.from_dict(frames[0][key]) for key in ("lens", "pinhole"))
+    assert (
+        lens.model == "SIMPLE_RADIAL" and lens.params[0] == pytest.approx(focal) and (lens.width, lens.height) == (W, H)
+    )
+    # the file's K and size are those of the pinhole the photos are undistorted to
+    assert pinhole == undistorted_pinhole(lens) and (cams.width, cams.height) == (pinhole.width, pinhole.height)
+    assert cams.cameras.K[0, 0, 0] == pinhole.params[0] and cams.cameras.K[1, 1, 1] == pinhole.params[1]
     rot, trans = relative_pose_errors(cams.cameras.c2w, orbit_views[1].c2w[:2])
     assert rot[0] < 1.0 and trans[0] < 2.5
 

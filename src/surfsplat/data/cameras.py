@@ -86,13 +86,21 @@ def save_cameras(
     names: list[str] | None = None,
     near: float | None = None,
     far: float | None = None,
+    *,
+    lenses: list[tuple[Lens, Lens]] | None = None,
 ) -> Path:
-    """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height."""
+    """Write cameras as JSON (the format `load_cameras` reads): OpenCV c2w, K in pixels of width x height.
+
+    lenses: each view's (source lens, pinhole it was undistorted to), recorded per frame as "lens" and
+        "pinhole" (`Lens.to_dict`), so that renders can be compared with the original photos.
+    """
     from ..utils.atomic import write_text
 
     names = names or [f"view_{i:03d}" for i in range(len(cameras))]
     if len(names) != len(cameras):
         raise SurfSplatInputError(f"names: expected {len(cameras)} names, got {len(names)}")
+    if lenses is not None and len(lenses) != len(cameras):
+        raise SurfSplatInputError(f"lenses: expected {len(cameras)} (lens, pinhole) pairs, got {len(lenses)}")
     document: dict[str, object] = {
         "format": CAMERA_FILE_FORMAT,
         "convention": "opencv",
@@ -103,6 +111,9 @@ def save_cameras(
             for n, k, c in zip(names, cameras.K.to(torch.float64), cameras.c2w.to(torch.float64))
         ],
     }
+    if lenses is not None:
+        for frame, (lens, pinhole) in zip(document["frames"], lenses):
+            frame["lens"], frame["pinhole"] = lens.to_dict(), pinhole.to_dict()
     if near is not None and far is not None:
         document["near"], document["far"] = float(near), float(far)
     return write_text(path, json.dumps(document, indent=1) + "\n")

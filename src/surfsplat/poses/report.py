@@ -39,7 +39,14 @@ def write_pose_outputs(
     c = camera_set
     written = {
         "estimated cameras": save_cameras(
-            out / "estimated_cameras.json", c.cameras, c.width, c.height, c.names, c.near, c.far
+            out / "estimated_cameras.json",
+            c.cameras,
+            c.width,
+            c.height,
+            c.names,
+            c.near,
+            c.far,
+            lenses=summary.lens_pairs(c),
         ),
         "pose summary": write_text(out / "poses.json", json.dumps(summary.to_dict(), indent=1) + "\n"),
     }
