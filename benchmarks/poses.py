@@ -262,8 +262,8 @@ def main() -> int:
     parser.add_argument(
         "--repeat-threads",
         nargs="+",
-        default=["-1/-1", "-1/1", "1/1"],
-        help="THREADS/MAPPING_THREADS settings of the --repeat runs (PoseConfig.threads, .mapping_threads)",
+        default=["all/all", "all/1", "1/1"],
+        help="THREADS/MAPPING_THREADS settings of the --repeat runs (PoseConfig.threads, .mapping_threads; all: -1)",
     )
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default benchmarks/results/...)")
     parser.add_argument("--lens-single", nargs=3, help=argparse.SUPPRESS)  # internal: FOLDER MODEL CENTRED -> JSON
@@ -275,7 +275,7 @@ def main() -> int:
         print(json.dumps(run_lens(Path(folder), model, args.threads, centred == "centred")))
         return 0
     if args.repeat_single:
-        threads, mapping = (int(v) for v in args.repeat_single[1].split("/"))
+        threads, mapping = (-1 if v == "all" else int(v) for v in args.repeat_single[1].split("/"))
         print(json.dumps(run_repeat(Path(args.repeat_single[0]), threads, mapping, args.repeat)))
         return 0
     if args.lens or args.repeat:

@@ -58,8 +58,11 @@ def test_convention_the_extraction_size_camera_scales_focal_and_centre_not_disto
 
 
 def test_camera_model_is_checked_by_name():
+    from surfsplat.commands.poses import CAMERA_MODEL_CHOICES
+
     with pytest.raises(SurfSplatInputError, match="--camera-model: expected 'auto' or one of SIMPLE_PINHOLE"):
         PoseConfig(camera_model="FISHEYE")
+    assert CAMERA_MODEL_CHOICES == ("auto", *FITTED_MODELS)  # the command's choices are the config's
 
 
 def test_camera_file_records_each_frame_lens_and_pinhole(tmp_path):
@@ -235,3 +238,33 @@ def test_auto_takes_opencv_when_the_lens_has_what_simple_radial_cannot_follow(tm
     work.config = PoseConfig(camera_model="SIMPLE_RADIAL")
     kept, asked = work.choose_model(recon)
     assert kept is recon and asked.reason == "SIMPLE_RADIAL asked for" and asked.difference_px is None
+    # OPENCV asked for: mapped as SIMPLE_RADIAL (the workspace's model), then refined from its fit
+    work.config = PoseConfig(camera_model="OPENCV")
+    refined, asked = work.choose_model(recon)
+    assert refined.cameras[1].model.name == "OPENCV" and set(asked.errors) == {"SIMPLE_RADIAL", "OPENCV"}
+    assert asked.reason == "OPENCV asked for (mapped as SIMPLE_RADIAL, then refined)"
+    np.testing.assert_allclose(refined.cameras[1].params, camera.params, rtol=1e-9, atol=1e-12)  # auto's OPENCV
+
+
+def test_the_colmap_model_written_is_in_the_returned_world_with_the_photo_names(tmp_path):
+    import pycolmap
+
+    from surfsplat.poses.estimate import _write_colmap_model
+
+    lens = Lens("SIMPLE_RADIAL", W, H, (F, W / 2, H / 2, -0.2))
+    (tmp_path / "work").mkdir()
+    _, recon = _observed_through(lens, 0.0, tmp_path / "work")
+    first = recon.images[1].cam_from_world().matrix()
+    ids = {f"photo{i}.jpg": i + 1 for i in range(5)}
+    _write_colmap_model(recon, ids, tmp_path / "sparse", 2.5 * first)
+    model = pycolmap.Reconstruction(tmp_path / "sparse")
+    assert sorted(im.name for im in model.images.values()) == sorted(ids)
+    assert model.cameras[1].model.name == "SIMPLE_RADIAL" and np.array_equal(
+        model.cameras[1].params, recon.cameras[1].params
+    )
+    # the first camera is the world (identity pose); lengths are 2.5 times the model's
+    np.testing.assert_allclose(model.images[1].cam_from_world().matrix(), np.eye(4)[:3], atol=1e-9)
+    old = [recon.images[i].projection_center() for i in (1, 4)]
+    new = [model.images[i].projection_center() for i in (1, 4)]
+    assert np.linalg.norm(new[1] - new[0]) == pytest.approx(2.5 * np.linalg.norm(old[1] - old[0]), rel=1e-9)
+    assert model.compute_mean_reprojection_error() == pytest.approx(recon.compute_mean_reprojection_error(), rel=1e-6)

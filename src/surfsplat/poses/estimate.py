@@ -29,7 +29,8 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    coefficient k) by default, OPENCV (fx, fy, k1, k2, p1, p2) where it pays (`_Workspace.choose_model`:
    SIMPLE_RADIAL leaves at least `opencv_min_excess` (0.1 px) of reprojection error that OPENCV
    explains, in quadrature; a mild lens of DTU's field of view leaves 0.02 px), or the
-   model asked for (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV). The principal point
+   model asked for (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV; RADIAL and OPENCV are
+   mapped as SIMPLE_RADIAL and refined from its fit at the end, `MAPPING_MODEL`). The principal point
    stays at the centre (COLMAP's default: it is poorly observable without a calibration target).
    The distortion is refined by every bundle adjustment (the mapper's, the two-view one, the final
    one), and the cameras returned are the pinhole the photos are undistorted to
@@ -75,6 +76,10 @@ MAX_PAIRS_SHOWN = 20  # pairs listed one per line in the summary; above this onl
 # The lens models that can be fitted (COLMAP's perspective models of its automatic reconstruction)
 FITTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 CameraModel = Literal["auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+# The model the mapper works with, where it is not the one fitted: RADIAL and OPENCV are mapped with
+# SIMPLE_RADIAL and refined from its fit by the last bundle adjustment. Mapped with OPENCV from the start,
+# distorted DTU views 12-26 registered 3 of 15 (k2 ran to 0.5 on a field of view too narrow to show it).
+MAPPING_MODEL = {"auto": "SIMPLE_RADIAL", "RADIAL": "SIMPLE_RADIAL", "OPENCV": "SIMPLE_RADIAL"}
 
 
 @dataclass
@@ -303,7 +308,7 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_mod
     target = min(max(long_side, config.min_extraction_size), config.max_size)
     s = target / long_side
     ext_size = (max(1, round(width * s)), max(1, round(height * s)))
-    model = "SIMPLE_RADIAL" if config.camera_model == "auto" else config.camera_model
+    model = MAPPING_MODEL.get(config.camera_model, config.camera_model)
     with tempfile.TemporaryDirectory(prefix="surfsplat-poses-") as tmp:
         work = _Workspace(Path(tmp), names, (width, height), f0, focal_origin, model, config)
         timings = {"read": time.perf_counter() - start}
@@ -456,7 +461,7 @@ class _Workspace:
         self.size = size
         self.focal = focal
         self.focal_origin = focal_origin  # "given", "exif" or "prior"
-        self.model = model  # COLMAP camera model fitted (one of FITTED_MODELS)
+        self.model = model  # COLMAP camera model the mapper fits (MAPPING_MODEL of the one asked for)
         self.refine_focal = False  # whether the final bundle adjustment refined the focal length
         self.config = config
         self.database = root / "database.db"
@@ -810,20 +815,21 @@ class _Workspace:
         forcing OPENCV gave worse rotations (1.03 against 0.32 degrees); 0.14 px with decentring
         (p1 0.01, p2 -0.01), where its k1, k2, p1, p2 came out within 0.021 of the truth."""
         errors = {self.model: float(recon.compute_mean_reprojection_error())}
-        if self.config.camera_model != "auto":
-            return recon, _ModelChoice(f"{self.model} asked for", errors, None)
+        asked = self.config.camera_model
+        if asked == self.model:
+            return recon, _ModelChoice(f"{asked} asked for", errors, None)
+        if asked != "auto":  # RADIAL or OPENCV: refined from the SIMPLE_RADIAL the mapper fitted
+            recon = self._refined_as(recon, asked)
+            errors[asked] = float(recon.compute_mean_reprojection_error())
+            return recon, _ModelChoice(f"{asked} asked for (mapped as {self.model}, then refined)", errors, None)
         pycolmap = self.pycolmap
-        trial = pycolmap.Reconstruction(recon)
         radial = {}
-        for camera_id, camera in trial.cameras.items():
+        for camera_id, camera in recon.cameras.items():
             radial[camera_id] = pycolmap.Camera.create_from_model_name(
                 camera_id, "SIMPLE_RADIAL", 1.0, camera.width, camera.height
             )
             radial[camera_id].params = camera.params
-            f, cx, cy, k = (float(v) for v in camera.params)
-            camera.model = pycolmap.CameraModelId.OPENCV
-            camera.params = [f, f, cx, cy, k, 0.0, 0.0, 0.0]
-        self._bundle_adjust(trial, refine_focal=self.refine_focal)
+        trial = self._refined_as(recon, "OPENCV")
         errors["OPENCV"] = float(trial.compute_mean_reprojection_error())
         difference = max(_lens_difference(radial[i], c) for i, c in trial.cameras.items())
         excess = math.sqrt(max(errors["SIMPLE_RADIAL"] ** 2 - errors["OPENCV"] ** 2, 0.0))
@@ -837,6 +843,19 @@ class _Workspace:
             return trial, _ModelChoice(f"auto: {measured}, at least {threshold:g} px", errors, difference, excess)
         why = "but its parameters are implausible" if bogus else f"less than the {threshold:g} px it must"
         return recon, _ModelChoice(f"auto: {measured}, {why}", errors, difference, excess)
+
+    def _refined_as(self, recon, model: str):
+        """A copy of a SIMPLE_RADIAL reconstruction with its cameras turned into `model` (RADIAL: k1 = k,
+        k2 = 0; OPENCV: fx = fy = f, k1 = k, the rest 0: the same lens) and one more bundle adjustment,
+        with the focal rule of the last."""
+        pycolmap = self.pycolmap
+        out = pycolmap.Reconstruction(recon)
+        for camera in out.cameras.values():
+            f, cx, cy, k = (float(v) for v in camera.params)
+            camera.model = getattr(pycolmap.CameraModelId, model)
+            camera.params = [f, cx, cy, k, 0.0] if model == "RADIAL" else [f, f, cx, cy, k, 0.0, 0.0, 0.0]
+        self._bundle_adjust(out, refine_focal=self.refine_focal)
+        return out
 
 
 @dataclass
