@@ -18,7 +18,15 @@ import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, SHARED_DATA, machine, write_results
+from common import RESULTS, ROOT, SHARED_DATA, machine, write_results
+
+
+def _shown(path: Path) -> str:
+    """A path as the results name it: relative to the repository where it is inside it."""
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return path.name
 
 
 def main() -> int:
@@ -50,9 +58,9 @@ def main() -> int:
     relative, _ = relative_pose_errors(cams.cameras.c2w, truth.cameras.c2w[order].double())
     figures = {
         "benchmark": "COLMAP model of LLFF fern by surfsplat.poses.estimate_cameras",
-        "photos": f"{len(photos)} of {args.data / 'images_8'} ({summary.width}x{summary.height})",
+        "photos": f"{len(photos)} of llff_fern/images_8 ({summary.width}x{summary.height})",
         "camera_model_asked": args.camera_model,
-        "model_dir": str(model_dir),
+        "model_dir": _shown(model_dir),
         "registered": len(summary.registered),
         "registered_in_model": written.num_reg_images(),
         "points": written.num_points3D(),

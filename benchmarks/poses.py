@@ -193,6 +193,7 @@ def run_lens(folder: Path, model: str, threads: int, centred: bool) -> dict:
         "model_choice": summary.model_choice,
         "reprojection_error_px_by_model": summary.model_errors,
         "model_difference_px": summary.model_difference_px,
+        "model_excess_px": summary.model_excess_px,
         "pinhole": summary.pinhole.to_dict(),
         "registered": len(summary.registered),
         "views": len(DTU_VIEWS),
