@@ -274,7 +274,10 @@ def test_unregistered_image_is_named_and_the_rest_goes_on(orbit_views):
     other = make_scene(4)
     elsewhere, _ = _render(other, _cameras(torch.tensor([[1.0, 1.0, 1.5]]), torch.tensor([[2.0, 3.0, 1.0]])))
     images, truth, _ = orbit_views
-    cams, summary = estimate_cameras([images[0], images[1], elsewhere[0], images[2]], config=FAST)
+    # the room is a pinhole: from three views at 400 px without upscaling, a SIMPLE_RADIAL fit's k trades
+    # with the rotations (measured 1.06 deg max against the 1.0 below); what is tested here is the left-out photo
+    config = PoseConfig(min_extraction_size=400, camera_model="SIMPLE_PINHOLE")
+    cams, summary = estimate_cameras([images[0], images[1], elsewhere[0], images[2]], config=config)
     assert summary.registered == ["view_000", "view_001", "view_003"] and summary.unregistered == ["view_002"]
     assert cams.names == ["view_000", "view_001", "view_003"]
     assert any("not registered" in n and "view_002" in n and "3 registered" in n for n in summary.notes)

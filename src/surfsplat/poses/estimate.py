@@ -113,7 +113,7 @@ class PoseConfig:
     threads: int = -1  # CPU threads of feature extraction and matching (-1: all)
     # CPU threads of the mapper and bundle adjustment: 1 repeats bit for bit (with more, Ceres sums in thread order)
     mapping_threads: int = 1
-    seed: int = 0  # RANSAC and mapper seed (COLMAP's threads can still change the outcome between runs)
+    seed: int = 0  # RANSAC and mapper seed; with mapping_threads 1 the same photos give the same cameras bit for bit
     # Incremental mapping is run again (seed + 1, + 2, ...) while the best model so far leaves out an
     # image that has a verified pair: with several threads a run can stop after its first two images.
     mapping_attempts: int = 5
@@ -491,6 +491,12 @@ class _Workspace:
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = self.model
         reader.camera_params = at_extraction.params_to_string()
+        # The images enter the database one by one in input order first, so their ids are 1, 2, ... in
+        # that order: feature extraction on several threads numbers them as they finish (measured: of
+        # two runs on six DTU photos, one gave the first photo id 2), the mapper breaks ties by id,
+        # and the same photos then gave other cameras in one run of three.
+        pycolmap.Database.open(self.database).close()
+        pycolmap.import_images(self.database, self.images, pycolmap.CameraMode.SINGLE, self.files, reader)
         options = pycolmap.FeatureExtractionOptions()
         options.num_threads = self.config.threads
         options.sift.max_num_features = self.config.max_features
