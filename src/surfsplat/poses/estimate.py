@@ -48,6 +48,11 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    the synthetic rooms see, so near and far land well inside their trained range 1..100). near
    and far are the 2nd and 98th percentiles of every registered view's point depths divided and
    multiplied by `depth_margin`.
+6. Repeatability: the same photos give the same cameras bit for bit. Every RANSAC and the mapper
+   take `seed`; the images enter the database in input order (ids independent of the extraction
+   threads); the mapper and every bundle adjustment run on `mapping_threads` (1) threads, since
+   Ceres with several threads sums in the order the threads finish. Extraction and matching keep
+   `threads` (all cores): SIFT gives each image the same keypoints on any number of threads.
 """
 
 from __future__ import annotations
