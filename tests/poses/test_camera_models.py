@@ -268,3 +268,45 @@ def test_the_colmap_model_written_is_in_the_returned_world_with_the_photo_names(
     new = [model.images[i].projection_center() for i in (1, 4)]
     assert np.linalg.norm(new[1] - new[0]) == pytest.approx(2.5 * np.linalg.norm(old[1] - old[0]), rel=1e-9)
     assert model.compute_mean_reprojection_error() == pytest.approx(recon.compute_mean_reprojection_error(), rel=1e-6)
+
+
+@pytest.mark.slow
+def test_dtu_scan24_through_a_known_opencv_lens_rotations_within_one_degree(data_dir, tmp_path):
+    """DTU scan 24 views 12, 14, ..., 26 (400x300) distorted here through an OPENCV lens (k1 -0.1,
+    k2 0.05, p1 0.001, p2 -0.001, the calibration's focal lengths, principal point at the centre) by
+    OpenCV's inverse map; the pose-free estimation fits SIMPLE_RADIAL (auto) within a degree of the
+    calibration, its focal length within 2 % and a barrel k."""
+    import cv2
+    from PIL import Image
+
+    from surfsplat.data.load import load_scene
+
+    scene = load_scene(data_dir / "dtu_scan24", images="images_4", dtype=torch.float64)
+    views = list(range(12, 27, 2))
+    coefficients = np.array([-0.1, 0.05, 0.001, -0.001])
+    paths = []
+    for v in views:
+        K = scene.cameras.K[v].numpy().copy()
+        lens_K = K.copy()
+        lens_K[:2, 2] = (200.0, 150.0)
+        K[:2, 2] -= 0.5  # OpenCV's pixel centres are at integers
+        lens_K[:2, 2] -= 0.5
+        jj, ii = np.meshgrid(np.arange(400.0), np.arange(300.0))
+        points = np.stack([jj, ii], -1).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        source = cv2.undistortPoints(points, lens_K, coefficients, None, None, K, criteria).reshape(300, 400, 2)
+        photo = np.asarray(Image.open(data_dir / "dtu_scan24" / "images_4" / f"{v:06d}.png").convert("RGB"))
+        maps = source.astype(np.float32)
+        distorted = cv2.remap(photo, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        paths.append(tmp_path / f"{v:06d}.png")
+        Image.fromarray(distorted).save(paths[-1])
+    cams, summary = estimate_cameras(paths)
+    assert len(summary.registered) == len(views) and summary.lens.model == "SIMPLE_RADIAL"
+    rot, _ = aligned_pose_errors(cams.cameras.c2w, scene.cameras.c2w[views])
+    f, _, _, k = summary.lens.params
+    print(f"DTU through OPENCV: max rotation error {rot.max():.3f} deg, f {f:.1f}, k {k:.4f}")
+    assert rot.max() < 1.0 and abs(f / float(scene.cameras.K[12, 0, 0]) - 1) < 0.02
+    # barrel distortion, found, but weakly: over this field of view (r up to 0.35, the lens bends the
+    # corners by 3 px) k trades with f and the scene (measured: k -0.030 with f 0.75 % long from these
+    # 8 views, -0.068 and -0.086 from all 15); the ray-cast room's wider lens pins k to 0.02
+    assert -0.15 < k < -0.01, k
