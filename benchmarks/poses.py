@@ -9,6 +9,17 @@ error against the exact cameras is reported beside the time. Focal length unknow
 views, given for two (the two-view path). Each measurement runs in a fresh process, so its peak
 resident memory is its own; pycolmap uses every core (`--threads` to change). Results go to
 benchmarks/results/poses.json and a table is printed. Goal: 8 photos at 1000 px in 10 s on 2 cores.
+
+    python benchmarks/poses.py --lens                # a lens fitted to photos distorted with known coefficients
+    python benchmarks/poses.py --repeat 3            # the same photos, the same cameras bit for bit?
+
+--lens: DTU scan 24's views 12..26 (400x300, from the full samples) distorted here through an OPENCV
+lens (k1 -0.1, k2 0.05, p1 0.001, p2 -0.001; the DTU calibration's focal lengths; its principal point
+(205.8, 154.8), and again with the principal point moved to the centre, where the fitted models put
+it) by OpenCV's inverse map, then estimated pose-free with each camera model; per view the rotation
+error after aligning the estimated world to the calibration's (`aligned_pose_errors`), the fitted
+distortion beside the true one. Results: benchmarks/results/poses_lens.json and a table.
+--repeat N: N estimations of the same distorted photos per thread setting, compared bit for bit.
 """
 
 from __future__ import annotations
@@ -25,7 +36,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import machine, text_table, write_results
+from common import SHARED_DATA, machine, sample_data, text_table, write_results
 from encoder import idle_fraction, wait_for_idle  # the benchmarks' shared idle gauge (same folder)
 
 SIZES = {400: (400, 300), 1000: (1000, 750)}
@@ -101,6 +112,137 @@ def run_one(folder: Path, n: int, size: int, repeats: int, threads: int, min_idl
     }
 
 
+# ----------------------------------------------------------------------------------------- lenses
+DTU_VIEWS = list(range(12, 27))
+TRUE_LENS = {"k1": -0.1, "k2": 0.05, "p1": 0.001, "p2": -0.001}  # OPENCV, on normalized coordinates
+
+
+def distort_photo(image, K, K_lens, coefficients: dict):
+    """The photo an OPENCV lens (intrinsics K_lens, distortion `coefficients` k1, k2, p1, p2) would
+    have taken from where a pinhole photo [H, W, 3] uint8 with intrinsics K was (pixel centres at
+    +0.5): for every pixel of the distorted photo, OpenCV's iterative undistortion of its centre
+    gives the ray it sees and K the pinhole pixel of that ray, sampled bilinearly (borders replicated)."""
+    import cv2
+    import numpy as np
+
+    height, width = image.shape[:2]
+    K_cv, K_lens_cv = np.array(K, dtype=np.float64).copy(), np.array(K_lens, dtype=np.float64).copy()
+    K_cv[:2, 2] -= 0.5  # OpenCV's pixel centres are at integers
+    K_lens_cv[:2, 2] -= 0.5
+    dist = np.array([coefficients[k] for k in ("k1", "k2", "p1", "p2")], dtype=np.float64)
+    jj, ii = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    points = np.stack([jj, ii], -1).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    source = cv2.undistortPoints(points, K_lens_cv, dist, None, None, K_cv, criteria).reshape(height, width, 2)
+    return cv2.remap(
+        image,
+        source[..., 0].astype(np.float32),
+        source[..., 1].astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+
+
+def lens_intrinsics(K, centred: bool):
+    """The distorting lens's K: the calibration's, or with the principal point moved to the image centre."""
+    K_lens = K.clone()
+    if centred:
+        K_lens[0, 2], K_lens[1, 2] = 200.0, 150.0  # the centre of DTU's 400x300 photos
+    return K_lens
+
+
+def write_distorted_dtu(folder: Path, data: Path, centred: bool) -> tuple[list[Path], object]:
+    """DTU scan 24 views 12..26 through TRUE_LENS into folder; returns the paths and the calibration."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from surfsplat.data.load import load_scene
+
+    scene = load_scene(data / "dtu_scan24", images="images_4", dtype=torch.float64)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for v in DTU_VIEWS:
+        photo = np.asarray(Image.open(data / "dtu_scan24" / "images_4" / f"{v:06d}.png").convert("RGB"))
+        paths.append(folder / f"{v:06d}.png")
+        K = scene.cameras.K[v]
+        Image.fromarray(distort_photo(photo, K.numpy(), lens_intrinsics(K, centred).numpy(), TRUE_LENS)).save(paths[-1])
+    return paths, scene.cameras[torch.tensor(DTU_VIEWS)]
+
+
+def run_lens(folder: Path, model: str, threads: int, centred: bool) -> dict:
+    from surfsplat.poses import PoseConfig, aligned_pose_errors, estimate_cameras, relative_pose_errors
+
+    truth = _dtu_truth()
+    paths = [folder / f"{v:06d}.png" for v in DTU_VIEWS]
+    start, start_cpu = time.perf_counter(), _cpu_seconds()
+    cams, summary = estimate_cameras(paths, config=PoseConfig(camera_model=model, threads=threads))
+    seconds, cpu = time.perf_counter() - start, _cpu_seconds() - start_cpu
+    picked = [DTU_VIEWS.index(int(Path(n).stem)) for n in cams.names]
+    rot, centre = aligned_pose_errors(cams.cameras.c2w, truth.c2w[picked])
+    relative, _ = relative_pose_errors(cams.cameras.c2w, truth.c2w[picked])
+    lens = summary.lens
+    K_lens = lens_intrinsics(truth.K[0], centred)
+    true = {"fx": float(K_lens[0, 0]), "fy": float(K_lens[1, 1]), "cx": float(K_lens[0, 2]), "cy": float(K_lens[1, 2])}
+    return {
+        "principal_point": "the image centre" if centred else "the calibration's",
+        "camera_model": model,
+        "fitted_model": lens.model,
+        "fitted_params": dict(zip(lens.param_names, lens.params)),
+        "true_params": {**true, **TRUE_LENS},
+        "model_choice": summary.model_choice,
+        "reprojection_error_px_by_model": summary.model_errors,
+        "model_difference_px": summary.model_difference_px,
+        "model_excess_px": summary.model_excess_px,
+        "pinhole": summary.pinhole.to_dict(),
+        "registered": len(summary.registered),
+        "views": len(DTU_VIEWS),
+        "points": summary.points,
+        "reprojection_error_px": summary.reprojection_error,
+        "rotation_error_deg": {Path(n).stem: float(r) for n, r in zip(cams.names, rot)},
+        "max_rotation_error_deg": float(rot.max()),
+        "max_centre_error_share": float(centre.max()),
+        "max_relative_rotation_error_deg": float(relative.max()),
+        "seconds": seconds,
+        "cpu_s": cpu,
+        "stages_s": summary.timings,
+    }
+
+
+def _dtu_truth():
+    import torch
+
+    from surfsplat.data.load import load_scene
+
+    scene = load_scene(sample_data() / "dtu_scan24", images="images_4", dtype=torch.float64)
+    return scene.cameras[torch.tensor(DTU_VIEWS)]
+
+
+def run_repeat(folder: Path, threads: int, mapping_threads: int, repeats: int) -> dict:
+    """`repeats` estimations of the same photos in this process: are the cameras equal bit for bit?"""
+    import hashlib
+
+    from surfsplat.poses import PoseConfig, estimate_cameras
+
+    paths = [folder / f"{v:06d}.png" for v in DTU_VIEWS]
+    digests, seconds = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        config = PoseConfig(threads=threads, mapping_threads=mapping_threads)
+        cams, summary = estimate_cameras(paths, config=config)
+        seconds.append(time.perf_counter() - start)
+        blob = cams.cameras.c2w.numpy().tobytes() + cams.cameras.K.numpy().tobytes()
+        blob += repr(summary.lens.params).encode() + repr(cams.names).encode()
+        digests.append(hashlib.sha256(blob).hexdigest()[:16])
+    return {
+        "threads": threads,
+        "mapping_threads": mapping_threads,
+        "digests": digests,
+        "identical": len(set(digests)) == 1,
+        "seconds": seconds,
+    }
+
+
 def _cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
@@ -115,7 +257,30 @@ def main() -> int:
     parser.add_argument("--min-idle", type=float, default=0.0, help="wait for this idle CPU share before each run")
     parser.add_argument("--idle-timeout", type=float, default=1800.0)
     parser.add_argument("--single", nargs=3, help=argparse.SUPPRESS)  # internal: FOLDER VIEWS SIZE -> JSON
+    parser.add_argument("--lens", action="store_true", help="fit lenses to DTU photos distorted with known values")
+    parser.add_argument("--models", nargs="+", default=["SIMPLE_PINHOLE", "auto", "OPENCV"])
+    parser.add_argument("--repeat", type=int, default=0, help="N runs of the same photos, compared bit for bit")
+    parser.add_argument(
+        "--repeat-threads",
+        nargs="+",
+        default=["all/all", "all/1", "1/1"],
+        help="THREADS/MAPPING_THREADS settings of the --repeat runs (PoseConfig.threads, .mapping_threads; all: -1)",
+    )
+    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default benchmarks/results/...)")
+    parser.add_argument("--lens-single", nargs=3, help=argparse.SUPPRESS)  # internal: FOLDER MODEL CENTRED -> JSON
+    parser.add_argument("--repeat-single", nargs=2, help=argparse.SUPPRESS)  # internal: FOLDER THREADS/MAPPING -> JSON
     args = parser.parse_args()
+
+    if args.lens_single:
+        folder, model, centred = args.lens_single
+        print(json.dumps(run_lens(Path(folder), model, args.threads, centred == "centred")))
+        return 0
+    if args.repeat_single:
+        threads, mapping = (-1 if v == "all" else int(v) for v in args.repeat_single[1].split("/"))
+        print(json.dumps(run_repeat(Path(args.repeat_single[0]), threads, mapping, args.repeat)))
+        return 0
+    if args.lens or args.repeat:
+        return lens_main(args)
 
     if args.single:
         folder, n, size = Path(args.single[0]), int(args.single[1]), int(args.single[2])
@@ -169,6 +334,86 @@ def main() -> int:
     ]
     print(text_table(headers, table))
     print(f"(load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
+    return 0
+
+
+def lens_main(args) -> int:
+    import pycolmap
+
+    data = sample_data()
+    if data != SHARED_DATA:
+        print(f"--lens and --repeat need DTU scan 24 at 400x300 from the full samples ({SHARED_DATA})", file=sys.stderr)
+        return 1
+    rows, repeats = [], []
+    with tempfile.TemporaryDirectory(prefix="poses-lens-") as tmp:
+        jobs = []
+        for centred in ("calibrated", "centred"):
+            folder = Path(tmp) / centred
+            write_distorted_dtu(folder, data, centred == "centred")
+            if args.lens:
+                jobs += [("lens", m, ["--lens-single", str(folder), m, centred]) for m in args.models]
+        folder = Path(tmp) / "calibrated"
+        if args.repeat:
+            jobs += [
+                ("repeat", t, ["--repeat-single", str(folder), t, "--repeat", str(args.repeat)])
+                for t in args.repeat_threads
+            ]
+        for kind, what, extra in jobs:
+            cmd = [sys.executable, __file__, *extra, "--threads", str(args.threads)]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                print(f"{kind} {what}: failed\n{done.stderr.strip()[-2000:]}", file=sys.stderr)
+                return 1
+            (rows if kind == "lens" else repeats).append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(f"{kind} {what}: done", file=sys.stderr)
+    report = {
+        "benchmark": "lens fitted by pose-free camera estimation (surfsplat.poses.estimate_cameras)",
+        "images": f"DTU scan 24 views {DTU_VIEWS[0]}..{DTU_VIEWS[-1]} (images_4, 400x300) distorted through OPENCV "
+        f"{TRUE_LENS} with the calibration's focal length and principal point",
+        "alignment": "rotations: the chordal mean rotation onto the calibration's; centres: Umeyama similarity",
+        "machine": {**machine(), "pycolmap": pycolmap.__version__},
+        "results": rows,
+        "repeats": repeats,
+    }
+    out = write_results(args.out or "poses_lens", report)
+    if rows:
+        headers = [
+            "lens centre",
+            "model asked",
+            "fitted",
+            "parameters",
+            "registered",
+            "reproj px",
+            "max rot deg",
+            "max rel rot deg",
+        ]
+        headers += ["max centre err", "CPU s"]
+        table = [
+            [
+                "centre" if r["principal_point"] == "the image centre" else "DTU's",
+                r["camera_model"],
+                r["fitted_model"],
+                ", ".join(f"{k} {v:.4g}" for k, v in r["fitted_params"].items() if k not in ("cx", "cy")),
+                f"{r['registered']}/{r['views']}",
+                f"{r['reprojection_error_px']:.3f}",
+                f"{r['max_rotation_error_deg']:.3f}",
+                f"{r['max_relative_rotation_error_deg']:.3f}",
+                f"{r['max_centre_error_share']:.2%}",
+                f"{r['cpu_s']:.0f}",
+            ]
+            for r in rows
+        ]
+        print(text_table(headers, table))
+        print(
+            "true: "
+            + ", ".join(f"{k} {v:.4g}" for k, v in rows[0]["true_params"].items())
+            + " (cx, cy: DTU's or the centre)"
+        )
+    for r in repeats:
+        print(
+            f"threads {r['threads']}, mapping threads {r['mapping_threads']}: {len(r['digests'])} runs, identical: {r['identical']} ({', '.join(r['digests'])})"
+        )
+    print(f"(written to {out})")
     return 0
 
 

@@ -19,6 +19,7 @@ from surfsplat.data.synthetic.render import render_synthetic
 from surfsplat.data.synthetic.scene import WORLD_DOWN, Lighting, SyntheticConfig, SyntheticScene, make_scene
 from surfsplat.data.synthetic.textures import random_texture
 from surfsplat.geometry.cameras import Cameras, look_at
+from surfsplat.geometry.lens import Lens
 from surfsplat.poses import PoseConfig, estimate_cameras, exif_focal, relative_pose_errors
 from surfsplat.utils.checks import SurfSplatInputError
 
@@ -121,7 +122,10 @@ def test_synthetic_room_two_views_with_focal(room):
     rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
     assert rot[0] < 1.0 and trans[0] < 2.5, (rot, trans)
     assert summary.points > 500 and summary.reprojection_error < 0.5
-    assert torch.allclose(cams.cameras.K, truth.K)  # the given focal, principal point at the centre
+    # the given focal, principal point at the centre, a SIMPLE_RADIAL lens whose k is (nearly) the room's zero
+    f, cx, cy, k = summary.lens.params
+    assert summary.lens.model == "SIMPLE_RADIAL" and (f, cx, cy) == (float(truth.K[0, 0, 0]), W / 2, H / 2)
+    assert abs(k) < 0.01, k
 
 
 DTU_PAIRS = [(23, 24), (12, 13), (30, 31)]
@@ -290,59 +294,12 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
-@pytest.mark.slow
-def test_two_views_of_different_sizes_each_with_its_exif_focal(room, tmp_path):
-    """The two-view path with two cameras: a 400x300 photo and a 320x240 one (a second camera, or the
-    same one downscaled), each with its 35 mm equivalent focal length in EXIF."""
-    truth = _orbit(2, 12.0)
-    images, _ = _render(room, truth)
-    f = float(truth.K[0, 0, 0])
-    paths = []
-    for k, (image, (w, h)) in enumerate(zip(images, [(W, H), (320, 240)])):
-        array = (image.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
-        exif = Image.Exif()
-        exif.get_ifd(0x8769)[0xA405] = round(f * math.hypot(36, 24) / math.hypot(W, H))  # same lens, both
-        paths.append(tmp_path / f"view{k}.png")
-        Image.fromarray(array).resize((w, h), Image.Resampling.LANCZOS).save(paths[-1], exif=exif.tobytes())
-    cams, summary = estimate_cameras(paths)
-    assert summary.method == "two-view" and summary.sizes == {"view0.png": (W, H), "view1.png": (320, 240)}
-    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
-    assert rot[0] < 1.0 and trans[0] < 3.0, (rot, trans)
-    K = cams.cameras.K
-    f35 = round(f * math.hypot(36, 24) / math.hypot(W, H))
-    assert float(K[0, 0, 0]) == pytest.approx(f35 * 500 / math.hypot(36, 24))  # EXIF focal of each size
-    assert float(K[1, 0, 0]) == pytest.approx(f35 * 400 / math.hypot(36, 24))
-    assert (float(K[1, 0, 2]), float(K[1, 1, 2])) == (160.0, 120.0)
-
-
-def test_images_of_different_sizes_with_one_focal_are_refused(orbit_views, tmp_path, capsys):
+def test_images_of_different_sizes(orbit_views, tmp_path, capsys):
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
-    with pytest.raises(SurfSplatInputError, match=r"--focal: one focal length in pixels fits one image size, the "):
-        estimate_cameras(paths, focal=300.0)
     assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err
-    assert "--out: a camera file holds cameras of one image size, the photos have 2 (400x300, 320x240)" in err
-    assert not (tmp_path / "c.json").exists()
-
-
-@pytest.mark.slow
-def test_landscape_and_portrait_views_get_a_camera_each(room, orbit_views):
-    """Three 400x300 views and a 300x400 portrait one (the same lens turned: the same focal length in
-    pixels): one camera per size (COLMAP's PER_FOLDER), each view's K in its own pixels."""
-    images, truth, _ = orbit_views
-    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
-    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
-    cams, summary = estimate_cameras([*images[:3], portrait])
-    assert summary.registered == ["view_000", "view_001", "view_002", "view_003"]
-    rot, trans = relative_pose_errors(cams.cameras.c2w, truth.c2w)
-    assert rot.max() < 1.5 and trans.max() < 3.0, (rot, trans)
-    K = cams.cameras.K
-    assert [float(K[i, 0, 2]) for i in range(4)] == [W / 2] * 3 + [H / 2]  # each principal point at its centre
-    assert [float(K[i, 1, 2]) for i in range(4)] == [H / 2] * 3 + [W / 2]
-    for i in range(4):
-        assert abs(float(K[i, 0, 0]) / float(truth.K[0, 0, 0]) - 1) < 0.05, K[:, 0, 0]
-    assert any(note.startswith("camera 2 (300x400, 1 images): focal") for note in summary.notes), summary.notes
+    assert "all images must have one size" in err and "view0.png 400x300, view1.png 320x240" in err
 
 
 def test_too_few_matches_names_the_pair_and_count(orbit_views, tmp_path, capsys):
@@ -365,7 +322,10 @@ def test_unregistered_image_is_named_and_the_rest_goes_on(orbit_views):
     other = make_scene(4)
     elsewhere, _ = _render(other, _cameras(torch.tensor([[1.0, 1.0, 1.5]]), torch.tensor([[2.0, 3.0, 1.0]])))
     images, truth, _ = orbit_views
-    cams, summary = estimate_cameras([images[0], images[1], elsewhere[0], images[2]], config=FAST)
+    # the room is a pinhole: from three views at 400 px without upscaling, a SIMPLE_RADIAL fit's k trades
+    # with the rotations (measured 1.06 deg max against the 1.0 below); what is tested here is the left-out photo
+    config = PoseConfig(min_extraction_size=400, camera_model="SIMPLE_PINHOLE")
+    cams, summary = estimate_cameras([images[0], images[1], elsewhere[0], images[2]], config=config)
     assert summary.registered == ["view_000", "view_001", "view_003"] and summary.unregistered == ["view_002"]
     assert cams.names == ["view_000", "view_001", "view_003"]
     assert any("not registered" in n and "view_002" in n and "3 registered" in n for n in summary.notes)
@@ -420,6 +380,7 @@ def test_config_checks_name_the_option():
 @pytest.mark.slow
 def test_poses_command_writes_a_camera_file_load_cameras_reads(orbit_views, tmp_path, capsys):
     from surfsplat.data.cameras import load_cameras
+    from surfsplat.geometry.lens import undistorted_pinhole
 
     paths = _save(orbit_views[0][:2], tmp_path)
     focal = float(orbit_views[1].K[0, 0, 0])
@@ -428,10 +389,17 @@ def test_poses_command_writes_a_camera_file_load_cameras_reads(orbit_views, tmp_
     printed = capsys.readouterr().out
     assert "registered 2 of 2 images (two-view)" in printed and "given (--focal)" in printed
     assert "view0.png - view1.png:" in printed and "inliers" in printed
+    assert "camera SIMPLE_RADIAL: f " in printed  # the default model, with its parameters
     cams = load_cameras(out)
-    assert cams.names == ["view0.png", "view1.png"] and (cams.width, cams.height) == (W, H)
-    assert cams.far == 30 and 0 < cams.near < 4
-    assert float(cams.cameras.K[0, 0, 0]) == pytest.approx(focal)
+    assert cams.names == ["view0.png", "view1.png"] and cams.far == 30 and 0 < cams.near < 4
+    frames = json.loads(out.read_text())["frames"]
+    lens, pinhole = (Lens.from_dict(frames[0][key]) for key in ("lens", "pinhole"))
+    assert (
+        lens.model == "SIMPLE_RADIAL" and lens.params[0] == pytest.approx(focal) and (lens.width, lens.height) == (W, H)
+    )
+    # the file's K and size are those of the pinhole the photos are undistorted to
+    assert pinhole == undistorted_pinhole(lens) and (cams.width, cams.height) == (pinhole.width, pinhole.height)
+    assert cams.cameras.K[0, 0, 0] == pinhole.params[0] and cams.cameras.K[1, 1, 1] == pinhole.params[1]
     rot, trans = relative_pose_errors(cams.cameras.c2w, orbit_views[1].c2w[:2])
     assert rot[0] < 1.0 and trans[0] < 2.5
 
@@ -461,41 +429,6 @@ def test_reconstruct_two_fern_photos_without_a_camera_file(data_dir, tmp_path, c
         assert f'src="poses/photo{k:02d}.png"' in report and (out / "poses" / f"photo{k:02d}.png").is_file()
     assert "IMG_4027.png: centre (" in report and "renders/view01_color.png" in report
     assert (out / "poses" / "cameras.svg").read_text().count("<polygon") == 2
-
-
-@pytest.mark.slow
-def test_reconstruct_landscape_and_portrait_photos_without_a_camera_file(room, orbit_views, tmp_path):
-    """Estimated cameras of photos of two shapes: each view's K in its own pixels, then cropped to the
-    working size by rescale_and_crop's closed form; no one-size camera file is written, poses.json
-    gives every photo's size."""
-    import surfsplat
-    from surfsplat.capture import OptimizeConfig
-
-    images, truth, _ = orbit_views
-    portrait_K = torch.tensor([[truth.K[0, 0, 0], 0, H / 2], [0, truth.K[0, 0, 0], W / 2], [0, 0, 1]])
-    portrait = render_synthetic(room, Cameras(truth.c2w[3:].float(), portrait_K[None].float()), H, W).image[0]
-    paths = _save([*images[:3], portrait], tmp_path / "photos")
-    options = surfsplat.CaptureOptions(views_per_pass=4, optimize=OptimizeConfig(steps=0))
-    shape = (96, 128)
-    scene = surfsplat.reconstruct(paths, "tiny-synthetic", size=shape, capture=options, device="cpu", progress=False)
-    estimated = scene.pose_cameras.cameras.K.double()
-    for i, size in enumerate([(W, H)] * 3 + [(H, W)]):
-        (w, h), (sh, sw) = size, shape
-        s = max(sh / h, sw / w)
-        rw, rh = max(sw, round(w * s)), max(sh, round(h * s))
-        expected = estimated[i].clone()
-        expected[0] *= rw / w
-        expected[1] *= rh / h
-        expected[0, 2] -= (rw - sw) // 2
-        expected[1, 2] -= (rh - sh) // 2
-        torch.testing.assert_close(scene.cameras.K[i].double(), expected, rtol=1e-6, atol=1e-4)
-    assert float(estimated[3, 0, 2]) == H / 2 and float(estimated[3, 1, 2]) == W / 2  # the portrait's own centre
-    out = tmp_path / "out"
-    scene.save(out, formats=("ply",))
-    assert not (out / "estimated_cameras.json").exists()
-    poses = json.loads((out / "poses.json").read_text())
-    assert poses["image_sizes"]["view3.png"] == [H, W] and poses["image_sizes"]["view0.png"] == [W, H]
-    assert "no estimated_cameras.json: the photos have 2 sizes" in (out / "report.html").read_text()
 
 
 def test_reconstruct_refuses_focal_with_a_camera_file(orbit_views, tmp_path, capsys):

@@ -3,9 +3,10 @@
     surfsplat poses photos/*.jpg --out cameras.json
     surfsplat poses a.png b.png --out cameras.json --focal 723 --max-size 1200
 
-Writes the JSON camera file `load_cameras` reads (OpenCV camera-to-world, K in pixels of the
-photos, near/far) and prints what happened: images registered, matches and inliers per pair, 3D
-points, mean reprojection error, the focal length and where it came from. World frame: the first
+Writes the JSON camera file `load_cameras` reads (OpenCV camera-to-world, near/far; K of the pinhole
+the photos are undistorted to, and each frame's fitted lens as "lens": COLMAP model, size and
+parameters) and prints what happened: images registered, matches and inliers per pair, 3D points,
+mean reprojection error, the focal length and where it came from, the camera model fitted and why. World frame: the first
 registered photo's camera; unit of length: the median depth of the points it sees is 4. See
 `surfsplat.poses` for the pipeline.
 """
@@ -18,11 +19,21 @@ from pathlib import Path
 from ..utils.checks import SurfSplatInputError, check_output_file
 from .options import add_depth_range
 
+# PoseConfig.camera_model's values (surfsplat.poses.estimate.FITTED_MODELS), kept here so that --help needs no pycolmap
+CAMERA_MODEL_CHOICES = ("auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
 
 def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared with `reconstruct` when it estimates cameras itself."""
     parser.add_argument(
         "--focal", type=float, default=None, help="focal length in pixels of the photos (default: EXIF, else estimated)"
+    )
+    parser.add_argument(
+        "--camera-model",
+        choices=CAMERA_MODEL_CHOICES,
+        default="auto",
+        help="lens model fitted to the photos: auto (SIMPLE_RADIAL, or OPENCV where it explains 0.1 px more "
+        "reprojection error), SIMPLE_PINHOLE (no distortion), PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV (default auto)",
     )
     parser.add_argument(
         "--max-size",
@@ -33,9 +44,7 @@ def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "images", nargs="+", type=Path, help="two or more photos of one scene, all of one size (one camera file)"
-    )
+    parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
     parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
     add_pose_arguments(parser)
     add_depth_range(
@@ -55,7 +64,9 @@ def estimate_from_args(args: argparse.Namespace):
     for path in args.images:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: image file not found")
-    config = PoseConfig(focal=args.focal, max_size=args.max_size, near=args.near, far=args.far)
+    config = PoseConfig(
+        focal=args.focal, camera_model=args.camera_model, max_size=args.max_size, near=args.near, far=args.far
+    )
     camera_set, summary = estimate_cameras(args.images, config=config)
     print("\n".join(summary.lines()))
     return camera_set, summary
@@ -67,19 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".json":
         raise SurfSplatInputError(f"--out: expected a .json camera file name, got {args.out}")
     check_output_file(args.out, "--out", inputs=args.images)
-    from ..data.images import read_image_size
-
-    try:
-        sizes = list(dict.fromkeys(read_image_size(p) for p in args.images if p.is_file()))
-    except SurfSplatInputError:
-        sizes = []  # an unreadable photo: the estimation names it, as it decodes every photo
-    if len(sizes) > 1:  # the camera file states one width x height that every K is in pixels of
-        listing = ", ".join(f"{w}x{h}" for w, h in sizes)
-        raise SurfSplatInputError(
-            f"--out: a camera file holds cameras of one image size, the photos have {len(sizes)} ({listing}); "
-            "surfsplat reconstruct estimates and keeps a camera per size, or resize the photos alike"
-        )
-    camera_set, _ = estimate_from_args(args)
+    camera_set, summary = estimate_from_args(args)
     written = save_cameras(
         args.out,
         camera_set.cameras,
@@ -88,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         camera_set.names,
         camera_set.near,
         camera_set.far,
+        lenses=camera_set.lenses,
     )
     print(f"wrote {written}")
     return 0

@@ -238,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
         trust_pickle=args.trust_pickle,
         images_folder=args.images_folder,
         focal=args.focal,
+        camera_model=args.camera_model,
         max_size=args.max_size,
         compact=args.compact,
         capture=capture,

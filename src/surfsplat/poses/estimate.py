@@ -24,11 +24,18 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    Cauchy loss. If the mapper registers fewer than two images, the two-view path runs on the
    pair with most inliers. Degenerate pairs (a camera that only turned, a single plane) are
    refused with the cause named (`_Workspace._check_not_homography`).
-4. Intrinsics: one shared pinhole camera per image size (SIMPLE_PINHOLE: f, principal point at the
-   centre, no distortion, so the images need no undistortion): COLMAP's PER_FOLDER camera mode with
-   the images of each size in a folder of their own, so portrait and landscape photos of one phone,
-   or photos of two cameras, each get theirs (focal lengths from EXIF, the prior or bundle adjustment
-   per size; a given --focal needs photos of one size). f comes from `focal`, else EXIF, else the
+4. Intrinsics: one shared camera with a lens model, as COLMAP's automatic reconstruction fits
+   (`PoseConfig.camera_model`): SIMPLE_RADIAL (f, principal point at the centre, one radial
+   coefficient k) by default, OPENCV (fx, fy, k1, k2, p1, p2) where it pays (`_Workspace.choose_model`:
+   SIMPLE_RADIAL leaves at least `opencv_min_excess` (0.1 px) of reprojection error that OPENCV
+   explains, in quadrature; a mild lens of DTU's field of view leaves 0.02 px), or the
+   model asked for (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV; RADIAL and OPENCV are
+   mapped as SIMPLE_RADIAL and refined from its fit at the end, `MAPPING_MODEL`). The principal point
+   stays at the centre (COLMAP's default: it is poorly observable without a calibration target).
+   The distortion is refined by every bundle adjustment (the mapper's, the two-view one, the final
+   one), and the cameras returned are the pinhole the photos are undistorted to
+   (`surfsplat.geometry.lens.undistorted_pinhole`, COLMAP's image_undistorter), with the fitted
+   lens of every view in `CameraSet.lenses`. f comes from `focal`, else EXIF, else the
    prior 1.2 x the long side (COLMAP's default guess, a 45 degree field of view on the long side).
    With 3+ views bundle adjustment refines the prior always and an EXIF value only when the
    optical axes span `focal_observable_angle` (20 degrees): with nearly parallel views (LLFF fern
@@ -41,6 +48,11 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    the synthetic rooms see, so near and far land well inside their trained range 1..100). near
    and far are the 2nd and 98th percentiles of every registered view's point depths divided and
    multiplied by `depth_margin`.
+6. Repeatability: the same photos give the same cameras bit for bit. Every RANSAC and the mapper
+   take `seed`; the images enter the database in input order (ids independent of the extraction
+   threads); the mapper and every bundle adjustment run on `mapping_threads` (1) threads, since
+   Ceres with several threads sums in the order the threads finish. Extraction and matching keep
+   `threads` (all cores): SIFT gives each image the same keypoints on any number of threads.
 """
 
 from __future__ import annotations
@@ -60,11 +72,19 @@ from PIL import Image
 
 from ..data.cameras import CameraSet
 from ..geometry.cameras import Cameras
+from ..geometry.lens import Lens
 from ..utils.checks import SurfSplatInputError
 from .exif import exif_focal
 
 FOCAL_PRIOR_FACTOR = 1.2  # COLMAP's default focal guess: 1.2 x the long side of the image
 MAX_PAIRS_SHOWN = 20  # pairs listed one per line in the summary; above this only the weakest
+# The lens models that can be fitted (COLMAP's perspective models of its automatic reconstruction)
+FITTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+CameraModel = Literal["auto", "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+# The model the mapper works with, where it is not the one fitted: RADIAL and OPENCV are mapped with
+# SIMPLE_RADIAL and refined from its fit by the last bundle adjustment. Mapped with OPENCV from the start,
+# distorted DTU views 12-26 registered 3 of 15 (k2 ran to 0.5 on a field of view too narrow to show it).
+MAPPING_MODEL = {"auto": "SIMPLE_RADIAL", "RADIAL": "SIMPLE_RADIAL", "OPENCV": "SIMPLE_RADIAL"}
 
 
 @dataclass
@@ -72,6 +92,9 @@ class PoseConfig:
     """How cameras are estimated (pixel sizes are of the input images unless said otherwise)."""
 
     focal: float | None = None  # focal length in pixels of the input images; None: EXIF, else the prior
+    # lens model fitted: "auto" = SIMPLE_RADIAL, or OPENCV where it explains opencv_min_excess more (see choose_model)
+    camera_model: CameraModel = "auto"
+    opencv_min_excess: float = 0.1  # px: auto takes OPENCV when SIMPLE_RADIAL leaves this much error it explains
     max_size: int = 1600  # long side above which images are downscaled for feature extraction
     min_extraction_size: int = 800  # long side below which images are upscaled for feature extraction
     max_features: int = 8192  # SIFT features per image
@@ -92,14 +115,20 @@ class PoseConfig:
     sequential_overlap: int = 10  # sequential matching: each image is matched with this many following ones
     quadratic_overlap: bool = True  # sequential: the images 2^k ahead (k < overlap) instead, COLMAP's default
     exhaustive_max_images: int = 30  # auto: exhaustive matching up to this many images, sequential above
-    threads: int = -1  # CPU threads for pycolmap (-1: all)
-    seed: int = 0  # RANSAC and mapper seed (COLMAP's threads can still change the outcome between runs)
+    threads: int = -1  # CPU threads of feature extraction and matching (-1: all)
+    # CPU threads of the mapper and bundle adjustment: 1 repeats bit for bit (with more, Ceres sums in thread order)
+    mapping_threads: int = 1
+    seed: int = 0  # RANSAC and mapper seed; with mapping_threads 1 the same photos give the same cameras bit for bit
     # Incremental mapping is run again (seed + 1, + 2, ...) while the best model so far leaves out an
     # image that has a verified pair: with several threads a run can stop after its first two images.
     mapping_attempts: int = 5
     colmap_log: bool = False  # let COLMAP log its stages to stderr
 
     def __post_init__(self) -> None:
+        if self.camera_model not in ("auto", *FITTED_MODELS):
+            raise SurfSplatInputError(
+                f"--camera-model: expected 'auto' or one of {', '.join(FITTED_MODELS)}, got {self.camera_model!r}"
+            )
         if self.matching not in ("auto", "exhaustive", "sequential"):
             raise SurfSplatInputError(f"matching: expected 'auto', 'exhaustive' or 'sequential', got {self.matching!r}")
         if self.sequential_overlap < 1:
@@ -150,12 +179,13 @@ class PoseSummary:
     seconds: float
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage: read, extract, match, reconstruct
     notes: list[str] = field(default_factory=list)  # what the user should know (dropped images, ...)
-    # (width, height) of every input image; the photos may differ, each size with a camera of its own
-    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
-
-    @property
-    def one_size(self) -> bool:
-        return len(set(self.sizes.values())) <= 1
+    lens: Lens | None = None  # the fitted camera: COLMAP model and parameters, in pixels of the input images
+    pinhole: Lens | None = None  # the PINHOLE camera the photos are undistorted to (the K returned)
+    model_choice: str = ""  # why this model (the rule of camera_model "auto", or "asked for")
+    model_errors: dict[str, float] = field(default_factory=dict)  # mean reprojection error (px) per model fitted
+    # auto: the largest distance (px) between the pixels SIMPLE_RADIAL's and OPENCV's fits give one ray, over the image
+    model_difference_px: float | None = None
+    model_excess_px: float | None = None  # auto: the reprojection error SIMPLE_RADIAL leaves that OPENCV explains
 
     @property
     def unregistered(self) -> list[str]:
@@ -166,6 +196,7 @@ class PoseSummary:
         out = [
             f"registered {len(self.registered)} of {len(self.images)} images ({self.method}) in {self.seconds:.1f} s",
             f"focal {self.focal:.1f} px for {self.width}x{self.height} images ({self.focal_source})",
+            *self._lens_lines(),
             f"{self.points} 3D points, mean reprojection error {self.reprojection_error:.3f} px",
             f"world: first camera at the origin, median point depth {self.median_depth:g}; "
             f"near {self.near:.3f}, far {self.far:.3f}",
@@ -179,6 +210,26 @@ class PoseSummary:
         out.extend(self.notes)
         return out
 
+    def lens_pairs(self, camera_set: CameraSet) -> list[tuple[Lens, Lens]] | None:
+        """(fitted lens, pinhole the photo is undistorted to) of each view of camera_set, as the camera
+        file records them (`save_cameras`); None where the views are pinhole."""
+        if camera_set.lenses is None:
+            return None
+        return [(lens, self.pinhole) for lens in camera_set.lenses]
+
+    def _lens_lines(self) -> list[str]:
+        if self.lens is None:
+            return []
+        values = ", ".join(f"{n} {_format_param(n, v)}" for n, v in zip(self.lens.param_names, self.lens.params))
+        out = [f"camera {self.lens.model}: {values} ({self.model_choice})"]
+        if self.pinhole is not None and not self.lens.is_pinhole:
+            fx, fy, cx, cy = self.pinhole.params
+            out.append(
+                f"photos undistorted to PINHOLE {self.pinhole.width}x{self.pinhole.height}: "
+                f"fx {fx:.1f}, fy {fy:.1f}, cx {cx:.1f}, cy {cy:.1f}"
+            )
+        return out
+
     def to_dict(self) -> dict:
         return {
             "images": self.images,
@@ -189,6 +240,14 @@ class PoseSummary:
             "reprojection_error_px": self.reprojection_error,
             "focal_px": self.focal,
             "focal_source": self.focal_source,
+            "camera_model": None if self.lens is None else self.lens.model,
+            "camera_params": None if self.lens is None else dict(zip(self.lens.param_names, self.lens.params)),
+            "lens": None if self.lens is None else self.lens.to_dict(),
+            "pinhole": None if self.pinhole is None else self.pinhole.to_dict(),
+            "model_choice": self.model_choice,
+            "reprojection_error_px_by_model": self.model_errors,
+            "model_difference_px": self.model_difference_px,
+            "model_excess_px": self.model_excess_px,
             "width": self.width,
             "height": self.height,
             "extraction_size": list(self.extraction_size),
@@ -200,8 +259,12 @@ class PoseSummary:
             "timings": self.timings,
             "pairs": [vars(p) for p in self.pairs],
             "notes": self.notes,
-            "image_sizes": {name: list(size) for name, size in self.sizes.items()},
         }
+
+
+def _format_param(name: str, value: float) -> str:
+    """Pixels to 0.1 px, distortion coefficients to four significant digits."""
+    return f"{value:.1f}" if name in ("f", "fx", "fy", "cx", "cy") else f"{value:.4g}"
 
 
 ImageInput = str | os.PathLike | np.ndarray | torch.Tensor
@@ -212,6 +275,7 @@ def estimate_cameras(
     focal: float | None = None,
     config: PoseConfig | None = None,
     names: Sequence[str] | None = None,
+    colmap_model: str | os.PathLike | None = None,
 ) -> tuple[CameraSet, PoseSummary]:
     """Cameras of two or more photos of one scene, estimated from the photos alone.
 
@@ -219,12 +283,12 @@ def estimate_cameras(
         [3, H, W] in [0, 1]); all of one size.
     focal: focal length in pixels of these images (overrides EXIF and the prior).
     names: a name per image (default: the file names, or view_000, ... for arrays).
+    colmap_model: a folder to write the reconstruction to as a COLMAP model (pycolmap's binary
+        cameras/images/points3D files, the images by these names, the fitted lens in the input
+        pixels, the world of the returned cameras: first camera at the origin, their scale).
     Returns the cameras of the registered images (OpenCV c2w, K in pixels of the images, near/far)
-    in input order, and the summary. Photos may differ in size: each size gets a camera of its own,
-    every K is in pixels of its own image, and the CameraSet's width x height is the first
-    registered image's (with several sizes not one camera file's size: `summary.sizes` gives each
-    image's). Raises SurfSplatInputError naming the cause when the photos do not define cameras (too
-    few matches, pure rotation, a plane, unreadable files).
+    in input order, and the summary. Raises SurfSplatInputError naming the cause when the photos
+    do not define cameras (too few matches, pure rotation, a plane, unreadable files).
     """
     config = config or PoseConfig()
     if focal is not None:
@@ -236,34 +300,24 @@ def estimate_cameras(
     # COLMAP logs every stage to stderr; its failures reach the user as this module's errors instead
     quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 0 if config.colmap_log else 3
     try:
-        camera_set, summary = _estimate(arrays, names, paths, config, start)
+        camera_set, summary = _estimate(arrays, names, paths, config, start, colmap_model)
     finally:
         pycolmap.logging.minloglevel = quiet
     return camera_set, summary
 
 
-def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[CameraSet, PoseSummary]:
-    sizes = [(a.shape[1], a.shape[0]) for a in arrays]
-    distinct = list(dict.fromkeys(sizes))  # one camera per image size, in order of first appearance
-    groups = [distinct.index(size) for size in sizes]
-    if config.focal is not None and len(distinct) > 1:
-        listing = ", ".join(f"{w}x{h}" for w, h in distinct)
-        raise SurfSplatInputError(
-            f"--focal: one focal length in pixels fits one image size, the photos have {len(distinct)} ({listing}); "
-            "leave it out (EXIF or bundle adjustment finds one per size)"
-        )
-    focals = [
-        _initial_focal(config, [p for p, g in zip(paths, groups) if g == k], *distinct[k]) for k in range(len(distinct))
-    ]
-    # one origin for bundle adjustment: an EXIF focal is refined only where every size has one
-    origins = {origin for _, _, origin in focals}
-    focal_origin = origins.pop() if len(origins) == 1 else "prior"
-    ext_sizes = [_extraction_size(size, config) for size in distinct]
-    ext_size = ext_sizes[0]
+def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_model) -> tuple[CameraSet, PoseSummary]:
+    height, width = arrays[0].shape[:2]
+    f0, focal_source, focal_origin = _initial_focal(config, paths, width, height)
+    long_side = max(width, height)
+    target = min(max(long_side, config.min_extraction_size), config.max_size)
+    s = target / long_side
+    ext_size = (max(1, round(width * s)), max(1, round(height * s)))
+    model = MAPPING_MODEL.get(config.camera_model, config.camera_model)
     with tempfile.TemporaryDirectory(prefix="surfsplat-poses-") as tmp:
-        work = _Workspace(Path(tmp), names, distinct, groups, [f for f, _, _ in focals], focal_origin, config)
+        work = _Workspace(Path(tmp), names, (width, height), f0, focal_origin, model, config)
         timings = {"read": time.perf_counter() - start}
-        work.extract(arrays, ext_sizes)
+        work.extract(arrays, ext_size)
         timings["extract"] = time.perf_counter() - start - sum(timings.values())
         pairs = work.match()
         timings["match"] = time.perf_counter() - start - sum(timings.values())
@@ -273,11 +327,11 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             method = "two-view"
         else:
             recon, method, focal_note = work.incremental(pairs)
+        if focal_note is not None:
+            focal_source = focal_note.format(source=focal_source)
+        recon, choice = work.choose_model(recon)
         timings["reconstruct"] = time.perf_counter() - start - sum(timings.values())
-        cameras, K, registered, depths = _export(recon, work.ids, names)
-    focal_source = focals[groups[names.index(registered[0])]][1]  # the summary's focal: K[0]'s camera
-    if focal_note is not None:
-        focal_source = focal_note.format(source=focal_source)
+        cameras, K, registered, depths, lens, pinhole = _export(recon, work.ids, names)
     notes = []
     dropped = [n for n in names if n not in registered]
     if dropped:
@@ -285,19 +339,14 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
             f"not registered (no reliable matches to the others): {', '.join(dropped)}; "
             f"continuing with the {len(registered)} registered images"
         )
-    if len(distinct) > 1:
-        for k, (w, h) in enumerate(distinct):
-            members = [n for n, g in zip(names, groups) if g == k and n in registered]
-            if members:
-                fk = float(K[registered.index(members[0]), 0, 0])
-                notes.append(
-                    f"camera {k + 1} ({w}x{h}, {len(members)} images): focal {fk:.1f} px (initial: {focals[k][1]})"
-                )
-    cameras, depths = _normalize(cameras, depths, config.median_depth)
+    first_w2c = torch.linalg.inv(cameras[0]).numpy()
+    cameras, depths, scale = _normalize(cameras, depths, config.median_depth)
+    if colmap_model is not None:
+        _write_colmap_model(recon, work.ids, Path(colmap_model), scale * first_w2c[:3, :4])
     near, far = _depth_range(depths, config)
-    pinhole = Cameras(cameras, K)
-    width, height = sizes[names.index(registered[0])]  # the size K[0] (and summary.focal) is in pixels of
-    camera_set = CameraSet(pinhole, width, height, registered, near, far)
+    lenses = None if lens.is_pinhole else [lens] * len(registered)
+    views = Cameras(cameras, K.expand(len(registered), 3, 3).clone())
+    camera_set = CameraSet(views, pinhole.width, pinhole.height, registered, near, far, lenses)
     summary = PoseSummary(
         images=list(names),
         registered=registered,
@@ -305,7 +354,7 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
         method=method,
         points=int(recon.num_points3D()),
         reprojection_error=float(recon.compute_mean_reprojection_error()),
-        focal=float(K[0, 0, 0]),
+        focal=float(lens.params[0]),
         focal_source=focal_source,
         width=width,
         height=height,
@@ -316,7 +365,12 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float) -> tuple[C
         seconds=time.perf_counter() - start,
         timings=timings,
         notes=notes,
-        sizes=dict(zip(names, sizes)),
+        lens=lens,
+        pinhole=pinhole,
+        model_choice=choice.reason,
+        model_errors=choice.errors,
+        model_difference_px=choice.difference_px,
+        model_excess_px=choice.excess_px,
     )
     return camera_set, summary
 
@@ -353,6 +407,12 @@ def _load_images(items: Sequence[ImageInput], names: Sequence[str] | None) -> tu
         raise SurfSplatInputError(
             f"images: file names must be unique (cameras are keyed by name), repeated: {repeated}"
         )
+    sizes = {a.shape[1::-1] for a in arrays}
+    if len(sizes) != 1:
+        listing = ", ".join(f"{n} {a.shape[1]}x{a.shape[0]}" for n, a in zip(names, arrays))
+        raise SurfSplatInputError(
+            f"images: all images must have one size (one shared camera), got {listing}; resize or crop them alike"
+        )
     return arrays, names, paths
 
 
@@ -366,14 +426,6 @@ def _to_uint8(array: np.ndarray, source: str) -> np.ndarray:
     if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all():
         raise SurfSplatInputError(f"{source}: expected uint8 or finite float values in [0, 1], got {array.dtype}")
     return np.round(np.clip(array, 0, 1) * 255).astype(np.uint8)
-
-
-def _extraction_size(size: tuple[int, int], config: PoseConfig) -> tuple[int, int]:
-    """(width, height) SIFT runs at: the long side brought into [min_extraction_size, max_size]."""
-    width, height = size
-    long_side = max(width, height)
-    s = min(max(long_side, config.min_extraction_size), config.max_size) / long_side
-    return max(1, round(width * s)), max(1, round(height * s))
 
 
 def _initial_focal(config: PoseConfig, paths: list, width: int, height: int) -> tuple[float, str, str]:
@@ -399,52 +451,57 @@ class _Workspace:
         self,
         root: Path,
         names: list[str],
-        sizes: list[tuple[int, int]],
-        groups: list[int],
-        focals: list[float],
+        size: tuple[int, int],
+        focal: float,
         focal_origin: str,
+        model: str,
         config: PoseConfig,
     ):
         import pycolmap
 
         self.pycolmap = pycolmap
         self.root = root
-        self.names = names  # user names; files inside are s0/000000.png, ... (one folder per image size)
-        self.files = [f"s{g}/{i:06d}.png" for i, g in enumerate(groups)]
-        self.sizes = sizes  # (width, height) of each camera, one per image size
-        self.groups = dict(zip(names, groups))  # user name -> its camera (index into sizes)
-        self.focals = focals  # initial focal length of each camera, pixels of its images
+        self.names = names  # user names; files inside are 000000.png, ...
+        self.files = [f"{i:06d}.png" for i in range(len(names))]
+        self.size = size
+        self.focal = focal
         self.focal_origin = focal_origin  # "given", "exif" or "prior"
+        self.model = model  # COLMAP camera model the mapper fits (MAPPING_MODEL of the one asked for)
+        self.refine_focal = False  # whether the final bundle adjustment refined the focal length
         self.config = config
         self.database = root / "database.db"
         self.images = root / "images"
-        for g in range(len(sizes)):
-            (self.images / f"s{g}").mkdir(parents=True)
+        self.images.mkdir()
         self.ids: dict[str, int] = {}  # user name -> database image id
         pycolmap.set_random_seed(config.seed)
 
-    def camera(self, group: int = 0):
-        """The pinhole camera of the images of one size (camera_id = group + 1)."""
-        w, h = self.sizes[group]
-        f = self.focals[group]
-        return self.pycolmap.Camera(
-            model="SIMPLE_PINHOLE", width=w, height=h, params=[f, w / 2, h / 2], camera_id=group + 1
-        )
+    def camera(self):
+        """The starting camera at the input size: COLMAP's initial parameters for the model (principal
+        point at the centre, distortion zero) with this focal length."""
+        w, h = self.size
+        return self.pycolmap.Camera.create_from_model_name(1, self.model, self.focal, w, h)
 
-    def extract(self, arrays: list[np.ndarray], ext_sizes: list[tuple[int, int]]) -> None:
+    def extract(self, arrays: list[np.ndarray], ext_size: tuple[int, int]) -> None:
         pycolmap = self.pycolmap
-        scales = [(e[0] / s[0], e[1] / s[1]) for e, s in zip(ext_sizes, self.sizes)]
-        for array, file, name in zip(arrays, self.files, self.names):
+        for array, file in zip(arrays, self.files):
             image = Image.fromarray(array)
-            ext_size = ext_sizes[self.groups[name]]
             if image.size != ext_size:
                 image = image.resize(ext_size, Image.Resampling.LANCZOS)
             image.save(self.images / file)
+        sx, sy = ext_size[0] / self.size[0], ext_size[1] / self.size[1]
+        # the camera at the extraction size: focal length and principal point scale with the image, the
+        # distortion coefficients act on normalized coordinates and do not (pycolmap's Camera.rescale)
+        at_extraction = self.camera()
+        at_extraction.rescale(*ext_size)
         reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "SIMPLE_PINHOLE"
-        # every camera is replaced below by its size's, in the input images' pixels
-        (sx, _), ext0 = scales[0], ext_sizes[0]
-        reader.camera_params = f"{self.focals[0] * sx},{ext0[0] / 2},{ext0[1] / 2}"
+        reader.camera_model = self.model
+        reader.camera_params = at_extraction.params_to_string()
+        # The images enter the database one by one in input order first, so their ids are 1, 2, ... in
+        # that order: feature extraction on several threads numbers them as they finish (measured: of
+        # two runs on six DTU photos, one gave the first photo id 2), the mapper breaks ties by id,
+        # and the same photos then gave other cameras in one run of three.
+        pycolmap.Database.open(self.database).close()
+        pycolmap.import_images(self.database, self.images, pycolmap.CameraMode.SINGLE, self.files, reader)
         options = pycolmap.FeatureExtractionOptions()
         options.num_threads = self.config.threads
         options.sift.max_num_features = self.config.max_features
@@ -455,7 +512,7 @@ class _Workspace:
             self.database,
             self.images,
             image_names=self.files,
-            camera_mode=pycolmap.CameraMode.PER_FOLDER,  # one camera per image size (a folder each)
+            camera_mode=pycolmap.CameraMode.SINGLE,
             reader_options=reader,
             extraction_options=options,
             device=pycolmap.Device.cpu,
@@ -465,15 +522,11 @@ class _Workspace:
         # COLMAP and this package, so a resize maps coordinates by a plain scale.
         db = pycolmap.Database.open(self.database)
         try:
-            records = {im.name: im for im in db.read_all_images()}
-            by_file = {name: im.image_id for name, im in records.items()}
-            camera_group = {}  # database camera id -> image size group
+            by_file = {im.name: im.image_id for im in db.read_all_images()}
             for name, file in zip(self.names, self.files):
                 if file not in by_file:
                     raise SurfSplatInputError(f"{name}: feature extraction produced no entry for this image")
                 self.ids[name] = by_file[file]
-                camera_group[records[file].camera_id] = self.groups[name]
-                sx, sy = scales[self.groups[name]]
                 keypoints = db.read_keypoints(by_file[file]).copy()
                 keypoints[:, 0] /= sx
                 keypoints[:, 1] /= sy
@@ -482,7 +535,7 @@ class _Workspace:
                     keypoints[:, 4:6] /= sy
                 db.update_keypoints(by_file[file], keypoints)
             for cam in db.read_all_cameras():
-                fixed = self.camera(camera_group[cam.camera_id])
+                fixed = self.camera()
                 fixed.camera_id = cam.camera_id
                 fixed.has_prior_focal_length = True
                 db.update_camera(fixed)
@@ -567,26 +620,25 @@ class _Workspace:
             inlier_matches = db.read_two_view_geometry(a, b).inlier_matches
         finally:
             db.close()
-        camera1, camera2 = self.camera(self.groups[pair.first]), self.camera(self.groups[pair.second])
+        camera = self.camera()
         p1, p2 = kp1[inlier_matches[:, 0]], kp2[inlier_matches[:, 1]]
         ransac = pycolmap.RANSACOptions()
         ransac.max_error = 1.0  # px; the verified matches are already consistent to 4 px
         ransac.random_seed = cfg.seed
-        estimate = pycolmap.estimate_relative_pose(camera1, p1, camera2, p2, ransac)
+        estimate = pycolmap.estimate_relative_pose(camera, p1, camera, p2, ransac)
         if estimate is None:
             raise SurfSplatInputError(
                 f"{what}: no relative pose fits the {len(p1)} verified matches; give the focal length "
                 "(--focal) or take photos with more overlap"
             )
         mask = np.asarray(estimate["inlier_mask"], dtype=bool).reshape(-1)
-        self._check_not_homography(what, camera1, camera2, p1, p2, mask, ransac)
-        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera1, p1, camera2, p2, mask)
+        self._check_not_homography(what, camera, p1, p2, mask, ransac)
+        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera, p1, camera, p2, mask)
         if isinstance(pose, dict):
             pose = pose["cam2_from_cam1"]
         recon = pycolmap.Reconstruction()
-        for camera in {camera1.camera_id: camera1, camera2.camera_id: camera2}.values():
-            recon.add_camera_with_trivial_rig(camera)
-        for image_id, kp, cam_from_world, camera in ((a, kp1, pycolmap.Rigid3d(), camera1), (b, kp2, pose, camera2)):
+        recon.add_camera_with_trivial_rig(camera)
+        for image_id, kp, cam_from_world in ((a, kp1, pycolmap.Rigid3d()), (b, kp2, pose)):
             name = pair.first if image_id == a else pair.second
             image = pycolmap.Image(name=name, keypoints=kp, camera_id=camera.camera_id, image_id=image_id)
             recon.add_image_with_trivial_frame(image, cam_from_world)
@@ -600,13 +652,14 @@ class _Workspace:
         median_angle = float(np.degrees(np.median(angles)))
         if median_angle < cfg.min_triangulation_angle:
             raise _rotation_error(what, median_angle)
+        self.refine_focal = False  # not observable from two views: the focal stays at its source
         self._bundle_adjust(recon, refine_focal=False)
         self._filter(recon, cfg.max_reprojection_error)
         self._bundle_adjust(recon, refine_focal=False)
         return recon
 
     def _check_not_homography(
-        self, what: str, camera1, camera2, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
+        self, what: str, camera, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
     ) -> None:
         """Refuse pairs that one homography explains: a camera that only turned (any translation then
         fits E) or a single plane (two poses fit). COLMAP's own verdict (PLANAR_OR_PANORAMIC when H
@@ -632,10 +685,10 @@ class _Workspace:
         parallax = float((offset > cfg.parallax_px).mean())
         if explained < cfg.max_homography_share or parallax >= cfg.min_parallax_share:
             return
-        rays1 = np.concatenate([camera1.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
-        rays2 = np.concatenate([camera2.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
-        K1, K2 = camera1.calibration_matrix(), camera2.calibration_matrix()
-        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K1, K2, rays1, rays2)
+        rays1 = np.concatenate([camera.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
+        rays2 = np.concatenate([camera.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
+        K = camera.calibration_matrix()
+        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K, K, rays1, rays2)
         # H = R - t n^T / d: the translation comes out in units of the plane's distance d
         moved = float(np.linalg.norm(decomposed["cam2_from_cam1"].translation))
         if moved < cfg.min_homography_translation:
@@ -649,11 +702,11 @@ class _Workspace:
 
     def _triangulate(self, recon, a: int, b: int, matches: np.ndarray) -> None:
         pycolmap = self.pycolmap
+        camera = recon.cameras[1]
         image_a, image_b = recon.images[a], recon.images[b]
-        camera_a, camera_b = recon.cameras[image_a.camera_id], recon.cameras[image_b.camera_id]
         P1, P2 = image_a.cam_from_world().matrix(), image_b.cam_from_world().matrix()
-        xy1 = camera_a.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
-        xy2 = camera_b.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
+        xy1 = camera.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
+        xy2 = camera.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
         c1, c2 = image_a.projection_center(), image_b.projection_center()
         for (i, j), u, v in zip(matches, xy1, xy2):
             point = pycolmap.triangulate_point(P1, P2, u, v)
@@ -675,15 +728,16 @@ class _Workspace:
 
     def _bundle_adjust(self, recon, refine_focal: bool) -> None:
         """Global BA with a Cauchy loss (outliers the verification let through weigh little); gauge:
-        the first camera's pose and the distance to the second are fixed."""
+        the first camera's pose and the distance to the second are fixed. The distortion parameters
+        of the camera's model (none for the pinhole models) are always refined."""
         pycolmap = self.pycolmap
         options = pycolmap.BundleAdjustmentOptions()
         options.print_summary = False
         options.refine_focal_length = refine_focal
         options.refine_principal_point = False
-        options.refine_extra_params = False
+        options.refine_extra_params = any(len(c.extra_params_idxs()) for c in recon.cameras.values())
         options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-        options.ceres.solver_options.num_threads = self.config.threads
+        options.ceres.solver_options.num_threads = self.config.mapping_threads
         options.ceres.min_num_residuals_for_cpu_multi_threading = 1000
         config = pycolmap.BundleAdjustmentConfig()
         for image_id in recon.reg_image_ids():
@@ -711,14 +765,14 @@ class _Workspace:
                 f"{best.inliers}): the photos do not overlap enough; take them closer together"
             )
         options = pycolmap.IncrementalPipelineOptions()
-        options.num_threads = cfg.threads
+        options.num_threads = cfg.mapping_threads
         options.random_seed = cfg.seed
         options.min_num_matches = cfg.min_inliers
         options.multiple_models = False
         options.extract_colors = False
         options.ba_refine_focal_length = self.focal_origin == "prior"  # an EXIF focal is only refined below
         options.ba_refine_principal_point = False
-        options.ba_refine_extra_params = False
+        options.ba_refine_extra_params = self.model not in ("SIMPLE_PINHOLE", "PINHOLE")
         # COLMAP threads BA only above 50,000 residuals; a few thousand points of 8 photos are below
         # that and then take 30 % longer (measured: 8 views at 1000 px, 28.7 s -> 20.1 s mapping)
         options.ba_min_num_residuals_for_cpu_multi_threading = 1000
@@ -739,6 +793,7 @@ class _Workspace:
             return recon, "two-view (the incremental mapper registered fewer than 2 images)", None
         spread = _axis_spread(best)
         refine = self.focal_origin == "prior" or (self.focal_origin == "exif" and spread >= cfg.focal_observable_angle)
+        self.refine_focal = refine
         self._bundle_adjust(best, refine_focal=refine)
         if self.focal_origin == "given":
             note = None
@@ -755,6 +810,85 @@ class _Workspace:
                 f"(at least {cfg.focal_observable_angle:g} deg)"
             )
         return best, "incremental" if runs == 1 else f"incremental (the largest of {runs} mapping runs)", note
+
+    # ---- the lens model
+    def choose_model(self, recon) -> tuple[object, _ModelChoice]:
+        """The model asked for as fitted; or, for camera_model "auto", SIMPLE_RADIAL's fit against
+        OPENCV's. OPENCV starts from SIMPLE_RADIAL's fit (fx = fy = f, k1 = k) and one more bundle
+        adjustment refines it on the same points and observations, with the same focal rule. The
+        error SIMPLE_RADIAL leaves that OPENCV explains is the difference of their mean reprojection
+        errors in quadrature, sqrt(e_SR^2 - e_OPENCV^2) (the noise of the keypoints is in both and
+        cancels; a relative gain would hide a real misfit behind noisy keypoints). OPENCV replaces
+        SIMPLE_RADIAL when that is at least `opencv_min_excess` pixels and its parameters pass COLMAP's
+        sanity check (the mapper's focal ratio and distortion bounds). Measured: OPENCV's four more
+        parameters explain 0.02 px of DTU photos through a mild OPENCV lens (its k2 and p terms move
+        the corners by 0.3 px) and 0.06 px of a ray-cast room through a lens with fy = 0.97 fx, where
+        forcing OPENCV gave worse rotations (1.03 against 0.32 degrees); 0.14 px with decentring
+        (p1 0.01, p2 -0.01), where its k1, k2, p1, p2 came out within 0.021 of the truth."""
+        errors = {self.model: float(recon.compute_mean_reprojection_error())}
+        asked = self.config.camera_model
+        if asked == self.model:
+            return recon, _ModelChoice(f"{asked} asked for", errors, None)
+        if asked != "auto":  # RADIAL or OPENCV: refined from the SIMPLE_RADIAL the mapper fitted
+            recon = self._refined_as(recon, asked)
+            errors[asked] = float(recon.compute_mean_reprojection_error())
+            return recon, _ModelChoice(f"{asked} asked for (mapped as {self.model}, then refined)", errors, None)
+        pycolmap = self.pycolmap
+        radial = {}
+        for camera_id, camera in recon.cameras.items():
+            radial[camera_id] = pycolmap.Camera.create_from_model_name(
+                camera_id, "SIMPLE_RADIAL", 1.0, camera.width, camera.height
+            )
+            radial[camera_id].params = camera.params
+        trial = self._refined_as(recon, "OPENCV")
+        errors["OPENCV"] = float(trial.compute_mean_reprojection_error())
+        difference = max(_lens_difference(radial[i], c) for i, c in trial.cameras.items())
+        excess = math.sqrt(max(errors["SIMPLE_RADIAL"] ** 2 - errors["OPENCV"] ** 2, 0.0))
+        bogus = any(c.has_bogus_params(0.1, 10.0, 1.0) for c in trial.cameras.values())
+        measured = (
+            f"OPENCV's reprojection error {errors['OPENCV']:.3f} px against SIMPLE_RADIAL's "
+            f"{errors['SIMPLE_RADIAL']:.3f} px explains {excess:.3f} px more"
+        )
+        threshold = self.config.opencv_min_excess
+        if excess >= threshold and not bogus:
+            return trial, _ModelChoice(f"auto: {measured}, at least {threshold:g} px", errors, difference, excess)
+        why = "but its parameters are implausible" if bogus else f"less than the {threshold:g} px it must"
+        return recon, _ModelChoice(f"auto: {measured}, {why}", errors, difference, excess)
+
+    def _refined_as(self, recon, model: str):
+        """A copy of a SIMPLE_RADIAL reconstruction with its cameras turned into `model` (RADIAL: k1 = k,
+        k2 = 0; OPENCV: fx = fy = f, k1 = k, the rest 0: the same lens) and one more bundle adjustment,
+        with the focal rule of the last."""
+        pycolmap = self.pycolmap
+        out = pycolmap.Reconstruction(recon)
+        for camera in out.cameras.values():
+            f, cx, cy, k = (float(v) for v in camera.params)
+            camera.model = getattr(pycolmap.CameraModelId, model)
+            camera.params = [f, cx, cy, k, 0.0] if model == "RADIAL" else [f, f, cx, cy, k, 0.0, 0.0, 0.0]
+        self._bundle_adjust(out, refine_focal=self.refine_focal)
+        return out
+
+
+@dataclass
+class _ModelChoice:
+    reason: str  # in words, for the summary
+    errors: dict[str, float]  # mean reprojection error (px) per model fitted
+    difference_px: float | None  # auto: SIMPLE_RADIAL's and OPENCV's lenses, farthest apart over the image
+    excess_px: float | None = None  # auto: the error SIMPLE_RADIAL leaves that OPENCV explains (in quadrature)
+
+
+def _lens_difference(a, b, samples: int = 17) -> float:
+    """Largest distance in pixels between where lenses a and b put one ray, over a grid of the image
+    (corners included): a's pixel -> a's ray -> b's pixel. Pixels a strong barrel distortion cannot
+    invert (COLMAP's iterative undistortion returns NaN beyond the radial map's turning point) are
+    left out."""
+    u = np.linspace(0.0, a.width, samples)
+    v = np.linspace(0.0, a.height, samples)
+    pixels = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+    rays = np.concatenate([a.cam_from_img(pixels), np.ones((len(pixels), 1))], 1)
+    distance = np.linalg.norm(b.img_from_cam(rays) - pixels, axis=1)
+    finite = np.isfinite(distance)
+    return float(distance[finite].max()) if finite.any() else float("nan")
 
 
 def _axis_spread(recon) -> float:
@@ -774,20 +908,30 @@ def _rotation_error(what: str, angle: float | None) -> SurfSplatInputError:
 
 # ----------------------------------------------------------------------------------------- outputs
 def _export(recon, ids: dict[str, int], names: list[str]):
-    """(c2w [R, 4, 4] float64, K [R, 3, 3], registered names, per-view point depths) in input order."""
+    """(c2w [R, 4, 4] float64, K [3, 3], registered names, per-view point depths, the fitted lens,
+    the pinhole the photos are undistorted to) in input order. K is that pinhole's (the lens's own
+    for the pinhole models and for a distortion that came out exactly zero)."""
+    from ..geometry.lens import undistorted_pinhole
+
     registered = [n for n in names if ids[n] in recon.images and recon.images[ids[n]].has_pose]
-    Ks = []
-    for name in registered:  # each image's camera: one per image size
-        f, cx, cy = (float(v) for v in recon.cameras[recon.images[ids[name]].camera_id].params)
-        Ks.append(torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64))
-    K = torch.stack(Ks)
+    camera = recon.cameras[recon.images[ids[registered[0]]].camera_id]
+    lens = Lens(camera.model.name, int(camera.width), int(camera.height), tuple(float(v) for v in camera.params))
+    if lens.is_pinhole:
+        M = camera.calibration_matrix()
+        pinhole = Lens(
+            "PINHOLE", lens.width, lens.height, tuple(float(M[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+        )
+    else:
+        pinhole = undistorted_pinhole(lens)
+    fx, fy, cx, cy = pinhole.params
+    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
     w2c = np.tile(np.eye(4), (len(registered), 1, 1))
     for k, name in enumerate(registered):
         w2c[k, :3, :4] = recon.images[ids[name]].cam_from_world().matrix()
     c2w = np.linalg.inv(w2c)
     xyz = np.array([p.xyz for p in recon.points3D.values()]).reshape(-1, 3)
     depths = [(xyz @ w[:3, :3].T + w[:3, 3])[:, 2] for w in w2c]
-    return torch.from_numpy(c2w), K, registered, depths
+    return torch.from_numpy(c2w), K, registered, depths, lens, pinhole
 
 
 def _normalize(c2w: torch.Tensor, depths: list[np.ndarray], median_depth: float):
@@ -799,7 +943,21 @@ def _normalize(c2w: torch.Tensor, depths: list[np.ndarray], median_depth: float)
         raise SurfSplatInputError("no triangulated point lies in front of the first camera")
     scale = median_depth / float(np.median(seen))
     c2w[:, :3, 3] *= scale
-    return c2w, [d * scale for d in depths]
+    return c2w, [d * scale for d in depths], scale
+
+
+def _write_colmap_model(recon, ids: dict[str, int], folder: Path, new_from_old: np.ndarray) -> None:
+    """The reconstruction as a COLMAP model in `folder`: in the returned cameras' world (the similarity
+    new_from_old, 3x4: scale times the first camera's world-to-camera) and with the user's image names."""
+    import pycolmap
+
+    model = pycolmap.Reconstruction(recon)
+    model.transform(pycolmap.Sim3d(new_from_old))
+    for name, image_id in ids.items():
+        if image_id in model.images:
+            model.images[image_id].name = name
+    folder.mkdir(parents=True, exist_ok=True)
+    model.write(folder)
 
 
 def _depth_range(depths: list[np.ndarray], config: PoseConfig) -> tuple[float, float]:

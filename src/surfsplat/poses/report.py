@@ -28,11 +28,7 @@ def write_pose_outputs(
     image_paths: list[Path],  # every input photo, in input order (unregistered ones included)
     renders: list[Path] | None = None,  # colour renders of the registered views, beside the report
 ) -> dict[str, Path]:
-    """Write estimated_cameras.json, poses.json, poses/ (thumbnails, top view) and report.html.
-
-    A camera file states one image size that every K is in pixels of: photos of several sizes (a
-    camera each, K in its own photo's pixels) get no estimated_cameras.json; poses.json gives every
-    photo's size and the report says why."""
+    """Write estimated_cameras.json, poses.json, poses/ (thumbnails, top view) and report.html."""
     from ..data.cameras import save_cameras
     from ..data.images import read_image
     from ..export.figures import write_text
@@ -41,21 +37,22 @@ def write_pose_outputs(
 
     out = Path(out_dir)
     c = camera_set
-    written = {}
-    if summary.one_size:
-        written["estimated cameras"] = save_cameras(
-            out / "estimated_cameras.json", c.cameras, c.width, c.height, c.names, c.near, c.far
-        )
-    written["pose summary"] = write_text(out / "poses.json", json.dumps(summary.to_dict(), indent=1) + "\n")
+    written = {
+        "estimated cameras": save_cameras(
+            out / "estimated_cameras.json",
+            c.cameras,
+            c.width,
+            c.height,
+            c.names,
+            c.near,
+            c.far,
+            lenses=c.lenses,
+        ),
+        "pose summary": write_text(out / "poses.json", json.dumps(summary.to_dict(), indent=1) + "\n"),
+    }
     report = HtmlReport("SurfSplat reconstruction from photos without poses")
     report.heading("Cameras estimated from the photos")
-    lines = summary.lines()
-    if not summary.one_size:
-        lines.append(
-            f"no estimated_cameras.json: the photos have {len(set(summary.sizes.values()))} sizes and a camera "
-            "file states one; poses.json lists each photo's size"
-        )
-    report.preformatted("\n".join(lines))
+    report.preformatted("\n".join(summary.lines()))
     index = {name: k for k, name in enumerate(c.names)}
     first_R = c.cameras.c2w[0, :3, :3].to(torch.float64)
     figures, rows = [], []
@@ -92,11 +89,7 @@ def write_pose_outputs(
     report.links(
         "Files:",
         [
-            *(
-                [("estimated_cameras.json", "cameras of the photos (K in their pixels), usable as --cameras")]
-                if summary.one_size
-                else []
-            ),
+            ("estimated_cameras.json", "cameras of the photos (K in their pixels), usable as --cameras"),
             ("poses.json", "the pose summary"),
         ],
     )
@@ -121,7 +114,7 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
     points = [centres]
     shapes = []
     for i in range(len(c2w)):
-        half = math.atan(K[i, 0, 2] / K[i, 0, 0])  # cx = w / 2: each view its own width (sizes may differ)
+        half = math.atan(camera_set.width / (2 * K[i, 0, 0]))
         axis = c2w[i, [0, 2], 2]
         axis = axis / max(np.linalg.norm(axis), 1e-12)
         left = _rotate(axis, -half) * wedge / math.cos(half) + centres[i]

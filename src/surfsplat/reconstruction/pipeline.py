@@ -88,6 +88,7 @@ def reconstruct(
     trust_pickle: bool = False,
     images_folder: str | None = None,
     focal: float | None = None,
+    camera_model: str = "auto",
     max_size: int = 1600,
     max_working_size: int | None = 512,
     compact: int | None = None,
@@ -120,7 +121,8 @@ def reconstruct(
     near, far:  depth range (default: from the cameras, else 0.5 and 100)
     preset, trust_pickle: how to read a release .ckpt given by path
     images_folder: image folder of a scene folder given as `cameras` (e.g. images_4)
-    focal, max_size: pose estimation (focal length in pixels; long side above which photos are downscaled)
+    focal, camera_model, max_size: pose estimation (focal length in pixels; lens model fitted, PoseConfig's
+                camera_model; long side above which photos are downscaled)
     compact:    a compaction level applied to each pass's surfels before fusion (None: none)
     capture:    CaptureOptions for many views and videos
     precision:  forward passes in "fp32", "bf16" (autocast) or "auto" (bf16 where the device has fast
@@ -159,7 +161,9 @@ def reconstruct(
 
         # "auto" matches every pair up to 30 views, a video's chosen frames too: on a 3-second clip of 7
         # DTU views the sequential pairs (1, 2, 4 ahead) registered 4 frames and every pair all 7
-        config = PoseConfig(focal=focal, max_size=max_size, near=near, far=far, matching=capture.matching)
+        config = PoseConfig(
+            focal=focal, camera_model=camera_model, max_size=max_size, near=near, far=far, matching=capture.matching
+        )
         photos = views.pose_inputs()
         pose_cameras, poses = estimate_cameras(photos, config=config, names=views.names)
         views = views.subset([views.names.index(n) for n in pose_cameras.names])
