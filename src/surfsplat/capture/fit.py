@@ -79,6 +79,9 @@ class FitPlan:
     patience: int | None = None  # steps per window of the early stop (None: every step runs)
     min_improvement: float = 0.01  # stop when a window's mean loss fell by less than this share
     extra: dict = field(default_factory=dict)  # figures the plan's owner adds to the stats
+    # every render of the fit with the antialiasing filter (`render(..., antialiased=True)`): the surfels
+    # are fitted as they will be drawn at other sizes, their opacity compensated for the pixel's widening
+    antialiased: bool = False
 
     def __post_init__(self) -> None:
         unknown = set(self.rates) - set(TENSORS)
@@ -143,7 +146,17 @@ def fit_on_views(
     fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
     def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
-        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, distortion=distortion)
+        return render(
+            g,
+            cams,
+            w,
+            h,
+            mode=mode,
+            backend=backend,
+            alpha_threshold=alpha_threshold,
+            distortion=distortion,
+            antialiased=plan.antialiased,
+        )
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():

@@ -102,6 +102,9 @@ class OptimizeConfig:
     # whose opacities it made for it (a room: 27.2 dB before, 26.1 dB after 30 steps fitted plain).
     # The fit renders with it and the optimized scene keeps it.
     alpha_threshold: float | None | Literal["auto"] = "auto"
+    # the fit renders with the antialiasing filter (`render(..., antialiased=True)`), and the optimized
+    # scene keeps it: every later render of it (renders, videos, the viewer, HRRC) uses it too
+    antialiased: bool = False
 
     def __post_init__(self) -> None:
         if self.steps is not None and (
@@ -156,6 +159,10 @@ class OptimizeConfig:
             raise SurfSplatInputError(
                 f"optimize.alpha_threshold: expected a threshold in (0, 1] or None, got {self.alpha_threshold}"
             )
+        if not isinstance(self.antialiased, bool):
+            raise SurfSplatInputError(
+                f"optimize.antialiased (--optimize-antialiased): expected True or False, got {self.antialiased!r}"
+            )
         if self.prunings < 0:
             raise SurfSplatInputError(f"optimize.prunings: expected >= 0, got {self.prunings}")
         if not 0 <= self.prune_opacity < 1:
@@ -206,6 +213,7 @@ class OptimizeConfig:
             densify=self.densify,
             extent=extent,
             seconds=self.seconds,
+            antialiased=self.antialiased,
         )
 
 
@@ -263,9 +271,10 @@ def optimize_on_views(
         monitor=monitor,
     )
     stats["alpha_threshold"] = threshold
+    stats["antialiased"] = plan.antialiased
     stats["normal_weight"] = plan.normal_weight
     if not stats["kept"] and gaussians is not None:  # the fit raised its error: the network's surfels stay
-        fitted, stats["alpha_threshold"] = gaussians, alpha_threshold
+        fitted, stats["alpha_threshold"], stats["antialiased"] = gaussians, alpha_threshold, False
     stats.update(start_figures)
     stats.update(
         {
