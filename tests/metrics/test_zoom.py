@@ -52,6 +52,7 @@ def test_zoom_scores_of_a_consistent_renderer():
     for s in (2, 4):
         assert scores.down[s] == pytest.approx(expected, abs=1e-3)
         assert scores.down_vs_render[s] > 100  # equal to float32 rounding
+        assert scores.averaged[s] == pytest.approx(expected, abs=1e-3)
         assert scores.colour_shift[s] == pytest.approx(0.02, abs=1e-6)
 
 
@@ -74,6 +75,7 @@ def test_zoom_scores_of_an_inconsistent_renderer_and_the_upsampled_photos():
     for s in (2, 4):
         assert scores[f"x1/{s}"] == pytest.approx(20.0, abs=1e-4)  # 0.1 off the photos averaged down
         assert scores[f"x1/{s}_vs_render"] == pytest.approx(20.0, abs=1e-4)  # and off the x1 render
+        assert scores[f"x1/{s}_target"] == math.inf  # the x1 render is the photos
         assert scores[f"x{s}"] == pytest.approx(-10 * math.log10(0.05**2), abs=1e-3)
     assert scores["coverage_x4_over_x1"] == pytest.approx(1.6)
 

@@ -34,7 +34,8 @@ def held_out_line(scores: dict, views: int, lpips_note: str | None) -> str:
 def zoom_line(zoom: dict, antialiased: bool) -> str:
     """The held-out zoom scores (`metrics.zoom`) in one sentence."""
     down = ", ".join(
-        f"x1/{s} {zoom[f'x1/{s}']:.2f} (the x1 render averaged down: {zoom[f'x1/{s}_vs_render']:.2f})"
+        f"x1/{s} {zoom[f'x1/{s}']:.2f} (the x1 render averaged down: {zoom[f'x1/{s}_target']:.2f}; "
+        f"the two compared: {zoom[f'x1/{s}_vs_render']:.2f})"
         for s in (2, 4)
         if f"x1/{s}" in zoom
     )
