@@ -68,16 +68,24 @@ def cpu_seconds() -> float:
 _SCENE = object()  # held_out_scores: render with the scene's own forced-alpha threshold
 
 
-def held_out_scores(surfels, scene, cameras, images, alpha_threshold=_SCENE) -> dict:
+def held_out_scores(surfels, scene, cameras, images, alpha_threshold=_SCENE, antialiased=False, zoom=False) -> dict:
     """PSNR / SSIM (and LPIPS where its weights are) of surfels seen from held-out cameras, as `reconstruct`
-    scores them, rendered with the scene's forced-alpha threshold or `alpha_threshold`."""
+    scores them, rendered with the scene's forced-alpha threshold or `alpha_threshold` (and the antialiasing
+    filter when `antialiased`); with `zoom` also the zoom scores (`surfsplat.metrics.zoom`: x1/2, x1/4 against
+    the photos and the x1 render averaged down, x2, x4 against bicubic-upsampled photos, coverage)."""
     from surfsplat.reconstruction.scene import HeldOut
 
     h = HeldOut(["held"] * len(cameras), cameras, images)
     threshold = scene.alpha_threshold if alpha_threshold is _SCENE else alpha_threshold
-    h.score(dataclasses.replace(scene, gaussians=surfels, holdout=None, alpha_threshold=threshold).render(cameras))
+    seen = dataclasses.replace(
+        scene, gaussians=surfels, holdout=None, alpha_threshold=threshold, antialiased=antialiased
+    )
+    h.score(seen.render(cameras))
     s = h.scores()
-    return {k: s[k] for k in ("mean_psnr", "mean_ssim", "mean_lpips", "psnr")}
+    out = {k: s[k] for k in ("mean_psnr", "mean_ssim", "mean_lpips", "psnr")}
+    if zoom:
+        out["zoom"] = seen.zoom_scores(cameras, images).to_dict()
+    return out
 
 
 def real_capture(args, name: str, folder: Path, images: str, indices: list[int], every: int) -> dict:
@@ -141,7 +149,7 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.config.items()}
         fields["start"] = StartConfig(kind=start, **args.start)
         config = OptimizeConfig(**fields)
-        curve = Curve(f"{name}/{start}", fused, network_cpu)
+        curve = Curve(f"{name}/{start}", fused, network_cpu, config.antialiased)
         fitted, stats = optimize_on_views(
             fused.gaussians, fused.cameras, context_images, fused.width, fused.height, config,
             mode=fused.mode, alpha_threshold=fused.alpha_threshold, monitor=curve,
@@ -157,7 +165,10 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
                 "start_surfels": stats["start_surfels"],
                 "points": stats.get("points"),
                 "surfels_after": stats["surfels_after"],
-                **held_out_scores(fitted, fused, h.cameras, h.images, stats["alpha_threshold"]),
+                "antialiased": stats["antialiased"],
+                **held_out_scores(
+                    fitted, fused, h.cameras, h.images, stats["alpha_threshold"], stats["antialiased"], zoom=True
+                ),
                 "start_reason": stats.get("start_reason"),
                 "reached_opensplat_at_cpu_seconds": first_reaching(curve.points, result),
                 "curve": curve.points,
@@ -170,8 +181,8 @@ class Curve:
     """A fit's monitor: held-out PSNR against the CPU seconds of the process so far (network and fusion
     included, the scoring left out)."""
 
-    def __init__(self, label: str, fused, network_cpu: float) -> None:
-        self.label, self.fused, self.network_cpu = label, fused, network_cpu
+    def __init__(self, label: str, fused, network_cpu: float, antialiased: bool = False) -> None:
+        self.label, self.fused, self.network_cpu, self.antialiased = label, fused, network_cpu, antialiased
         self.points: list[dict] = []
         self.fit_cpu = cpu_seconds()  # made just before the fit starts
         self.scoring = 0.0
@@ -179,7 +190,7 @@ class Curve:
     def __call__(self, step: int, seconds: float, surfels, alpha_threshold: float | None) -> None:
         now = cpu_seconds()
         h = self.fused.holdout
-        scores = held_out_scores(surfels, self.fused, h.cameras, h.images, alpha_threshold)
+        scores = held_out_scores(surfels, self.fused, h.cameras, h.images, alpha_threshold, self.antialiased)
         self.points.append(
             {
                 "step": step,
@@ -341,6 +352,8 @@ def cli_run(args, name: str, folder: Path, images_folder: str, holdout_every: in
         "held_out_psnr": held.get("mean_psnr"),
         "held_out_psnr_before": (held.get("before_optimization") or {}).get("mean_psnr"),
         "held_out": held,
+        "antialiased": summary.get("antialiased", False),
+        "held_out_zoom": held.get("zoom"),
         "seconds": summary.get("seconds"),
         "optimize": summary.get("optimize"),
         "stdout_tail": run.stdout[-2000:],

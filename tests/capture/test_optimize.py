@@ -206,6 +206,7 @@ def test_the_refinement_is_the_shared_loop_with_its_own_plan_and_unchanged_resul
         ({"levels": ((0.5, 0.5), (0.2, 0.25))}, "optimize.levels"),
         ({"parameters": ("sh",)}, "optimize.densify"),
         ({"sh_degree": 4}, "optimize.sh_degree"),
+        ({"antialiased": 1}, "optimize.antialiased"),
     ],
 )
 def test_optimize_config_refuses_bad_values(options, needle):
@@ -305,6 +306,9 @@ def test_reconstruct_flags_reach_the_library(monkeypatch, tmp_path):
 
     config = optimize_from_args(args)
     assert config.steps == 7 and config.scale == OptimizeConfig().scale
+    assert not config.antialiased and not config.plan(1.0, 3).antialiased
+    flagged = build_parser().parse_args(["reconstruct", "--images", "a.png", "b.png", "--optimize-antialiased"])
+    assert optimize_from_args(flagged).plan(1.0, 3).antialiased
     with pytest.raises(SurfSplatInputError, match="--optimize-steps"):
         optimize_from_args(build_parser().parse_args(["reconstruct", "--images", "a.png", "--optimize-steps", "-2"]))
 
@@ -372,3 +376,31 @@ def test_the_default_budget_scales_with_the_views_and_their_pixels():
     assert not OptimizeConfig(steps=0).runs_for(9) and OptimizeConfig(steps=4).runs_for(2)
     assert OptimizeConfig(seconds=20.0).steps_for(9, 1) == 1_000_000  # the time budget ends the fit
     assert config.plan(1.0, 10, 288 * 400).steps == 1500
+
+
+def test_an_antialiased_fit_is_saved_as_one_and_every_later_render_uses_the_filter(
+    five_views, tiny_checkpoint, tmp_path
+):
+    """`--optimize-antialiased`: the fit's renders (its recorded colour error is the antialiased render's),
+    reconstruction.json, the scene read back and its held-out zoom scores all carry the filter."""
+    paths, cameras = five_views
+    argv = ["reconstruct", "--checkpoint", str(tiny_checkpoint), "--cameras", str(cameras), "--views-per-pass", "2"]
+    argv += ["--holdout-every", "4", "--optimize-steps", "0", "--refine-steps", "0", "--formats", "ply", "--raw-3dgs"]
+    assert main([*argv, "--no-progress", "--out", str(tmp_path / "first"), "--images", *map(str, paths)]) == 0
+    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "20", "--optimize-start", "network"]
+    assert main([*command, "--optimize-antialiased", "--raw-3dgs", "--no-progress", "--formats", "ply"]) == 0
+    summary = json.loads((tmp_path / "first_optimized" / "reconstruction.json").read_text())
+    assert summary["antialiased"] is True and summary["optimize"]["antialiased"] is True
+    zoom = summary["capture"]["held_out"]["zoom"]
+    assert zoom["antialiased"] is True and zoom["x1"] == pytest.approx(summary["capture"]["held_out"]["mean_psnr"])
+    assert {"x1/2", "x1/4", "x1/2_vs_render", "x1/4_vs_render", "x2", "x4", "coverage_x4_over_x1"} <= set(zoom)
+    from surfsplat.reconstruction import load_reconstruction
+
+    scene, photos = load_reconstruction(tmp_path / "first_optimized")
+    assert scene.antialiased
+    again = scene.render()
+    filtered = render(scene.gaussians, scene.cameras, 32, 32, alpha_threshold=scene.alpha_threshold, antialiased=True)
+    plain = render(scene.gaussians, scene.cameras, 32, 32, alpha_threshold=scene.alpha_threshold)
+    assert torch.equal(again.color, filtered.color) and not torch.equal(again.color, plain.color)
+    error = float((again.color - photos).square().mean())
+    assert error == pytest.approx(summary["optimize"]["mse_after"], rel=1e-3)

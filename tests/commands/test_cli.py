@@ -114,6 +114,22 @@ def test_reconstruct_render_export_round_trip(tmp_path, capture, capsys):
     report = json.loads((tmp_path / "x2" / "render.json").read_text())
     assert report["width"] == 64 and report["views"][0]["coverage"] > 0.5
 
+    # --antialiased: the filter's render, which at a quarter of the size differs from the plain one
+    argv = ["render", str(out / "surfels.ply"), "--cameras", str(out / "cameras.json"), "--scale", "0.25"]
+    assert main([*argv, "--views", "0", "--antialiased", "--out", str(tmp_path / "q"), "--alpha-threshold", "-1"]) == 0
+    assert json.loads((tmp_path / "q" / "render.json").read_text())["antialiased"] is True
+    from surfsplat.data.cameras import load_cameras
+    from surfsplat.export.ply import load_ply
+    from surfsplat.render import render as render_surfels
+
+    cams = load_cameras(out / "cameras.json").cameras[:1].to(torch.float32).scaled(0.25)
+    surfels = load_ply(out / "surfels.ply")
+    written = iio.imread(tmp_path / "q" / "view0_color.png").astype(np.float64) / 255
+    for antialiased, close in ((True, True), (False, False)):
+        expected = render_surfels(surfels, cams, 8, 8, alpha_threshold=None, antialiased=antialiased).color[0]
+        error = np.abs(written - expected.clamp(0, 1).permute(1, 2, 0).numpy()).max()
+        assert (error <= 1 / 255 + 1e-6) == close, (antialiased, error)
+
     code = main(
         [
             "export",

@@ -318,8 +318,9 @@ class _DeviceKernels:
         return cls._maps(means2d.sum((-1, -2)) + conics.sum((-1, -2)), colors, opacities, W, H)
 
 
+@pytest.mark.parametrize("antialiased", [False, True], ids=["plain", "antialiased"])
 @pytest.mark.parametrize("mode", ["surfel", "ewa"])
-def test_render_through_the_gsplat_backend_has_no_host_synchronisation(monkeypatch, mode):
+def test_render_through_the_gsplat_backend_has_no_host_synchronisation(monkeypatch, mode, antialiased):
     """`render(..., backend="gsplat")`, forward and backward, on the stand-in device (which records every
     op that would make a CUDA host wait): no scalar read, no data-dependent size, no upload."""
     import surfsplat.render as render_module
@@ -337,7 +338,15 @@ def test_render_through_the_gsplat_backend_has_no_host_synchronisation(monkeypat
         inputs = len(dev.syncs)
         distortion = mode == "surfel"
         out = render(
-            gaussians, on_device, 40, 32, mode=mode, backend="gsplat", alpha_threshold=0.1, distortion=distortion
+            gaussians,
+            on_device,
+            40,
+            32,
+            mode=mode,
+            backend="gsplat",
+            alpha_threshold=0.1,
+            distortion=distortion,
+            antialiased=antialiased,
         )
         loss = out.color.sum() + out.alpha.sum() + out.depth.sum() + out.normal.sum()
         loss = loss + (out.distortion.sum() if distortion else 0)

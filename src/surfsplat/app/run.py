@@ -263,6 +263,7 @@ def run_capture(
             mesh_resolution=settings.mesh_resolution,
             mode=scene.mode,
             alpha_threshold=scene.alpha_threshold,
+            antialiased=scene.antialiased,
             progress=False,
             bake=replace(BakeConfig(), steps=settings.bake_steps),
         )

@@ -85,6 +85,9 @@ class FitPlan:
     adam: Literal["dense", "selective"] = "dense"
     # each photo's exposure and camera correction, fitted beside the surfels (None: neither; per_view.py)
     per_view: PerViewConfig | None = None
+    # every render of the fit with the antialiasing filter (`render(..., antialiased=True)`): the surfels
+    # are fitted as they will be drawn at other sizes, their opacity compensated for the pixel's widening
+    antialiased: bool = False
 
     def __post_init__(self) -> None:
         unknown = set(self.rates) - set(TENSORS)
@@ -155,7 +158,17 @@ def fit_on_views(
     fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
     def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
-        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, distortion=distortion)
+        return render(
+            g,
+            cams,
+            w,
+            h,
+            mode=mode,
+            backend=backend,
+            alpha_threshold=alpha_threshold,
+            distortion=distortion,
+            antialiased=plan.antialiased,
+        )
 
     views = PerView(plan.per_view, cameras, plan.extent) if plan.per_view is not None and plan.per_view.active else None
 

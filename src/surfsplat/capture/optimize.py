@@ -120,6 +120,9 @@ class OptimizeConfig:
     appearance: bool = False
     refine_cameras: bool | Literal["auto"] = False
     per_view: PerViewConfig = field(default_factory=PerViewConfig)  # their rates and gauge
+    # the fit renders with the antialiasing filter (`render(..., antialiased=True)`), and the optimized
+    # scene keeps it: every later render of it (renders, videos, the viewer, HRRC) uses it too
+    antialiased: bool = False
 
     def __post_init__(self) -> None:
         if self.steps is not None and (
@@ -176,6 +179,10 @@ class OptimizeConfig:
             )
         if self.adam not in ("dense", "selective"):
             raise SurfSplatInputError(f"optimize.adam: expected 'dense' or 'selective', got {self.adam!r}")
+        if not isinstance(self.antialiased, bool):
+            raise SurfSplatInputError(
+                f"optimize.antialiased (--optimize-antialiased): expected True or False, got {self.antialiased!r}"
+            )
         if self.prunings < 0:
             raise SurfSplatInputError(f"optimize.prunings: expected >= 0, got {self.prunings}")
         if not 0 <= self.prune_opacity < 1:
@@ -250,6 +257,7 @@ class OptimizeConfig:
             extent=extent,
             seconds=self.seconds,
             adam=self.adam,
+            antialiased=self.antialiased,
         )
 
 
@@ -325,9 +333,10 @@ def optimize_on_views(
         per_view_out=per_view_out,
     )
     stats["alpha_threshold"] = threshold
+    stats["antialiased"] = plan.antialiased
     stats["normal_weight"] = plan.normal_weight
     if not stats["kept"] and gaussians is not None:  # the fit raised its error: the given surfels stay
-        fitted, stats["alpha_threshold"] = gaussians, alpha_threshold
+        fitted, stats["alpha_threshold"], stats["antialiased"] = gaussians, alpha_threshold, False
     stats.update(start_figures)
     stats.update(
         {

@@ -183,6 +183,13 @@ def add_optimize_arguments(group, continuing: bool = False) -> None:
         "and align the held-out cameras to their photos before scoring; auto: where the cameras were "
         "estimated from the photos",
     )
+    group.add_argument(
+        "--optimize-antialiased",
+        action="store_true",
+        help="fit with the antialiasing filter (each surfel's opacity compensated for the pixel-sized widening, "
+        "Mip-Splatting's 2D filter), so renders at other sizes stay consistent; the scene keeps it for every "
+        "later render",
+    )
 
 
 def optimize_from_args(args: argparse.Namespace):
@@ -195,6 +202,7 @@ def optimize_from_args(args: argparse.Namespace):
         steps=args.optimize_steps,
         seconds=args.optimize_seconds,
         scale=args.optimize_scale,
+        antialiased=args.optimize_antialiased,
         start=dataclasses.replace(config.start, kind=args.optimize_start),
         appearance=args.optimize_appearance,
         refine_cameras={"on": True, "off": False, "auto": "auto"}[args.optimize_cameras],
@@ -274,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     if scene.holdout is not None:
         print_held_out(scene.holdout)
     options = options_from_args(args, tuple(args.formats), scene.mode)
-    options = dataclasses.replace(options, alpha_threshold=scene.alpha_threshold)
+    options = dataclasses.replace(options, alpha_threshold=scene.alpha_threshold, antialiased=scene.antialiased)
     written = scene.save(args.out, options=options)
     summary = json.loads(written["summary"].read_text())
     c = summary["closure"]
@@ -302,5 +310,9 @@ def print_held_out(holdout) -> None:
     if holdout.before is not None:
         line += f" (before the optimization: PSNR {holdout.before['mean_psnr']:.2f} dB, SSIM {holdout.before['mean_ssim']:.3f})"
     print(line)
+    if holdout.zoom is not None:
+        from ..reconstruction.report import zoom_line
+
+        print(zoom_line(holdout.zoom, holdout.zoom.get("antialiased", False)))
     if holdout.lpips_note:
         print(holdout.lpips_note)

@@ -45,6 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.001,
         help="forced alpha blending tau (paper Sec. 3.4); a negative value turns it off",
     )
+    parser.add_argument(
+        "--antialiased",
+        action="store_true",
+        help="the antialiasing filter (for a scene fitted with it: reconstruction.json's 'antialiased')",
+    )
     add_device(parser, "the renders")
     parser.add_argument("--background", nargs=3, type=float, default=[0.0, 0.0, 0.0], metavar=("R", "G", "B"))
     parser.add_argument("--images-folder", default=None, help="image folder of a scene folder given as --cameras")
@@ -83,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         "ply": str(args.ply),
         "surfels": len(gaussians),
         "mode": mode,
+        "antialiased": args.antialiased,
         "scale": args.scale,
         "width": width,
         "height": height,
@@ -91,7 +97,16 @@ def run(args: argparse.Namespace) -> int:
     for v in progress(views, desc=f"render x{args.scale:g}", unit="view", enabled=len(views) >= 2):
         start = time.perf_counter()
         with torch.inference_mode():
-            r = render(gaussians, cameras[v], width, height, mode=mode, alpha_threshold=tau, background=args.background)
+            r = render(
+                gaussians,
+                cameras[v],
+                width,
+                height,
+                mode=mode,
+                alpha_threshold=tau,
+                background=args.background,
+                antialiased=args.antialiased,
+            )
         seconds = time.perf_counter() - start
         stem = Path(cams.names[v]).stem
         write_png(args.out / f"{stem}_color.png", r.color[0])

@@ -226,13 +226,16 @@ def bake_for_viewers(
     alpha_threshold: float | None = 0.001,
     backend: Backend = "auto",
     show_progress: bool = False,
+    antialiased: bool = False,
 ) -> tuple[Gaussians, BakeReport]:
     """Gaussians whose standard 3DGS compositing (EWA, no normalisation, on black) reproduces our
     render of `gaussians` (see the module docstring).
 
     gaussians: [N] unbatched, as the model (or a compaction) returns them
     cameras:   the context cameras, K in pixels of height x width
-    mode, alpha_threshold: how we render `gaussians` (the picture to reproduce)
+    mode, alpha_threshold, antialiased: how we render `gaussians` (the picture to reproduce; with the
+        antialiasing filter its compensations are baked into the viewer's opacities at the bake's factors,
+        since standard viewers render without it)
     show_progress: a progress bar (or log lines) over the Adam steps
     Returns the baked Gaussians (explicit covariances: write them with `save_ply`, 3DGS layout) and
     a BakeReport with the figures before and after, from up to `config.report_views` context cameras
@@ -247,7 +250,9 @@ def bake_for_viewers(
 
     def ours_of(cams: Cameras, w: int, h: int):
         with torch.no_grad():
-            return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold)
+            return render(
+                g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, antialiased=antialiased
+            )
 
     def plain(viewer: Gaussians, cams: Cameras, w: int, h: int):
         return render(viewer, cams, w, h, mode="ewa", backend=backend, alpha_threshold=None)

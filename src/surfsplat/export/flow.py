@@ -45,6 +45,7 @@ class ExportOptions:
     mesh_resolution: int = 128  # TSDF voxels along the longest side
     mode: Literal["surfel", "ewa"] = "surfel"  # rasterization
     alpha_threshold: float | None = 0.001  # forced alpha blending tau (None: plain compositing)
+    antialiased: bool = False  # renders with the antialiasing filter (a scene fitted with it)
     progress: bool = True  # progress over frames (a bar on a terminal, log lines elsewhere)
     bake: BakeConfig | None = BakeConfig()  # surfels_3dgs.ply for standard 3DGS viewers (None: unbaked)
 
@@ -192,6 +193,7 @@ def write_viewer_ply(gaussians, cameras, width: int, height: int, out: Path, opt
         mode=options.mode,
         alpha_threshold=options.alpha_threshold,
         show_progress=options.progress,
+        antialiased=options.antialiased,
     )
     logger.debug(report.summary())  # the figures are in surfels_3dgs.json; -v shows them here
     return {
@@ -222,7 +224,15 @@ def render_frames(gaussians, cameras, width: int, height: int, options: ExportOp
         enabled=options.progress and len(cameras) >= 4,
         leave=False,
     ):
-        r = render(gaussians, cameras[i], width, height, mode=options.mode, alpha_threshold=options.alpha_threshold)
+        r = render(
+            gaussians,
+            cameras[i],
+            width,
+            height,
+            mode=options.mode,
+            alpha_threshold=options.alpha_threshold,
+            antialiased=options.antialiased,
+        )
         outs.append(r)
     return Frames(*(torch.cat([getattr(r, k) for r in outs]) for k in ("color", "alpha", "depth", "normal")))
 

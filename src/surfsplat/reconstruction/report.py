@@ -31,6 +31,24 @@ def held_out_line(scores: dict, views: int, lpips_note: str | None) -> str:
     return line + (f" {lpips_note}." if lpips_note else "")
 
 
+def zoom_line(zoom: dict, antialiased: bool) -> str:
+    """The held-out zoom scores (`metrics.zoom`) in one sentence."""
+    down = ", ".join(
+        f"x1/{s} {zoom[f'x1/{s}']:.2f} (the x1 render averaged down: {zoom[f'x1/{s}_target']:.2f}; "
+        f"the two compared: {zoom[f'x1/{s}_vs_render']:.2f})"
+        for s in (2, 4)
+        if f"x1/{s}" in zoom
+    )
+    up = ", ".join(f"x{s} {zoom[f'x{s}']:.2f}" for s in (2, 4) if f"x{s}" in zoom)
+    line = (
+        f"Held-out PSNR by zoom ({'with' if antialiased else 'without'} the antialiasing filter): x1 {zoom['x1']:.2f}"
+    )
+    line += f", {down}" if down else ""
+    line += f", {up} ({zoom.get('upsample', 'bicubic')}-upsampled photos)" if up else ""
+    ratio = zoom.get("coverage_x4_over_x1")
+    return line + " dB" + (f"; mean alpha x4 / x1 {ratio:.3f}" if ratio is not None else "")
+
+
 def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:
     """Write capture.json, capture/ (cameras from above, held-out renders) and capture.html."""
     from ..export.figures import line_chart, write_text
@@ -117,6 +135,8 @@ def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path
             )
         if h.before is not None:
             report.paragraph("Before the per-scene optimization: " + held_out_line(h.before, len(h.names), None))
+        if h.zoom is not None:
+            report.paragraph(zoom_line(h.zoom, scene.antialiased))
         curve = scene.optimize_stats.get("held_out_curve") if scene.optimize_stats else None
         if curve:
             chart = line_chart(

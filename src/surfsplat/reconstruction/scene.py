@@ -46,6 +46,7 @@ class HeldOut:
     protocol: str = "plain"
     # with refined context cameras: how far test-time alignment moved each held-out camera (degrees, units)
     alignment: dict | None = None
+    zoom: dict | None = None  # `metrics.zoom` scores of the optimized scene (None: not measured)
 
     def scores(self) -> dict:
         """Per-view and mean PSNR, SSIM, LPIPS and coverage."""
@@ -74,6 +75,8 @@ class HeldOut:
             out["lpips_note"] = self.lpips_note
         if self.before is not None:
             out["before_optimization"] = self.before
+        if self.zoom is not None:
+            out["zoom"] = self.zoom
         return out
 
     def score(self, out) -> None:
@@ -222,6 +225,8 @@ class Scene:
             for lens, names in groups.items()
         ]
 
+    antialiased: bool = False  # rendered with the antialiasing filter (a scene optimized with it)
+
     @property
     def device(self) -> torch.device:
         """Where the surfels are, and where rendering, the closure figures and saving compute."""
@@ -285,6 +290,7 @@ class Scene:
                 h,
                 mode=self.mode,
                 alpha_threshold=self.alpha_threshold,
+                antialiased=self.antialiased,
             )
 
     def summary(self) -> dict:
@@ -301,6 +307,7 @@ class Scene:
             "seconds_forward": self.seconds.get("forward", 0.0),
             "render_mode": self.mode,
             "alpha_threshold": self.alpha_threshold,
+            "antialiased": self.antialiased,
             "cameras": self.cameras_source,
             "precision": self.precision,
             "network": self.network,
@@ -316,6 +323,33 @@ class Scene:
         if self.is_capture:
             out["capture"] = self.capture_summary()
         return out
+
+    def zoom_scores(self, cameras: Cameras | None = None, images: Tensor | None = None):
+        """`metrics.zoom.ZoomScores` of the scene from `cameras` against `images` (default: the held-out
+        views), rendered as the scene renders (its mode, forced-alpha threshold and antialiasing)."""
+        from ..metrics.zoom import zoom_scores
+        from ..render import render
+
+        if cameras is None:
+            if self.holdout is None:
+                raise SurfSplatInputError("zoom_scores: the scene has no held-out views; give cameras and images")
+            cameras, images = self.holdout.cameras, self.holdout.images
+
+        def draw(cams: Cameras, w: int, h: int):
+            with torch.inference_mode():
+                return render(
+                    self.gaussians,
+                    cams.to(self.gaussians.means),
+                    w,
+                    h,
+                    mode=self.mode,
+                    alpha_threshold=self.alpha_threshold,
+                    antialiased=self.antialiased,
+                )
+
+        return zoom_scores(
+            draw, cameras.to(self.gaussians.means), images.to(self.gaussians.means), self.width, self.height
+        )
 
     def score_holdout(self):
         """Score the held-out views (PSNR, SSIM, LPIPS where available, coverage); their RenderOutput."""
@@ -360,6 +394,7 @@ class Scene:
                 formats=tuple(formats) if formats is not None else FORMATS,
                 mode=self.mode,
                 alpha_threshold=self.alpha_threshold,
+                antialiased=self.antialiased,
             )
         elif formats is not None:
             options = replace(options, formats=tuple(formats))

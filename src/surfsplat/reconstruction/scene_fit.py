@@ -62,6 +62,7 @@ def optimize_scene(
                 scene.height,
                 mode=scene.mode,
                 alpha_threshold=alpha_threshold,
+                antialiased=config.antialiased,
             ).color
             value = psnr(colour.clamp(0, 1), held.images.to(colour)).mean()
             curve.append({"step": step, "seconds": seconds, "surfels": len(surfels), "psnr": float(value)})
@@ -86,6 +87,7 @@ def optimize_scene(
         per_view_out=per_view,
     )
     scene.alpha_threshold = scene.optimize_stats["alpha_threshold"]  # the surfels render as they were fitted
+    scene.antialiased = scene.optimize_stats["antialiased"]
     if curve:
         scene.optimize_stats["held_out_curve"] = curve
     scene.seconds["optimize"] = time.perf_counter() - tick
@@ -98,6 +100,8 @@ def optimize_scene(
         if per_view.get("exposure") is not None:
             held.protocol = "exposure"
         scene.score_holdout()
+        # smaller and larger renders of the held-out views
+        held.zoom = {**scene.zoom_scores().to_dict(), "antialiased": scene.antialiased}
     return scene
 
 
@@ -214,6 +218,7 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         far=float(summary["far"]),
         mode=summary.get("render_mode", "surfel"),
         alpha_threshold=summary.get("alpha_threshold", 0.001),
+        antialiased=_antialiased(summary, summary_file),
         model=summary.get("model", ""),
         checkpoint=summary.get("checkpoint", ""),
         sources=[str(s) for s in summary["images"]],
@@ -227,6 +232,13 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         lenses=lenses or None,
     )
     return scene, torch.stack(photos)
+
+
+def _antialiased(summary: dict, summary_file: Path) -> bool:
+    value = summary.get("antialiased", False)
+    if not isinstance(value, bool):
+        raise SurfSplatInputError(f"{summary_file}: 'antialiased' must be true or false, got {value!r}")
+    return value
 
 
 def optimize_saved(
@@ -276,6 +288,7 @@ def optimize_saved(
         formats=tuple(formats),
         mode=scene.mode,
         alpha_threshold=scene.alpha_threshold,
+        antialiased=scene.antialiased,
         progress=progress,
         bake=BakeConfig() if bake else None,
     )

@@ -53,6 +53,7 @@ def render(
     alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD,
     settings: TorchRenderSettings | CpuRenderSettings | None = None,
     distortion: bool = False,
+    antialiased: bool = False,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -70,6 +71,11 @@ def render(
                      centre, EWA Jacobian clamp and support) that every backend, gsplat's too, follows.
     distortion:      also return 2DGS's depth distortion map (its Eq. 13) in `RenderOutput.distortion`
                      [C, 1, H, W], differentiable; "surfel" mode only. Off by default: nothing else pays for it.
+    antialiased:     the antialiasing filter (`surfsplat.render.antialias`): each Gaussian's opacity, per
+                     camera, times the compensation that keeps its integrated opacity under the screen-space
+                     widening (gsplat's "antialiased" mode in "ewa"; its surfel twin in "surfel"), so a
+                     render at 1/s of the size is close to the full-size render averaged down. Off by
+                     default: the function is then SPEC section 3's, bit for bit.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]
     (and distortion [C, 1, H, W] when asked).
 
@@ -89,10 +95,19 @@ def render(
         raise SurfSplatInputError(f"distortion: expected True or False, got {distortion!r}")
     if distortion and mode != "surfel":
         raise SurfSplatInputError("distortion: 2DGS's depth distortion is computed in mode 'surfel' only")
+    if not isinstance(antialiased, bool):
+        raise SurfSplatInputError(f"antialiased: expected True or False, got {antialiased!r}")
     device = gaussians.means.device
     dtype = gaussians.means.dtype
     bg = _background(background, dtype, device)
     backend = resolve_backend(backend, device, settings, cameras)
+    factors = None
+    if antialiased:
+        from .antialias import compensations
+
+        rules = settings if isinstance(settings, RenderConventions) else RenderConventions()
+        clamp = rules.ewa_jacobian_clamp
+        factors = compensations(gaussians, cameras, width, height, mode, clamp).to(dtype)  # [C, N]
     if backend == "gsplat":
         if not gsplat_available(device):
             raise SurfSplatInputError(
@@ -102,11 +117,20 @@ def render(
         from .gsplat_backend import render_gsplat
 
         conventions = settings if isinstance(settings, RenderConventions) else None
-        maps = render_gsplat(gaussians, cameras, width, height, mode, conventions, distortion)
+        maps = render_gsplat(gaussians, cameras, width, height, mode, conventions, distortion, factors)
     elif backend == "cpu":
         from .cpu import render_cpu
 
-        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
+        if factors is None:
+            maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
+        else:  # the kernels take one opacity per Gaussian: one call per camera
+            per_camera = [
+                render_cpu(
+                    _scaled_opacities(gaussians, factors[c]), cameras[c], width, height, mode, settings, distortion
+                )
+                for c in range(len(cameras))
+            ]
+            maps = tuple(torch.cat(parts) for parts in zip(*per_camera))
         if not bg.requires_grad:
             # one compiled pass forward and one backward instead of some ten whole-image torch ops each way
             from .cpu.backend import normalize_cpu
@@ -117,7 +141,7 @@ def render(
                 color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
             )
     else:
-        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion)
+        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion, factors)
     color, alpha, depth, normal = maps[:4]
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
     color = color + (1 - coverage) * bg[None, :, None, None]
@@ -190,6 +214,7 @@ def _render_torch_all(
     mode: RenderMode,
     settings: TorchRenderSettings | None,
     distortion: bool = False,
+    factors: Tensor | None = None,  # [C, N] opacity factors (antialiasing), None: none
 ) -> tuple[Tensor, ...]:
     settings = settings or TorchRenderSettings()
     rotations = g.rotations
@@ -203,7 +228,7 @@ def _render_torch_all(
             rotations,
             g.scales,
             covariances,
-            g.opacities,
+            g.opacities if factors is None else g.opacities * factors[c],
             g.sh,
             w2c[c],
             K[c],
@@ -223,6 +248,13 @@ def _render_torch_all(
     if distortion:
         return color, alpha, depth, normal, torch.stack([o[4] for o in outs])[:, None]
     return color, alpha, depth, normal
+
+
+def _scaled_opacities(g: Gaussians, factor: Tensor) -> Gaussians:
+    """The Gaussians with their opacities times `factor` [N] (one camera's compensations)."""
+    from dataclasses import replace
+
+    return replace(g, opacities=g.opacities * factor, validate=False)
 
 
 def _background(background: Tensor | Sequence[float] | None, dtype: torch.dtype, device: torch.device) -> Tensor:

@@ -106,10 +106,12 @@ def render_gsplat(
     mode: RenderMode,
     conventions: RenderConventions | None = None,
     distortion: bool = False,
+    factors: Tensor | None = None,
 ) -> tuple[Tensor, ...]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W],
     and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W], every camera in one batched
-    call, in the Gaussians' dtype."""
+    call, in the Gaussians' dtype. `factors` [C, N]: per-camera opacity factors (the antialiasing
+    compensations of `render.antialias`), applied before the footprints, as on every backend."""
     rules = conventions or RenderConventions()
     settings = TorchRenderSettings(**{f.name: getattr(rules, f.name) for f in fields(RenderConventions)})
     dtype = g.means.dtype
@@ -118,6 +120,8 @@ def render_gsplat(
     centers = cameras.centers.to(g.means.device, F32)  # [C, 3]
     means = g.means.to(F32)
     opacities = g.opacities.to(F32)
+    if factors is not None:
+        opacities = opacities * factors.to(F32)  # [C, N]
     rotations = g.rotations.to(F32)
     if mode == "surfel":
         T, mu = surfel_transforms(means, rotations, g.scales.to(F32), w2c, K, F32)  # [C, N, 3, 3], [C, N, 3]
@@ -138,7 +142,7 @@ def render_gsplat(
 
     colors = sh_to_color(g.sh.to(F32), F.normalize(means - centers[:, None], dim=-1))  # [C, N, 3]
     normals = _camera_facing(rotations[:, :, 2], mu, w2c[:, :3, :3])  # [C, N, 3]
-    opacity = opacities.expand(len(cameras), -1)  # [C, N]
+    opacity = opacities.expand(len(cameras), -1)  # [C, N] (already per camera with factors)
     kernels = _kernels()
     tiles_w, tiles_h = -(-width // TILE), -(-height // TILE)
     _, isect_ids, flatten_ids = kernels.isect_tiles(middle, radii, z, TILE, tiles_w, tiles_h)

@@ -198,9 +198,12 @@ def render_2dgs(
     height: int,
     full_coverage: bool = True,
     distortion: bool = False,
+    opacities: Tensor | None = None,
 ):
     """gsplat's 2DGS reference for one camera: colour, alpha, centre depth, world normals, and with
-    `distortion` the depth distortion of gsplat's kernel (`distortion_2dgs`) [1, 1, H, W]."""
+    `distortion` the depth distortion of gsplat's kernel (`distortion_2dgs`) [1, 1, H, W]. `opacities`
+    [N] replace the Gaussians' own (gsplat's 2DGS has no antialiased mode: the compensated opacities
+    are handed to it, as `rasterization(rasterize_mode="antialiased")` does for 3DGS)."""
     # The third scale enters only gsplat's normal (R diag(s) e3): 1 gives unit normals.
     scales = torch.cat((g.scales, torch.ones_like(g.scales[:, :1])), -1)
     radii, means2d, depths, ray_transforms, normals = ref2d._fully_fused_projection_2dgs(
@@ -216,7 +219,7 @@ def render_2dgs(
             ray_transforms,
             features,
             normals,
-            g.opacities[None],
+            (g.opacities if opacities is None else opacities)[None],
             width,
             height,
             TILE,
@@ -247,15 +250,25 @@ def render_3dgs(
     height: int,
     full_coverage: bool = True,
     extra: Tensor | None = None,
+    antialiased: bool = False,
 ):
-    """gsplat's 3DGS (EWA) reference for one camera: colour, alpha, centre depth and `extra` channels blended."""
+    """gsplat's 3DGS (EWA) reference for one camera: colour, alpha, centre depth and `extra` channels blended;
+    `antialiased`: gsplat's `rasterize_mode="antialiased"` (the opacities times the projection's compensations)."""
     from surfsplat.geometry.gaussians import THIN_SCALE
 
     scales = torch.cat((g.scales, torch.full_like(g.scales[:, :1], THIN_SCALE)), -1)
     covars, _ = ref._quat_scale_to_covar_preci(F.normalize(g.quats, dim=-1), scales, compute_preci=False)
-    radii, means2d, depths, conics, _ = ref._fully_fused_projection(
-        covars=covars, means=g.means, viewmats=w2c[None], Ks=K[None], width=width, height=height, eps2d=0.3
+    radii, means2d, depths, conics, compensations = ref._fully_fused_projection(
+        covars=covars,
+        means=g.means,
+        viewmats=w2c[None],
+        Ks=K[None],
+        width=width,
+        height=height,
+        eps2d=0.3,
+        calc_compensations=antialiased,
     )
+    opacities = g.opacities[None] if compensations is None else g.opacities[None] * compensations  # as rendering.py
     offsets, flat = _tiles(means2d, radii, depths, width, height, full_coverage)
     parts = [_colors(g.means, g.sh, campos)[None], depths[..., None]]
     if extra is not None:
@@ -263,7 +276,7 @@ def render_3dgs(
     features = torch.cat(parts, -1)
     with stand_ins():
         out, alpha = ref._rasterize_to_pixels(
-            means2d, conics, features, g.opacities[None], width, height, TILE, offsets, flat, batch_per_iter=1 << 20
+            means2d, conics, features, opacities, width, height, TILE, offsets, flat, batch_per_iter=1 << 20
         )
     maps = out[0].permute(2, 0, 1)[None]
     return maps[:, :3], alpha[0].permute(2, 0, 1)[None], maps[:, 3:4], maps[:, 4:]

@@ -312,6 +312,7 @@ class SurfelViewer:
             height * scale,
             mode=self.scene.mode,
             alpha_threshold=self.scene.alpha_threshold,
+            antialiased=self.scene.antialiased,
         )
         if output == "image":
             return to_uint8(out.color[0])

@@ -52,6 +52,7 @@ class ViewerScene:
     title: str  # shown in the page
     mode: RenderMode = "surfel"  # rasterization of the exact render ("ewa" for 3DGS-layout files)
     alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD  # forced alpha blending tau of the exact render
+    antialiased: bool = False  # the exact render with the antialiasing filter (a scene fitted with it)
     cameras: Cameras | None = None  # [C] context cameras, OpenCV c2w, K in pixels of width x height
     width: int | None = None  # image size the cameras' K is in pixels of
     height: int | None = None
@@ -118,6 +119,10 @@ def load_viewer_scene(path: str | os.PathLike, progress: Progress | None = None)
         if tau is not None and (not isinstance(tau, (int, float)) or isinstance(tau, bool) or not 0 < tau <= 1):
             raise SurfSplatInputError(f"{summary_file}: 'alpha_threshold' must be in (0, 1] or null, got {tau!r}")
         scene.alpha_threshold = None if tau is None else float(tau)
+        antialiased = summary.get("antialiased", False)
+        if not isinstance(antialiased, bool):
+            raise SurfSplatInputError(f"{summary_file}: 'antialiased' must be true or false, got {antialiased!r}")
+        scene.antialiased = antialiased
         if summary.get("render_mode") in ("surfel", "ewa") and gaussians.explicit_covariances is None:
             scene.mode = summary["render_mode"]
 
