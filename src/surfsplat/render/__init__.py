@@ -53,6 +53,7 @@ def render(
     alpha_threshold: float | None = DEFAULT_ALPHA_THRESHOLD,
     settings: TorchRenderSettings | CpuRenderSettings | None = None,
     distortion: bool = False,
+    absgrad: bool = False,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -70,6 +71,16 @@ def render(
                      centre, EWA Jacobian clamp and support) that every backend, gsplat's too, follows.
     distortion:      also return 2DGS's depth distortion map (its Eq. 13) in `RenderOutput.distortion`
                      [C, 1, H, W], differentiable; "surfel" mode only. Off by default: nothing else pays for it.
+    absgrad:         also return `RenderOutput.absgrad` [C, N, 2], a zero tensor whose `.grad` after the
+                     loss's backward is, per camera and surfel, the sum over the pixels p of |dL_p/dc_x| and
+                     of |dL_p/dc_y|: each pixel's own share of the gradient with respect to the projected
+                     centre c in pixels, the surfel moved parallel to the image at its depth (AbsGS, Ye et al.
+                     2024; gsplat's `absgrad`, which sums the two axes apart the same way). Without the
+                     absolute values the sums are the plain centre gradient (gsplat's `gradient_2dgs`),
+                     where shares of opposite sign cancel. "surfel" mode, "torch" and "cpu" backends
+                     (gsplat's 2DGS kernel takes absolute values on its low-pass branch only); the torch
+                     backend leaves the depth distortion out of it, so it refuses both at once. Off by
+                     default: the backward computes nothing of it.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]
     (and distortion [C, 1, H, W] when asked).
 
@@ -89,10 +100,24 @@ def render(
         raise SurfSplatInputError(f"distortion: expected True or False, got {distortion!r}")
     if distortion and mode != "surfel":
         raise SurfSplatInputError("distortion: 2DGS's depth distortion is computed in mode 'surfel' only")
+    if not isinstance(absgrad, bool):
+        raise SurfSplatInputError(f"absgrad: expected True or False, got {absgrad!r}")
+    if absgrad and mode != "surfel":
+        raise SurfSplatInputError("absgrad: the absolute screen gradient is computed in mode 'surfel' only")
     device = gaussians.means.device
     dtype = gaussians.means.dtype
     bg = _background(background, dtype, device)
     backend = resolve_backend(backend, device, settings, cameras)
+    probe = None
+    if absgrad:
+        if backend == "gsplat":
+            raise SurfSplatInputError(
+                "absgrad: the gsplat backend cannot give it for surfels (gsplat's 2DGS kernel takes absolute "
+                "values on its low-pass branch only); use backend='torch' or 'cpu'"
+            )
+        if backend == "torch" and distortion:
+            raise SurfSplatInputError("absgrad: the torch backend computes it without the depth distortion")
+        probe = torch.zeros(len(cameras), len(gaussians), 2, dtype=dtype, device=device, requires_grad=True)
     if backend == "gsplat":
         if not gsplat_available(device):
             raise SurfSplatInputError(
@@ -106,7 +131,7 @@ def render(
     elif backend == "cpu":
         from .cpu import render_cpu
 
-        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
+        maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion, probe)
         if not bg.requires_grad:
             # one compiled pass forward and one backward instead of some ten whole-image torch ops each way
             from .cpu.backend import normalize_cpu
@@ -114,15 +139,20 @@ def render(
             color, alpha, depth, normal = maps[:4]
             color, depth, normal = normalize_cpu(color, alpha, depth, normal, alpha_threshold, bg)
             return RenderOutput(
-                color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+                color=color,
+                alpha=alpha,
+                depth=depth,
+                normal=normal,
+                distortion=maps[4] if distortion else None,
+                absgrad=probe,
             )
     else:
-        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion)
+        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion, probe)
     color, alpha, depth, normal = maps[:4]
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
     color = color + (1 - coverage) * bg[None, :, None, None]
     return RenderOutput(
-        color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+        color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None, absgrad=probe
     )
 
 
@@ -190,6 +220,7 @@ def _render_torch_all(
     mode: RenderMode,
     settings: TorchRenderSettings | None,
     distortion: bool = False,
+    probe: Tensor | None = None,  # [C, N, 2] (`render`'s absgrad)
 ) -> tuple[Tensor, ...]:
     settings = settings or TorchRenderSettings()
     rotations = g.rotations
@@ -213,6 +244,7 @@ def _render_torch_all(
             mode,
             settings,
             distortion=distortion,
+            abs_probe=None if probe is None else probe[c],
         )
         for c in range(len(cameras))
     ]
