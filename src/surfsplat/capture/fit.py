@@ -34,6 +34,7 @@ from ..utils.checks import SurfSplatInputError
 from ..utils.heap import reuse_freed_memory
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
+from .mcmc import MCMC, MCMCConfig
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +72,9 @@ class FitPlan:
     prune_opacity: float = 0.005  # a pruning removes the surfels below this opacity
     # coarse to fine: (until this share of the fit, render scale) pairs, in order; then `scale`
     levels: tuple[tuple[float, float], ...] = ()
-    densify: DensifyConfig | None = None  # 3DGS's clone / split / prune / opacity reset (None: none)
+    # the densification strategy: 3DGS's clone / split / prune / opacity reset (AbsGS with its absgrad),
+    # or 3DGS-MCMC's relocation under a fixed budget (None: none)
+    densify: DensifyConfig | MCMCConfig | None = None
     extent: float = 1.0  # the scene extent the densification's world sizes are shares of
     # a time budget: the fit runs until this many seconds have passed (or `steps`), and its progress,
     # which every schedule follows, is the share of the budget spent (None: the share of the steps)
@@ -142,8 +145,18 @@ def fit_on_views(
     levels = [(until, at_scale(s)) for until, s in coarse] + [(None, at_scale(plan.scale))]
     fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
-    def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
-        return render(g, cams, w, h, mode=mode, backend=backend, alpha_threshold=alpha_threshold, distortion=distortion)
+    def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False, absgrad: bool = False):
+        return render(
+            g,
+            cams,
+            w,
+            h,
+            mode=mode,
+            backend=backend,
+            alpha_threshold=alpha_threshold,
+            distortion=distortion,
+            absgrad=absgrad,
+        )
 
     def mse(g: Gaussians) -> float:
         with torch.no_grad():
@@ -161,7 +174,7 @@ def fit_on_views(
 
     free = _Free(g0, plan)
     optimizer = adam(free.groups(), g0.means.device)
-    densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
+    densify = make_strategy(plan.densify, plan.extent, len(g0), g0.means.device)
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
     # the device a block of steps at a time: [block, views rendered a step].
@@ -214,8 +227,12 @@ def fit_on_views(
             which = views_of(step)
             fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
             distorted = plan.distortion_weight > 0 and done >= plan.distortion_from
-            out = draw(free.current(done, unit_quats=False), fit_cameras[which], fit_w, fit_h, distorted)
+            absgrad = densify is not None and densify.wants_absgrad(done)
+            out = draw(free.current(done, unit_quats=False), fit_cameras[which], fit_w, fit_h, distorted, absgrad)
             loss = colour_loss(out.color, fit_images[which], plan.loss, plan.ssim_weight)
+            penalty = densify.penalty(free) if densify is not None else None
+            if penalty is not None:
+                loss = loss + penalty
             if distorted:
                 loss = loss + plan.distortion_weight * distortion_error(out.distortion)
             if plan.normal_weight > 0 and done >= plan.normal_from:
@@ -226,7 +243,8 @@ def fit_on_views(
             loss.backward()
             if densify is not None:
                 means = free.tensors["means"]
-                densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
+                screen = out.absgrad.grad if absgrad else None
+                densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done, screen)
             optimizer.step()
             pending.append(loss.detach())
             if progress:
@@ -269,6 +287,19 @@ def fit_on_views(
         )
         return g0, stats
     return fitted, stats
+
+
+def make_strategy(
+    config: DensifyConfig | MCMCConfig | None, extent: float, n: int, device: torch.device
+) -> Densify | MCMC | None:
+    """The densification strategy a plan names (None: none). Each is a plan of this loop, called at the
+    same three places of a step: `penalty(free)` joins the loss, `observe(...)` reads the step's gradients
+    after the backward, and `step(...)` changes the surfels (and Adam's rows) after the optimizer's step."""
+    if config is None:
+        return None
+    if isinstance(config, MCMCConfig):
+        return MCMC(config, extent, n, device)
+    return Densify(config, extent, n, device)
 
 
 @contextmanager

@@ -107,10 +107,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_optimize_arguments(group) -> None:
-    """--optimize-steps, --optimize-seconds, --optimize-start and --optimize-scale: the per-scene
-    optimization (reconstruct, and optimize)."""
+    """--optimize-steps, --optimize-seconds, --optimize-start, --optimize-scale and --optimize-strategy: the
+    per-scene optimization (reconstruct, and optimize)."""
     from ..capture import OptimizeConfig
-    from ..capture.optimize import DEFAULT_STEPS
+    from ..capture.optimize import DEFAULT_STEPS, STRATEGIES
     from ..capture.starts import START_KINDS, StartConfig
 
     optimize = OptimizeConfig()
@@ -146,6 +146,14 @@ def add_optimize_arguments(group) -> None:
         metavar="S",
         help=f"the optimization renders at this fraction of the working size (default {optimize.scale:g})",
     )
+    group.add_argument(
+        "--optimize-strategy",
+        choices=sorted(STRATEGIES),
+        default=optimize.strategy,
+        help="how the optimization grows the surfels: 3dgs (clone and split where the screen gradient is high), "
+        "absgs (the same with the absolute screen gradient of AbsGS), mcmc (3DGS-MCMC: faint surfels relocated "
+        f"under a fixed budget) (default {optimize.strategy})",
+    )
 
 
 def optimize_from_args(args: argparse.Namespace):
@@ -159,6 +167,7 @@ def optimize_from_args(args: argparse.Namespace):
         seconds=args.optimize_seconds,
         scale=args.optimize_scale,
         start=dataclasses.replace(config.start, kind=args.optimize_start),
+        strategy=args.optimize_strategy,
     )
 
 
