@@ -111,7 +111,7 @@ def fit_on_views(
     `monitor(step, seconds, surfels, alpha_threshold)` is called before the first step, each time the fit's progress
     passes another `monitor_every`, and after the last step, with the surfels as they then are and
     the seconds the fit has run; its own time is not counted in them (held-out scores along the way)."""
-    from ..render import render
+    from ..render import render, resolve_backend
     from ..utils.log import progress as progress_bar
 
     start = time.perf_counter()
@@ -127,6 +127,11 @@ def fit_on_views(
         )
     images = images.to(g0.means.device, g0.means.dtype)
     cameras = cameras.to(device=g0.means.device, dtype=g0.means.dtype)
+    if getattr(plan.densify, "absgrad", False) and resolve_backend(backend, g0.means.device, None, cameras) == "gsplat":
+        raise SurfSplatInputError(
+            f"{plan.name}: the absgs strategy needs the absolute screen gradient, which the gsplat backend cannot "
+            "give for surfels; use backend='torch' or 'cpu', or another strategy"
+        )
 
     def at_scale(scale: float) -> tuple[Cameras, Tensor, int, int]:
         """The cameras and photos (area-averaged) the fit renders at `scale` of the working size."""
