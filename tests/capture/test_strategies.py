@@ -238,3 +238,18 @@ def test_a_seeded_fit_of_each_strategy_keeps_adams_rows_aligned_and_repeats_bit_
     again, _ = fit_on_views(sparse, cameras, photos, SIZE, SIZE, plan, alpha_threshold=None)
     for name in ("means", "quats", "scales", "opacities", "sh"):
         assert torch.equal(getattr(again, name), getattr(fitted, name)), name
+
+
+def test_the_strategy_flag_reaches_the_library():
+    from surfsplat.cli import build_parser
+    from surfsplat.commands.reconstruct import optimize_from_args
+
+    parse = build_parser().parse_args
+    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).strategy == "3dgs"
+    for name in ("absgs", "mcmc"):
+        args = parse(["reconstruct", "--images", "a.png", "--optimize-strategy", name])
+        assert optimize_from_args(args).strategy == name
+        args = parse(["optimize", "out", "--optimize-strategy", name])
+        assert optimize_from_args(args).strategy == name
+    with pytest.raises(SystemExit):
+        parse(["reconstruct", "--images", "a.png", "--optimize-strategy", "nope"])
