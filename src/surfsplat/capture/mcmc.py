@@ -1,6 +1,6 @@
 """3DGS-MCMC's densification for surfels (Kheradmand et al. 2024): a fixed budget, dead surfels relocated.
 
-    strategy = MCMC(MCMCConfig(), extent)
+    strategy = MCMC(MCMCConfig(), extent, len(surfels), device)
     ... each step: loss = loss + strategy.penalty(free); loss.backward(); optimizer.step()
     strategy.step(free, optimizer, step, done, generator)   # relocate / add on its schedule, then the noise
 
@@ -101,8 +101,6 @@ def relocation(opacities: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tenso
 
 class MCMC:
     """The schedule and the operations of one fit's 3DGS-MCMC (module docstring)."""
-
-    absgrad = False  # the screen gradient is not read
 
     def __init__(self, config: MCMCConfig, extent: float, n: int, device: torch.device) -> None:
         self.config, self.extent = config, extent
