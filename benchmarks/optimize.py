@@ -4,6 +4,7 @@
     python benchmarks/optimize.py --parts fern --starts points      # one capture, one start
     python benchmarks/optimize.py --config '{"steps": 1000}'        # other OptimizeConfig fields
     python benchmarks/optimize.py --parts fern-cli                  # the whole `surfsplat reconstruct` process
+    python benchmarks/optimize.py --parts fern --starts points --strategies 3dgs absgs mcmc   # by strategy
 
 Parts (each writes its entry of benchmarks/results/optimize.json as soon as it is measured, prints a
 table, and `--plot` draws every curve into one PNG):
@@ -14,7 +15,9 @@ table, and `--plot` draws every curve into one PNG):
   configuration given, its held-out PSNR recorded every tenth of the fit against the CPU seconds of
   the process so far (the network, fusion and the start's triangulation included, the scoring not).
   OpenSplat's held-out renders (`../shared/anchors/opensplat_fern`, where present) are scored on the
-  same crop of the same photos, and its CPU seconds are its own record's.
+  same crop of the same photos, and its CPU seconds are its own record's. Each start runs once per
+  densification strategy (`--strategies`, `OptimizeConfig.strategy`: 3dgs, absgs, mcmc), each row
+  naming both; the plot draws NeRF's published 25.17 dB on fern (Mildenhall et al. 2020).
 - dtu: DTU scan 24, views 12..26 at 400x300 with `holdout_every=3` (12, 15, 18, 21, 24 held out, 10
   fitted); the same rows.
 - rooms: procedural rooms (`surfsplat.data.synthetic`), 25 frames at 64x64 with exact cameras, every
@@ -45,6 +48,8 @@ import torch
 from common import ROOT, machine, sample_data, text_table, write_results
 
 STARTS = ("points", "network", "both", "auto")
+STRATEGIES = ("3dgs", "absgs", "mcmc")
+NERF_FERN_PSNR = 25.17  # NeRF's published held-out PSNR on fern (Mildenhall et al. 2020, per-scene table)
 ANCHORS = ROOT.parent / "shared" / "anchors" / "opensplat_fern"
 
 
@@ -92,6 +97,8 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
     """The network's fused scene, the refinement, and each start optimized, with held-out curves."""
     import surfsplat
     from surfsplat.capture import OptimizeConfig, RefineConfig, optimize_on_views, refine_on_views
+    from surfsplat.capture.densify import DensifyConfig
+    from surfsplat.capture.mcmc import MCMCConfig
     from surfsplat.capture.starts import StartConfig
     from surfsplat.data.cameras import load_cameras
     from surfsplat.data.images import list_images
@@ -145,19 +152,24 @@ def real_capture(args, name: str, folder: Path, images: str, indices: list[int],
         )
     if name == "fern" and ANCHORS.is_dir():
         add(opensplat_row(fused, h))
-    for start in args.starts:
+    for start, strategy in ((a, b) for a in args.starts for b in args.strategies):
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in args.config.items()}
         fields["start"] = StartConfig(kind=start, **args.start)
+        fields["strategy"] = strategy
+        for key, kind in (("densify", DensifyConfig), ("mcmc", MCMCConfig)):  # their fields as JSON objects
+            if isinstance(fields.get(key), dict):
+                fields[key] = kind(**fields[key])
         config = OptimizeConfig(**fields)
-        curve = Curve(f"{name}/{start}", fused, network_cpu, config.antialiased)
+        curve = Curve(f"{name}/{start}/{strategy}", fused, network_cpu, config.antialiased)
         fitted, stats = optimize_on_views(
             fused.gaussians, fused.cameras, context_images, fused.width, fused.height, config,
             mode=fused.mode, alpha_threshold=fused.alpha_threshold, monitor=curve,
         )  # fmt: skip
         add(
             {
-                "what": f"optimize from {start}",
+                "what": f"optimize from {start}, {strategy}",
                 "start": start,
+                "strategy": strategy,
                 "config": args.config,
                 "steps": stats["steps"],
                 "cpu_seconds": curve.points[-1]["cpu_seconds"],
@@ -371,15 +383,21 @@ def plot(results: dict, path: Path) -> None:
     if not keys:
         return
     figure, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 4.5), squeeze=False)
-    # one colour a start, and single points in colours no curve uses (so no two entries look alike)
+    # one colour a start, one line style a strategy, and single points in colours no curve uses (so no
+    # two entries look alike)
     curve_colours = {"points": "tab:blue", "network": "tab:orange", "both": "tab:green", "auto": "tab:purple"}
+    strategy_styles = {"3dgs": ("-", "."), "absgs": ("--", "^"), "mcmc": (":", "s")}
     point_styles = {"OpenSplat": ("*", "tab:red"), "network": ("o", "tab:gray"), "refinement": ("s", "tab:brown")}
     for ax, key in zip(axes[0], keys):
         for row in results[key]["rows"]:
             if "curve" in row:
                 xs = [p["cpu_seconds"] for p in row["curve"]]
                 ys = [p["psnr"] for p in row["curve"]]
-                ax.plot(xs, ys, marker=".", color=curve_colours.get(row.get("start")), label=row["what"])
+                line, marker = strategy_styles.get(row.get("strategy", "3dgs"), ("-", "."))
+                ax.plot(
+                    xs, ys, linestyle=line, marker=marker, markersize=4, color=curve_colours.get(row.get("start")),
+                    label=row["what"],
+                )  # fmt: skip
             else:
                 marker, colour = next(
                     (style for name, style in point_styles.items() if row["what"].startswith(name)), ("o", "black")
@@ -405,6 +423,8 @@ def plot(results: dict, path: Path) -> None:
                     label="surfsplat reconstruct (whole process)",
                     zorder=4,
                 )
+        if key == "fern":
+            ax.axhline(NERF_FERN_PSNR, color="tab:red", linestyle="-.", linewidth=1, label="NeRF (published), 25.17 dB")
         ax.set_title(f"{key}: held-out PSNR ({results[key]['size'][1]}x{results[key]['size'][0]})")
         ax.set_xlabel(f"CPU seconds, {results['machine']['cpu_model']}")
         ax.set_ylabel("held-out PSNR (dB)")
@@ -459,6 +479,9 @@ def main() -> None:
     parts = ["fern", "dtu", "rooms", "fern-cli", "dtu-cli"]
     parser.add_argument("--parts", nargs="+", default=["fern", "dtu", "rooms"], choices=parts)
     parser.add_argument("--starts", nargs="+", default=list(STARTS[:3]), choices=STARTS)
+    parser.add_argument(
+        "--strategies", nargs="+", default=["3dgs"], choices=STRATEGIES, help="densification strategies"
+    )
     parser.add_argument(
         "--config", type=json.loads, default={}, help="OptimizeConfig fields (JSON; default: the shipped ones)"
     )

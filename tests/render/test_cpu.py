@@ -294,9 +294,13 @@ def test_float32_kernels_compute_in_float32():
                     d,
                     np.zeros((1, kernels.GRAD_SIZE), f32),
                     0,
+                    *absolute,
                 )
                 for runs, d in zip(bwd_runs, dist)
                 for surfel in (True, False)
+                # without and with the absolute screen gradient (surfels)
+                for absolute in ((None, 0, None), (np.zeros((1, kernels.ABS_SIZE), f32), 0, np.zeros((1, 2), f32)))
+                if surfel or absolute[0] is None
             ],
         ),
         (kernels._exp_of_8th, [(f32(-0.1), f32)]),

@@ -23,6 +23,16 @@ What it does (3DGS Sec. 5, `densify_and_prune`; 2DGS keeps it for surfels; gspla
   photos do not need fade and are pruned.
 * `budget` bounds the count, 3DGS-MCMC's idea of a fixed cost: when cloning and splitting would pass
   it, only the surfels with the highest gradients grow.
+* `absgrad` (AbsGS, Ye et al. 2024; gsplat's `DefaultStrategy(absgrad=True)`): the screen gradient of a
+  view is instead the sum over its pixels of each pixel's own |dL_p/dc| (per axis, then the norm in
+  NDC, as gsplat), which the renderer accumulates in its backward (`render(..., absgrad=True)`):
+  shares of opposite sign no longer cancel, so large surfels over texture, whose plain gradient
+  averages out, grow too. The threshold is then `abs_grad_threshold` (0.0008, gsplat's advice with
+  absgrad). gsplat multiplies each view's sums by the number of views the step rendered (its loss
+  averages over them), and so does this. For surfels the per-pixel share is taken of gsplat's 2DGS
+  densification gradient (`gradient_2dgs`, z dL/dT[:2, 2]), not of its `means2d`, whose 2DGS kernel
+  differentiates only the low-pass branch; the SH colour's dependence on the view direction is left
+  out (as in gsplat; the plain gradient above includes it).
 Adam's moments follow every clone, split and removal (new rows start with zero moments, as in
 3DGS's `cat_tensors_to_optimizer`), and the reset zeroes the opacity moments.
 
@@ -63,6 +73,8 @@ class DensifyConfig:
     reset_opacity: float = 0.01  # opacities capped at this by a reset (3DGS)
     split_factor: float = 1.6  # a split's two surfels have the scales / this (3DGS: 0.8 * N with N = 2)
     budget: int = 50_000  # surfels at most: growth past it keeps the highest gradients (a bound on a step's cost)
+    absgrad: bool = False  # AbsGS: the screen gradient sums each pixel's |dL_p/dc| (module docstring)
+    abs_grad_threshold: float = 0.0008  # ... and its threshold (gsplat's grow_grad2d advice with absgrad)
 
     def __post_init__(self) -> None:
         if not 0 <= self.start <= self.stop <= 1:
@@ -75,8 +87,11 @@ class DensifyConfig:
             )
         if self.budget < 1:
             raise SurfSplatInputError(f"densify budget: expected at least 1 surfel, got {self.budget}")
-        if self.grad_threshold <= 0:
-            raise SurfSplatInputError(f"densify grad_threshold: expected > 0, got {self.grad_threshold}")
+        if self.grad_threshold <= 0 or self.abs_grad_threshold <= 0:
+            raise SurfSplatInputError(
+                f"densify grad_threshold, abs_grad_threshold: expected > 0, got {self.grad_threshold}, "
+                f"{self.abs_grad_threshold}"
+            )
 
 
 def screen_gradients(
@@ -85,11 +100,13 @@ def screen_gradients(
     cameras: Cameras,  # [C] the step's views
     width: int,
     height: int,
+    absgrad: Tensor | None = None,  # [C, N, 2] per view the sums of |dL_p/dc| (`RenderOutput.absgrad`'s grad)
 ) -> tuple[Tensor, Tensor]:
     """Each surfel's NDC screen-space gradient norm for the step's views ([N], summed over the views that
     see it) and how many of them see it ([N]): the centre in front of the camera and inside the image.
     With several views a step the mean's gradient is their sum, so the norm is that of the summed
-    gradient, counted once per seeing view (module docstring)."""
+    gradient, counted once per seeing view (module docstring). With `absgrad`, each view's own
+    absolute sums in NDC, times the number of views (gsplat), replace it."""
     norms = torch.zeros(len(means), dtype=means.dtype, device=means.device)
     seen = torch.zeros_like(norms)
     c2w = cameras.c2w.to(means)
@@ -103,10 +120,12 @@ def screen_gradients(
         px = K[c, 0, 0] * camera_point[:, 0] / zc + K[c, 0, 2]
         py = K[c, 1, 1] * camera_point[:, 1] / zc + K[c, 1, 2]
         visible = in_front & (px >= 0) & (px <= width) & (py >= 0) & (py <= height)
-        g_cam = grad @ R_cw.T  # dL/d(camera point) = R_cw dL/dmu
-        g_ndc = torch.stack(
-            (g_cam[:, 0] * zc / K[c, 0, 0] * (width / 2), g_cam[:, 1] * zc / K[c, 1, 1] * (height / 2)), -1
-        )
+        if absgrad is None:
+            g_cam = grad @ R_cw.T  # dL/d(camera point) = R_cw dL/dmu
+            g_px = torch.stack((g_cam[:, 0] * zc / K[c, 0, 0], g_cam[:, 1] * zc / K[c, 1, 1]), -1)
+        else:
+            g_px = absgrad[c].to(means) * len(cameras)
+        g_ndc = g_px * torch.tensor([width / 2, height / 2], dtype=means.dtype, device=means.device)
         norms += torch.where(visible, g_ndc.norm(dim=-1), torch.zeros_like(z))
         seen += visible.to(seen.dtype)
     return norms, seen
@@ -122,11 +141,32 @@ class Densify:
         self.resets = 0  # opacity resets so far
         self.history: list[dict] = []  # one entry per densification or reset
 
-    def observe(self, means: Tensor, grad: Tensor, cameras: Cameras, width: int, height: int, done: float) -> None:
-        """Accumulate the step's screen-space gradients (only while densification runs)."""
+    def wants_absgrad(self, done: float) -> bool:
+        """Whether the step at progress `done` needs the renderer's absolute screen gradient."""
+        return self.config.absgrad and self.config.start <= done < self.config.stop
+
+    def penalty(self, free) -> Tensor | None:
+        """No term of its own in the loss."""
+        return None
+
+    def observe(
+        self,
+        means: Tensor,
+        grad: Tensor,
+        cameras: Cameras,
+        width: int,
+        height: int,
+        done: float,
+        absgrad: Tensor | None = None,
+    ) -> None:
+        """Accumulate the step's screen-space gradients (only while densification runs); `absgrad` [C, N, 2]
+        is needed when the configuration's absgrad is on."""
         if not self.config.start <= done < self.config.stop:
             return
-        norms, seen = screen_gradients(means.detach(), grad.detach(), cameras, width, height)
+        if self.config.absgrad and absgrad is None:
+            raise SurfSplatInputError("densify: absgrad is on, but the render gave no absolute screen gradient")
+        use = absgrad.detach() if self.config.absgrad else None
+        norms, seen = screen_gradients(means.detach(), grad.detach(), cameras, width, height, use)
         self.grad_sum += norms.to(self.grad_sum)
         self.count += seen.to(self.count)
 
@@ -144,7 +184,7 @@ class Densify:
         cfg = self.config
         t = free.tensors
         average = self.grad_sum / self.count.clamp_min(1)
-        grow = average >= cfg.grad_threshold
+        grow = average >= (cfg.abs_grad_threshold if cfg.absgrad else cfg.grad_threshold)
         size = t["log_scales"].detach().exp().amax(-1)
         small = size <= cfg.percent_dense * self.extent
         n = len(size)

@@ -35,6 +35,7 @@ from ..utils.heap import reuse_freed_memory
 from .adam import SelectiveAdam, visible_rows
 from .densify import Densify, DensifyConfig
 from .losses import colour_loss, depth_normal_error, distortion_error
+from .mcmc import MCMC, MCMCConfig
 from .per_view import PerView, PerViewConfig
 
 logger = logging.getLogger(__name__)
@@ -73,7 +74,9 @@ class FitPlan:
     prune_opacity: float = 0.005  # a pruning removes the surfels below this opacity
     # coarse to fine: (until this share of the fit, render scale) pairs, in order; then `scale`
     levels: tuple[tuple[float, float], ...] = ()
-    densify: DensifyConfig | None = None  # 3DGS's clone / split / prune / opacity reset (None: none)
+    # the densification strategy: 3DGS's clone / split / prune / opacity reset (AbsGS with its absgrad),
+    # or 3DGS-MCMC's relocation under a fixed budget (None: none)
+    densify: DensifyConfig | MCMCConfig | None = None
     extent: float = 1.0  # the scene extent the densification's world sizes are shares of
     # a time budget: the fit runs until this many seconds have passed (or `steps`), and its progress,
     # which every schedule follows, is the share of the budget spent (None: the share of the steps)
@@ -123,7 +126,7 @@ def fit_on_views(
     (`per_view.PerView`); `per_view_out` (a dict) then receives "cameras" (the refined context
     cameras) and "exposure" ([V, 3, 4] or None), and the colour errors before and after are those of
     the exposed renders from the refined cameras."""
-    from ..render import render
+    from ..render import render, resolve_backend
     from ..utils.log import progress as progress_bar
 
     start = time.perf_counter()
@@ -139,6 +142,11 @@ def fit_on_views(
         )
     images = images.to(g0.means.device, g0.means.dtype)
     cameras = cameras.to(device=g0.means.device, dtype=g0.means.dtype)
+    if getattr(plan.densify, "absgrad", False) and resolve_backend(backend, g0.means.device, None, cameras) == "gsplat":
+        raise SurfSplatInputError(
+            f"{plan.name}: the absgs strategy needs the absolute screen gradient, which the gsplat backend cannot "
+            "give for surfels; use backend='torch' or 'cpu', or another strategy"
+        )
 
     def at_scale(scale: float) -> tuple[Cameras, Tensor, int, int]:
         """The cameras and photos (area-averaged) the fit renders at `scale` of the working size."""
@@ -157,7 +165,7 @@ def fit_on_views(
     levels = [(until, at_scale(s)) for until, s in coarse] + [(None, at_scale(plan.scale))]
     fit_w, fit_h = levels[-1][1][2], levels[-1][1][3]
 
-    def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False):
+    def draw(g: Gaussians, cams: Cameras, w: int, h: int, distortion: bool = False, absgrad: bool = False):
         return render(
             g,
             cams,
@@ -168,21 +176,24 @@ def fit_on_views(
             alpha_threshold=alpha_threshold,
             distortion=distortion,
             antialiased=plan.antialiased,
+            absgrad=absgrad,
         )
 
     views = PerView(plan.per_view, cameras, plan.extent) if plan.per_view is not None and plan.per_view.active else None
 
-    def colours(g: Gaussians, cams: Cameras, which: Tensor, w: int, h: int, distortion: bool = False):
+    def colours(
+        g: Gaussians, cams: Cameras, which: Tensor, w: int, h: int, distortion: bool = False, absgrad: bool = False
+    ):
         """(RenderOutput, colour) of the views `which` of `cams`: with per-view terms each view renders
         the surfels moved by its camera correction, and its colour goes through its exposure map."""
         if views is None:
-            out = draw(g, cams[which], w, h, distortion)
+            out = draw(g, cams[which], w, h, distortion, absgrad)
             return out, out.color
         if views.config.cameras:
             parts = [draw(views.moved(g, int(i)), cams[int(i)], w, h, distortion) for i in which.tolist()]
             out = concat_outputs(parts)
         else:
-            out = draw(g, cams[which], w, h, distortion)
+            out = draw(g, cams[which], w, h, distortion, absgrad)
         return out, views.expose(out.color, which)
 
     def mse(g: Gaussians) -> float:
@@ -202,7 +213,7 @@ def fit_on_views(
     free = _Free(g0, plan)
     selective = plan.adam == "selective"
     optimizer = SelectiveAdam(free.groups()) if selective else adam(free.groups(), g0.means.device)
-    densify = Densify(plan.densify, plan.extent, len(g0), g0.means.device) if plan.densify is not None else None
+    densify = make_strategy(plan.densify, plan.extent, len(g0), g0.means.device)
     split_generator = torch.Generator().manual_seed(plan.seed + 1)
     # Every step's views drawn on the host's generator (the same draws on every device) and moved to
     # the device a block of steps at a time: [block, views rendered a step].
@@ -257,8 +268,14 @@ def fit_on_views(
             which = views_of(step)
             fit_cameras, fit_images, fit_w, fit_h = next(lv for until, lv in levels if until is None or done < until)
             distorted = plan.distortion_weight > 0 and done >= plan.distortion_from
-            out, colour = colours(free.current(done, unit_quats=False), fit_cameras, which, fit_w, fit_h, distorted)
+            absgrad = densify is not None and densify.wants_absgrad(done)
+            out, colour = colours(
+                free.current(done, unit_quats=False), fit_cameras, which, fit_w, fit_h, distorted, absgrad
+            )
             loss = colour_loss(colour, fit_images[which], plan.loss, plan.ssim_weight)
+            penalty = densify.penalty(free) if densify is not None else None
+            if penalty is not None:
+                loss = loss + penalty
             if distorted:
                 loss = loss + plan.distortion_weight * distortion_error(out.distortion)
             if plan.normal_weight > 0 and done >= plan.normal_from:
@@ -271,7 +288,8 @@ def fit_on_views(
             loss.backward()
             if densify is not None:
                 means = free.tensors["means"]
-                densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done)
+                screen = out.absgrad.grad if absgrad else None
+                densify.observe(means, means.grad, fit_cameras[which], fit_w, fit_h, done, screen)
             if selective:
                 optimizer.step(visible_rows(list(free.tensors.values())))
             else:
@@ -324,6 +342,19 @@ def fit_on_views(
         )
         return g0, stats
     return fitted, stats
+
+
+def make_strategy(
+    config: DensifyConfig | MCMCConfig | None, extent: float, n: int, device: torch.device
+) -> Densify | MCMC | None:
+    """The densification strategy a plan names (None: none). Each is a plan of this loop, called at the
+    same three places of a step: `penalty(free)` joins the loss, `observe(...)` reads the step's gradients
+    after the backward, and `step(...)` changes the surfels (and Adam's rows) after the optimizer's step."""
+    if config is None:
+        return None
+    if isinstance(config, MCMCConfig):
+        return MCMC(config, extent, n, device)
+    return Densify(config, extent, n, device)
 
 
 @contextmanager
@@ -495,6 +526,10 @@ class _Free:
 def concat_outputs(parts: list) -> object:
     """One RenderOutput of several renders' (each of one or more cameras), camera by camera."""
     first = parts[0]
+    if len(parts) > 1 and first.absgrad is not None:  # each render's probe is a leaf of its own
+        raise SurfSplatInputError(
+            "fit: the absolute screen gradient (absgs) with camera refinement needs one view a step (views_per_step=1)"
+        )
     joined = {
         name: None if getattr(first, name) is None else torch.cat([getattr(p, name) for p in parts])
         for name in ("color", "alpha", "depth", "normal", "distortion")

@@ -9,8 +9,10 @@ Its parts are modules of their own beside that loop, each named for what it is:
   fixed (3DGS's start), the network's fused surfels thinned to a budget, or both; "auto" takes the
   points and falls back to the network's surfels where COLMAP finds too few; "continue" takes the
   given surfels as they are (a saved fit continued);
-* densification (`densify.py`): 3DGS's clone / split by the screen-space gradient, pruning by opacity
-  and size, opacity resets, under a surfel budget;
+* densification, a strategy chosen by name (`strategy`, `STRATEGIES`): "3dgs" (`densify.py`), 3DGS's
+  clone / split by the screen-space gradient, pruning by opacity and size, opacity resets, under a
+  surfel budget; "absgs", the same with AbsGS's absolute screen gradient; "mcmc" (`mcmc.py`),
+  3DGS-MCMC's relocation of dead surfels under a fixed budget, position noise and its regularizers;
 * the losses (`losses.py`): (1 - 0.2) L1 + 0.2 D-SSIM, 2DGS's depth-normal consistency and its depth
   distortion;
 * the schedule (`fit.progress_of` and the plan's shares): every schedule follows the fit's progress,
@@ -40,6 +42,7 @@ from ..geometry.gaussians import Gaussians
 from ..utils.checks import SurfSplatInputError
 from .densify import DensifyConfig
 from .fit import FitPlan, fit_on_views
+from .mcmc import MCMCConfig
 from .per_view import PerViewConfig
 from .starts import StartChoice, StartConfig, make_start
 
@@ -50,6 +53,14 @@ NETWORK_NORMAL_WEIGHT = 0.05  # the depth-normal term's weight from the network'
 VIEW_PIXELS_PER_STEP = 768
 MIN_STEPS = 1000
 MAX_STEPS = 3000
+
+Strategy = Literal["3dgs", "absgs", "mcmc"]
+# OptimizeConfig.strategy -> the plan's densification, from the configuration's `densify` and `mcmc`
+STRATEGIES = {
+    "3dgs": lambda config: config.densify,
+    "absgs": lambda config: replace(config.densify, absgrad=True),
+    "mcmc": lambda config: config.mcmc,
+}
 
 # OptimizeConfig.parameters names -> the fit's tensors (`fit.TENSORS`)
 PARAMETERS = {
@@ -75,6 +86,10 @@ class OptimizeConfig:
     start: StartConfig = field(default_factory=StartConfig)  # the network's surfels, SfM points, or both
     # None: the surfels neither grow nor go (the fit of the network's start alone)
     densify: DensifyConfig | None = field(default_factory=DensifyConfig)
+    # how the surfels grow (`STRATEGIES`): 3DGS's densification, AbsGS's (3DGS's with the absolute screen
+    # gradient), or 3DGS-MCMC's relocation (`mcmc`); "3dgs" until the curves decide
+    strategy: Strategy = "3dgs"
+    mcmc: MCMCConfig = field(default_factory=MCMCConfig)  # the "mcmc" strategy's schedule and constants
     views_per_step: int = 1  # context views rendered in one step (3DGS: 1)
     scale: float = 1.0  # the fit renders at this fraction of the working size (photos area-averaged)
     # coarse to fine: until 10 % of the fit at a quarter of the size, until 20 % at half
@@ -150,6 +165,10 @@ class OptimizeConfig:
         if unknown or not self.parameters:
             raise SurfSplatInputError(
                 f"optimize.parameters: expected some of {sorted(PARAMETERS)}, got {list(self.parameters)}"
+            )
+        if self.strategy not in STRATEGIES:
+            raise SurfSplatInputError(
+                f"optimize.strategy (--optimize-strategy): expected one of {sorted(STRATEGIES)}, got {self.strategy!r}"
             )
         if self.densify is not None and set(self.parameters) != set(PARAMETERS):
             raise SurfSplatInputError("optimize.densify: densification needs every parameter fitted")
@@ -253,7 +272,7 @@ class OptimizeConfig:
             prune_every=steps // (self.prunings + 1) if self.prunings and "opacities" in self.parameters else None,
             prune_opacity=self.prune_opacity,
             levels=self.levels,
-            densify=self.densify,
+            densify=None if self.densify is None else STRATEGIES[self.strategy](self),
             extent=extent,
             seconds=self.seconds,
             adam=self.adam,

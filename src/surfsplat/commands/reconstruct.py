@@ -117,10 +117,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_optimize_arguments(group, continuing: bool = False) -> None:
-    """--optimize-steps, --optimize-seconds, --optimize-start and --optimize-scale: the per-scene
+    """--optimize-steps, --optimize-seconds, --optimize-start, --optimize-scale, --optimize-strategy and the per-photo terms: the per-scene
     optimization (reconstruct, and optimize, whose default start continues the saved fit)."""
     from ..capture import OptimizeConfig
-    from ..capture.optimize import MAX_STEPS, MIN_STEPS, VIEW_PIXELS_PER_STEP
+    from ..capture.optimize import MAX_STEPS, MIN_STEPS, STRATEGIES, VIEW_PIXELS_PER_STEP
     from ..capture.starts import START_KINDS, StartConfig
 
     optimize = OptimizeConfig()
@@ -190,6 +190,14 @@ def add_optimize_arguments(group, continuing: bool = False) -> None:
         "Mip-Splatting's 2D filter), so renders at other sizes stay consistent; the scene keeps it for every "
         "later render",
     )
+    group.add_argument(
+        "--optimize-strategy",
+        choices=sorted(STRATEGIES),
+        default=optimize.strategy,
+        help="how the optimization grows the surfels: 3dgs (clone and split where the screen gradient is high), "
+        "absgs (the same with the absolute screen gradient of AbsGS), mcmc (3DGS-MCMC: faint surfels relocated "
+        f"under a fixed budget) (default {optimize.strategy})",
+    )
 
 
 def optimize_from_args(args: argparse.Namespace):
@@ -206,6 +214,7 @@ def optimize_from_args(args: argparse.Namespace):
         start=dataclasses.replace(config.start, kind=args.optimize_start),
         appearance=args.optimize_appearance,
         refine_cameras={"on": True, "off": False, "auto": "auto"}[args.optimize_cameras],
+        strategy=args.optimize_strategy,
     )
 
 

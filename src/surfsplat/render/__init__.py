@@ -54,6 +54,7 @@ def render(
     settings: TorchRenderSettings | CpuRenderSettings | None = None,
     distortion: bool = False,
     antialiased: bool = False,
+    absgrad: bool = False,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -76,6 +77,16 @@ def render(
                      widening (gsplat's "antialiased" mode in "ewa"; its surfel twin in "surfel"), so a
                      render at 1/s of the size is close to the full-size render averaged down. Off by
                      default: the function is then SPEC section 3's, bit for bit.
+    absgrad:         also return `RenderOutput.absgrad` [C, N, 2], a zero tensor whose `.grad` after the
+                     loss's backward is, per camera and surfel, the sum over the pixels p of |dL_p/dc_x| and
+                     of |dL_p/dc_y|: each pixel's own share of the gradient with respect to the projected
+                     centre c in pixels, the surfel moved parallel to the image at its depth (AbsGS, Ye et al.
+                     2024; gsplat's `absgrad`, which sums the two axes apart the same way). Without the
+                     absolute values the sums are the plain centre gradient (gsplat's `gradient_2dgs`),
+                     where shares of opposite sign cancel. "surfel" mode, "torch" and "cpu" backends
+                     (gsplat's 2DGS kernel takes absolute values on its low-pass branch only); the torch
+                     backend leaves the depth distortion out of it, so it refuses both at once. Off by
+                     default: the backward computes nothing of it.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]
     (and distortion [C, 1, H, W] when asked).
 
@@ -97,6 +108,10 @@ def render(
         raise SurfSplatInputError("distortion: 2DGS's depth distortion is computed in mode 'surfel' only")
     if not isinstance(antialiased, bool):
         raise SurfSplatInputError(f"antialiased: expected True or False, got {antialiased!r}")
+    if not isinstance(absgrad, bool):
+        raise SurfSplatInputError(f"absgrad: expected True or False, got {absgrad!r}")
+    if absgrad and mode != "surfel":
+        raise SurfSplatInputError("absgrad: the absolute screen gradient is computed in mode 'surfel' only")
     device = gaussians.means.device
     dtype = gaussians.means.dtype
     bg = _background(background, dtype, device)
@@ -108,6 +123,16 @@ def render(
         rules = settings if isinstance(settings, RenderConventions) else RenderConventions()
         clamp = rules.ewa_jacobian_clamp
         factors = compensations(gaussians, cameras, width, height, mode, clamp).to(dtype)  # [C, N]
+    probe = None
+    if absgrad:
+        if backend == "gsplat":
+            raise SurfSplatInputError(
+                "absgrad: the gsplat backend cannot give it for surfels (gsplat's 2DGS kernel takes absolute "
+                "values on its low-pass branch only); use backend='torch' or 'cpu'"
+            )
+        if backend == "torch" and distortion:
+            raise SurfSplatInputError("absgrad: the torch backend computes it without the depth distortion")
+        probe = torch.zeros(len(cameras), len(gaussians), 2, dtype=dtype, device=device, requires_grad=True)
     if backend == "gsplat":
         if not gsplat_available(device):
             raise SurfSplatInputError(
@@ -122,11 +147,18 @@ def render(
         from .cpu import render_cpu
 
         if factors is None:
-            maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion)
+            maps = render_cpu(gaussians, cameras, width, height, mode, settings, distortion, probe)
         else:  # the kernels take one opacity per Gaussian: one call per camera
             per_camera = [
                 render_cpu(
-                    _scaled_opacities(gaussians, factors[c]), cameras[c], width, height, mode, settings, distortion
+                    _scaled_opacities(gaussians, factors[c]),
+                    cameras[c],
+                    width,
+                    height,
+                    mode,
+                    settings,
+                    distortion,
+                    None if probe is None else probe[c : c + 1],
                 )
                 for c in range(len(cameras))
             ]
@@ -138,15 +170,20 @@ def render(
             color, alpha, depth, normal = maps[:4]
             color, depth, normal = normalize_cpu(color, alpha, depth, normal, alpha_threshold, bg)
             return RenderOutput(
-                color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+                color=color,
+                alpha=alpha,
+                depth=depth,
+                normal=normal,
+                distortion=maps[4] if distortion else None,
+                absgrad=probe,
             )
     else:
-        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion, factors)
+        maps = _render_torch_all(gaussians, cameras, width, height, mode, settings, distortion, factors, probe)
     color, alpha, depth, normal = maps[:4]
     color, depth, normal, coverage = normalize_by_alpha(color, alpha, depth, normal, alpha_threshold)
     color = color + (1 - coverage) * bg[None, :, None, None]
     return RenderOutput(
-        color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None
+        color=color, alpha=alpha, depth=depth, normal=normal, distortion=maps[4] if distortion else None, absgrad=probe
     )
 
 
@@ -215,6 +252,7 @@ def _render_torch_all(
     settings: TorchRenderSettings | None,
     distortion: bool = False,
     factors: Tensor | None = None,  # [C, N] opacity factors (antialiasing), None: none
+    probe: Tensor | None = None,  # [C, N, 2] (`render`'s absgrad)
 ) -> tuple[Tensor, ...]:
     settings = settings or TorchRenderSettings()
     rotations = g.rotations
@@ -238,6 +276,7 @@ def _render_torch_all(
             mode,
             settings,
             distortion=distortion,
+            abs_probe=None if probe is None else probe[c],
         )
         for c in range(len(cameras))
     ]

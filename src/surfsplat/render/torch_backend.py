@@ -70,6 +70,9 @@ class Projected:
     features: Tensor  # [M, 6 or 7] colour (3), normal (3) [, centre depth (1) for ewa]
     pixel_box: Tensor  # [M, 4] int64 inclusive pixel ranges: col0, col1, row0, row1
     transform: Tensor | None = None  # surfel: [M, 3, 3] T = K [R S e1, R S e2, mu] (rows T_x, T_y, T_w)
+    # surfel, for the absolute screen gradient (`absgrad`): [M, 5] constants, detached: (c_x T_w - T_x)[:2],
+    # (c_y T_w - T_y)[:2] and d c_lp / d T_x[2] (= d c_lp,y / d T_y[2]), see `_abs_centre_gradients`
+    abs_coef: Tensor | None = None
 
 
 def _take(x: Tensor, index: Tensor) -> Tensor:
@@ -265,7 +268,28 @@ def project_surfels(
     colors = _colors(_take(sh, idx), _take(means, idx), cam_center)
     features = torch.cat((colors, normals), dim=-1)
     transform = torch.stack((Tx, Ty, Tw), dim=1)
-    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform)
+    with torch.no_grad():
+        abs_coef = _abs_coefficients(Tx, Ty, Tw, center, settings.lowpass_center_sigma)
+    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform, abs_coef)
+
+
+def _abs_coefficients(Tx: Tensor, Ty: Tensor, Tw: Tensor, center: Tensor, sigma: float | None) -> Tensor:
+    """[M, 5] per-surfel constants of the per-pixel centre gradients (`_abs_centre_gradients`):
+    U = (c_x T_w - T_x)[:2] and V = (c_y T_w - T_y)[:2], so that h_u = p_x T_w - T_x and h_v = p_y T_w - T_y
+    are U + dx T_w and V + dy T_w at the pixel's offset (dx, dy) from the centre c, and k = d c_lp,x / d T_x[2]
+    = d c_lp,y / d T_y[2] of the low-pass centre (`lowpass_center`): e T_w[2] / C22 for the box centre,
+    1 / z for the projected one."""
+    z = Tw[:, 2]
+    U = center[:, :1] * Tw[:, :2] - Tx[:, :2]
+    V = center[:, 1:] * Tw[:, :2] - Ty[:, :2]
+    safe_z = torch.where(z.abs() > 1e-12, z, torch.ones_like(z))
+    k = 1.0 / safe_z
+    if sigma is not None:
+        e = -1.0 / (sigma * sigma)
+        c22 = Tw[:, 0] * Tw[:, 0] + Tw[:, 1] * Tw[:, 1] + e * z * z
+        bounded = c22 < -1e-12
+        k = torch.where(bounded, e * z / torch.where(bounded, c22, -torch.ones_like(c22)), k)
+    return torch.cat((U, V, k[:, None]), dim=-1)
 
 
 def ewa_conics(
@@ -496,20 +520,26 @@ class _CompositeBlock(torch.autograd.Function):
     rasterizers do), and it uses the closed-form gradient of alpha compositing:
       w_i = a_i T_i,  T_i = T_in prod_{j<i} (1 - a_j),  out = sum_i w_i v_i,  T_out = T_in prod_i (1 - a_i)
       d out / d a_i = T_i v_i - (sum_{j>i} w_j v_j) / (1 - a_i),   d T_out / d a_i = -T_out / (1 - a_i).
+
+    `probe` [n, k, 2] (surfels, or None): rows of the absolute screen gradient's probe, whose "gradient"
+    is the sum over the block's pixels of |dL_p / dc| (`_abs_centre_gradients`, with `abs_rows` its
+    per-pair constants); nothing of it is computed when None.
     """
 
     @staticmethod
-    def forward(ctx, coef, depth_params, log_opacity, features, transmittance, done, basis):
+    def forward(ctx, coef, depth_params, log_opacity, features, transmittance, done, basis, probe=None, abs_rows=None):
         st = _block_state(coef, depth_params, log_opacity, transmittance, done, basis)
         feats = st["weight"].transpose(1, 2) @ features  # [n, P, F]
         depth = (st["weight"] * st["depth"]).sum(1) if depth_params is not None else torch.zeros_like(transmittance)
-        ctx.save_for_backward(coef, depth_params, log_opacity, features, transmittance, done, basis, st["trans_out"])
+        ctx.save_for_backward(
+            coef, depth_params, log_opacity, features, transmittance, done, basis, st["trans_out"], abs_rows
+        )
         ctx.mark_non_differentiable(st["done_out"])
         return st["trans_out"], st["done_out"], feats, depth
 
     @staticmethod
     def backward(ctx, g_trans, _g_done, g_feats, g_depth):
-        coef, depth_params, log_opacity, features, transmittance, done, basis, trans_out = ctx.saved_tensors
+        coef, depth_params, log_opacity, features, transmittance, done, basis, trans_out, abs_rows = ctx.saved_tensors
         surfel = depth_params is not None
         st = _block_state(coef, depth_params, log_opacity, transmittance, done, basis)
         w, alpha = st["weight"], st["alpha"]
@@ -531,11 +561,12 @@ class _CompositeBlock(torch.autograd.Function):
         n, k = log_opacity.shape
         if not surfel:
             g_coef = (g_rho.reshape(n * k, -1) @ basis.T).reshape(coef.shape)
-            return g_coef, None, g_log_opacity, g_features, g_transmittance, None, None
+            return g_coef, None, g_log_opacity, g_features, g_transmittance, None, None, None, None
         use3d, inv_hz, hx, hy = st["use3d"], st["inv_hz"], st["hx"], st["hy"]
         # rho = (hx^2 + hy^2) / hz^2 on the 3D branch, rho2d elsewhere; depth = det / hz or mu_z.
         g_depth_pair = w.mul_(g_depth[:, None, :])
-        g_det = (g_depth_pair * inv_hz).sum(-1)
+        g_det_pair = g_depth_pair * inv_hz  # [n, k, P] dL/ddet pixel by pixel
+        g_det = g_det_pair.sum(-1)
         g_mu_z = g_depth_pair.sum(-1) - torch.where(use3d, g_depth_pair, 0.0).sum(-1)
         g_planes = torch.empty(4, n, k, g_rho.shape[-1], dtype=g_rho.dtype, device=g_rho.device)
         g_r = torch.mul(g_rho, inv_hz).mul_(inv_hz).mul_(2)  # d rho / d hx = 2 hx / hz^2
@@ -544,9 +575,37 @@ class _CompositeBlock(torch.autograd.Function):
         # d rho / d hz = -2 rho / hz; d depth / d hz = -depth / hz (both zero off the 3D branch).
         torch.mul(g_rho, st["rho"], out=g_planes[2]).mul_(-2).sub_(g_depth_pair.mul_(st["depth"])).mul_(inv_hz)
         g_planes[3].copy_(g_rho).masked_fill_(use3d, 0.0)
+        g_probe = None if abs_rows is None else _abs_centre_gradients(g_planes, g_det_pair, abs_rows, basis)
         g_coef = (g_planes.reshape(4, n * k, -1) @ basis.T).reshape(coef.shape)
         g_depth_params = torch.stack((g_det, g_mu_z), dim=-1)
-        return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None, None
+        return g_coef, g_depth_params, g_log_opacity, g_features, g_transmittance, None, None, g_probe, None
+
+
+def _abs_centre_gradients(g_planes: Tensor, g_det: Tensor, abs_rows: Tensor, basis: Tensor) -> Tensor:
+    """[n, k, 2] the sums over a block's pixels of |dL_p / dc_x| and |dL_p / dc_y|: each pixel's own share
+    of the gradient with respect to the surfel's projected centre c in pixels, the surfel moved parallel
+    to the image at its depth z (AbsGS, Ye et al. 2024; gsplat's `absgrad`, per axis, then summed).
+
+    Moving c by (dx, dy) at depth z moves T's third column by z (dx, dy, 0) (T = K [.., .., mu_cam] and
+    c = (T_x[2], T_y[2]) / z), so dL_p/dc = z (dL_p/dT_x[2], dL_p/dT_y[2]) - gsplat's 2DGS densification
+    gradient (`gradient_2dgs`, z times the third entries of dL/dT) pixel by pixel. With h = h_u x h_v,
+    h_u = p_x T_w - T_x, h_v = p_y T_w - T_y, det = T_w . (T_x x T_y) and the low-pass centre c_lp:
+      dL_p/dT_x[2] = (g_h x h_v)_z + g_det B_z + k g_lp,x,   dL_p/dT_y[2] = (h_u x g_h)_z + g_det C_z + k g_lp,y
+    (B = T_y x T_w, C = T_w x T_x, k = `_abs_coefficients`'s), where g_h = dL_p/dh on the ray-splat branch
+    and g_lp = dL_p/dc_lp = -2 S (p - c_lp) dL_p/drho2d on the filter's. g_planes [4, n, k, P]: dL_p/dh
+    (3) and dL_p/drho2d; g_det [n, k, P]; abs_rows [n, k, 9 + G]: U (2), V (2), T_w[:2], k, the tile
+    origin's offset from c (2), then the pair's geometry row (B at 3:6, C at 6:9, z at 10, c_lp - c at 11:13).
+    """
+    U0, U1, V0, V1, tw0, tw1, k, ex, ey = (abs_rows[..., j : j + 1] for j in range(9))
+    geo = abs_rows[..., 9:]
+    B2, C2, z, sx, sy = (geo[..., j : j + 1] for j in (5, 8, 10, 11, 12))
+    dx = ex + basis[1]  # [n, k, P] each pixel centre's offset from c
+    dy = ey + basis[2]
+    g_hx, g_hy, _, g_rho2d = g_planes.unbind(0)
+    g_lp = g_rho2d * (-2.0 * LOWPASS_RHO_SCALE)
+    gx = g_hx * (V1 + dy * tw1) - g_hy * (V0 + dy * tw0) + g_det * B2 + k * g_lp * (dx - sx)
+    gy = (U0 + dx * tw0) * g_hy - (U1 + dx * tw1) * g_hx + g_det * C2 + k * g_lp * (dy - sy)
+    return torch.stack((gx.abs().sum(-1), gy.abs().sum(-1)), dim=-1) * z
 
 
 def _distortion_block(coef, depth_params, log_opacity, transmittance, moment, done, basis):
@@ -587,9 +646,12 @@ def composite(
     height: int,
     settings: TorchRenderSettings,
     distortion: bool = False,
+    abs_probe: Tensor | None = None,
 ) -> tuple[Tensor, ...]:
     """Returns per-pixel (features [H, W, F], alpha [H, W], surfel depth sum [H, W]) before normalization,
-    and with `distortion` (surfel mode) 2DGS's depth distortion [H, W] (`_distortion_block`)."""
+    and with `distortion` (surfel mode) 2DGS's depth distortion [H, W] (`_distortion_block`).
+    `abs_probe` [N, 2] (surfels, or None): a zero tensor whose gradient becomes each surfel's sum over the
+    pixels of |dL_p / dc| (`_abs_centre_gradients`)."""
     tile = settings.tile_size
     P = tile * tile
     dtype = proj.features.dtype
@@ -606,6 +668,10 @@ def composite(
     table = torch.cat(
         (proj.geometry.to(dtype), proj.features, torch.log(proj.opacity)[:, None], center_hi, center_lo), dim=1
     )  # [M, G + F + 5]
+    if abs_probe is not None:
+        probe_sorted = _take(abs_probe, proj.index)  # [M, 2]
+        abs_table = torch.cat((proj.abs_coef.to(dtype), proj.transform[:, 2, :2].detach().to(dtype)), dim=1)
+        abs_table = abs_table[:, [0, 1, 2, 3, 5, 6, 4]]  # U, V, T_w[:2], k
 
     tile_feats = torch.zeros(n_tiles, P, F_, dtype=dtype, device=device)
     tile_depth = torch.zeros(n_tiles, P, dtype=dtype, device=device)
@@ -651,8 +717,12 @@ def composite(
                     _distortion_block, coef, depth_params, log_opac, d_trans, d_moment, done, basis, use_reentrant=False
                 )
                 dist = dist + dist_blk
+            probe = abs_rows = None
+            if abs_probe is not None:
+                probe = _take(probe_sorted, gi)
+                abs_rows = torch.cat((_take(abs_table, gi), offset.detach(), rows[..., :G].detach()), dim=-1)
             trans, done, f_blk, d_blk = _CompositeBlock.apply(
-                coef, depth_params, log_opac, rows[..., G : G + F_], trans, done, basis
+                coef, depth_params, log_opac, rows[..., G : G + F_], trans, done, basis, probe, abs_rows
             )
             feats = feats + f_blk
             depth = depth + d_blk
@@ -718,14 +788,15 @@ def render_torch(
     mode: RenderMode,
     settings: TorchRenderSettings,
     distortion: bool = False,
+    abs_probe: Tensor | None = None,
 ) -> tuple[Tensor, ...]:
     """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])
-    and, with `distortion` (surfel mode), 2DGS's depth distortion [H, W]."""
+    and, with `distortion` (surfel mode), 2DGS's depth distortion [H, W]. `abs_probe`: see `composite`."""
     proj = project(
         means, rotations, scales, covariances, opacities, sh, w2c, K, cam_center, width, height, mode, settings
     )
     bins = bin_tiles(proj.pixel_box, width, height, settings.tile_size)
-    feats, alpha, depth_sum, *dist = composite(mode, proj, bins, width, height, settings, distortion)
+    feats, alpha, depth_sum, *dist = composite(mode, proj, bins, width, height, settings, distortion, abs_probe)
     color, normal = feats[..., 0:3], feats[..., 3:6]
     depth = feats[..., 6] if mode == "ewa" else depth_sum
     return color, alpha, depth, normal, *dist

@@ -72,6 +72,9 @@ class RenderOutput:
             mode; None otherwise): sum over ordered pairs i != j of w_i w_j |z_i - z_j|, w the
             compositing weights and z each surfel's centre depth (camera z), the field's maintained
             form (gsplat's `render_distort`). Never normalized; see `render` for the choices made.
+    absgrad: [C, N, 2] (`render(..., absgrad=True)`, None otherwise): zeros that require a gradient, whose
+            `.grad` after the loss's backward holds, per camera and surfel, the sums over the pixels of
+            |dL_p/dc_x| and |dL_p/dc_y|, c the projected centre in pixels (AbsGS; see `render`).
     """
 
     color: Tensor
@@ -79,6 +82,7 @@ class RenderOutput:
     depth: Tensor
     normal: Tensor
     distortion: Tensor | None = None
+    absgrad: Tensor | None = None
 
 
 def check_render_args(

@@ -281,6 +281,8 @@ class _Rasterize(torch.autograd.Function):
     Outputs (un-normalized, the means' dtype): colour [C, 3, H, W], alpha [C, 1, H, W],
     depth [C, 1, H, W], normal [C, 3, H, W], and with `distortion` 2DGS's depth distortion
     [C, 1, H, W]. Compositing runs in `compositing_dtype`; gradients come back in each input's dtype.
+    probe [C, N, 2] or None (surfels): its "gradient" is the absolute screen gradient (`render`'s
+    absgrad), summed in the compositing backward beside the others only when it is given.
     """
 
     @staticmethod
@@ -296,6 +298,7 @@ class _Rasterize(torch.autograd.Function):
         cameras: list[_Camera],
         settings: CpuRenderSettings,
         distortion: bool = False,
+        probe: Tensor | None = None,
     ):
         inputs = _inputs(means, quats, scales, opacities, sh, covariances)
         rot = np.empty((means.shape[0], 3, 3))
@@ -330,6 +333,7 @@ class _Rasterize(torch.autograd.Function):
                 )
             plans.append(plan)
         ctx.surfel, ctx.cameras, ctx.settings, ctx.moments = surfel, cameras, settings, moments
+        ctx.absgrad = probe is not None and surfel
         ctx.plans, ctx.trans, ctx.last, ctx.inputs, ctx.rot = plans, trans, last, inputs, rot
         ctx.save_for_backward(means, quats, scales, opacities, sh, covariances)  # autograd's in-place checks
         dtype = means.dtype
@@ -373,9 +377,19 @@ class _Rasterize(torch.autograd.Function):
         wanted = ctx.needs_input_grad
         geometry = wanted[0] or wanted[1]  # means or rotations
         shape = wanted[2] or wanted[5]  # scales or explicit covariances
+        g_probe = np.zeros((C, n, 2)) if ctx.absgrad else None
         for c, (camera, plan) in enumerate(zip(ctx.cameras, ctx.plans)):
             # every row gets written
             pair_grads = _held_empty("pair_grads", (plan.tile_ids.shape[0], kernels.GRAD_SIZE), ft)
+            abs_coef = abs_pairs = None
+            if g_probe is not None:
+                abs_coef = np.empty((n, kernels.ABS_SIZE), dtype=ft)
+                abs_pairs = np.empty((plan.tile_ids.shape[0], 2), dtype=ft)
+                with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
+                    kernels.surfel_abs_coefficients(
+                        plan.order, x, ctx.rot, sc, camera.R_cw, camera.t_cw, camera.K,
+                        _convention_args(settings)[0], plan.geom, abs_coef,
+                    )  # fmt: skip
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_backward(
                     ctx.surfel,
@@ -396,9 +410,13 @@ class _Rasterize(torch.autograd.Function):
                     upstream[3][c, 0],
                     pair_grads,
                     None if distortion is None else distortion[c],
+                    abs_coef,
+                    abs_pairs,
                 )
             with numba.parallel_chunksize(_GAUSSIAN_CHUNK):
                 kernels.sum_pair_rows(plan.order, plan.pair_start, plan.pair_of, pair_grads, rows)
+                if g_probe is not None:
+                    kernels.sum_pair_abs(plan.order, plan.pair_start, plan.pair_of, abs_pairs, plan.geom, g_probe[c])
                 kernels.project_backward(
                     ctx.surfel,
                     geometry,
@@ -444,6 +462,7 @@ class _Rasterize(torch.autograd.Function):
             None,
             None,
             None,
+            None if g_probe is None else _tensor(g_probe, saved[0].dtype),
         )
 
 
@@ -464,9 +483,11 @@ def render_cpu(
     mode: RenderMode,
     settings: CpuRenderSettings | None = None,
     distortion: bool = False,
+    probe: Tensor | None = None,
 ) -> tuple[Tensor, ...]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W],
-    and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W] (see `render`).
+    and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W] (see `render`). `probe`
+    [C, N, 2]: `render`'s absgrad tensor, or None.
 
     The function of `render_torch` (float rounding aside), differentiable with respect to the
     Gaussians; camera parameters get no gradient (the dispatcher sends such requests to torch).
@@ -486,6 +507,7 @@ def render_cpu(
         _cameras(cameras, width, height),
         settings,
         distortion,
+        probe,
     )
 
 

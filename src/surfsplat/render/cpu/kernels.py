@@ -1238,10 +1238,36 @@ def _unblend(state, last, at, a, d, position, f, z, distortion):
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1, position, distortion, pair_grads, k):
+def _unblend_box(
+    surfel,
+    g,
+    f,
+    state,
+    last,
+    rows,
+    x0,
+    y0,
+    chunks,
+    c0,
+    c1,
+    r0,
+    r1,
+    position,
+    distortion,
+    pair_grads,
+    k,
+    abs_coef,
+    i,
+    abs_pairs,
+):
     """`_unblend` for one Gaussian (geom row g, features f) over its box, in the steps of `_pixels`,
     with its geometry gradients in the same pass; row k of pair_grads [pairs, GRAD_SIZE] receives the sums
     over the box.
+
+    abs_pairs: None, or [pairs, 2] (surfels) whose row k receives the sums over the box of each pixel's
+    |dL_p/dc_x| and |dL_p/dc_y| divided by the centre depth z (AbsGS; the torch backend's
+    `_abs_centre_gradients`), from row i of abs_coef [N, ABS_SIZE] (`surfel_abs_coefficients`). None
+    compiles the function without it (see `_blend`).
 
     The sums are kept per lane in registers and summed over the lanes at the end in a fixed order
     (`simd.lane_sums`). Surfel, ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and
@@ -1260,6 +1286,11 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
     # log opacity and the 6 features.
     s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = s11 = s12 = s13 = splat(zero)
     s14 = s15 = s16 = s17 = s18 = s19 = splat(zero)
+    a0 = a1 = splat(zero)  # the absolute centre gradients' per-lane sums
+    if abs_pairs is not None:
+        U0, U1, V0, V1 = abs_coef[i, 0], abs_coef[i, 1], abs_coef[i, 2], abs_coef[i, 3]
+        tw0, tw1, kk = abs_coef[i, 4], abs_coef[i, 5], abs_coef[i, 6]
+        B2, C2 = g[GEOM_B + 2], g[GEOM_C + 2]
     ch0, ch1 = (c0 - x0) // LANES, (c1 - x0) // LANES
     packed = ch0 == ch1 and c1 - c0 < LANES // 2
     for r in range(r0, r1 + 1, 2 if packed else 1):
@@ -1294,6 +1325,16 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
                 s9 = s9 - sc2 * (px - lx)
                 s10 = s10 - sc2 * (py - ly)
                 s12 = s12 + select(lowpass, g_dpair, splat(zero)) + g_z
+                if abs_pairs is not None:
+                    # this pixel's dL/dT_x[2] and dL/dT_y[2] alone: through h = h_u x h_v (h_u = U + dx T_w,
+                    # h_v = V + dy T_w), det T and the low-pass centre (`_abs_centre_gradients`)
+                    g_det = g_dpair * inv
+                    gx = g_hx * fma(dy, tw1, V1) - g_hy * fma(dy, tw0, V0)
+                    gx = fma(g_det, B2, gx) - (kk * sc2) * (px - lx)
+                    gy = fma(dx, tw0, U0) * g_hy - fma(dx, tw1, U1) * g_hx
+                    gy = fma(g_det, C2, gy) - (kk * sc2) * (py - ly)
+                    a0 = a0 + max(gx, -gx)
+                    a1 = a1 + max(gy, -gy)
             else:
                 s0 = fma(g_rho * dx, dx, s0)
                 s1 = fma(two * g_rho * dx, dy, s1)
@@ -1305,6 +1346,10 @@ def _unblend_box(surfel, g, f, state, last, rows, x0, y0, chunks, c0, c1, r0, r1
     rest = lane_sums((s16, s17, s18, s19))
     for j in range(GRAD_SIZE - LANES):
         pair_grads[k, LANES + j] = lane(rest, j)
+    if abs_pairs is not None:
+        sums = lane_sums((a0, a1))
+        abs_pairs[k, 0] = lane(sums, 0)
+        abs_pairs[k, 1] = lane(sums, 1)
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
@@ -1327,6 +1372,8 @@ def composite_backward(
     g_depth,
     pair_grads,
     distortion=None,
+    abs_coef=None,
+    abs_pairs=None,
 ):
     """Gradients of the compositing by back-to-front traversal of every tile (tiles in parallel).
 
@@ -1340,6 +1387,8 @@ def composite_backward(
     scheduling. Computes in the dtype of geom, which every float argument shares.
     distortion: None, or [2, H, W] holding the upstream dL/d(depth distortion) and the forward's
     moment sum w z of each ray (surfels; None compiles the kernel without it, see `_blend`).
+    abs_coef [N, ABS_SIZE] and abs_pairs [pairs, 2]: None, or the absolute centre gradients' constants and
+    per-entry sums (`_unblend_box`; surfels).
     """
     ft = geom.dtype.type
     zero, one = ft(0.0), ft(1.0)
@@ -1373,6 +1422,8 @@ def composite_backward(
         start = tile_start[t]
         for k in range(start + n_last, tile_start[t + 1]):
             pair_grads[k, :] = zero  # behind every pixel's last blended Gaussian
+            if abs_pairs is not None:
+                abs_pairs[k, :] = zero
         for k in range(start + n_last - 1, start - 1, -1):
             if k - _AHEAD >= start:
                 ahead = tile_ids[k - _AHEAD]
@@ -1384,6 +1435,8 @@ def composite_backward(
             r0, r1 = max(box[i, 2], y0), min(box[i, 3], y1 - 1)
             if c0 > c1 or r0 > r1:
                 pair_grads[k, :] = zero
+                if abs_pairs is not None:
+                    abs_pairs[k, :] = zero
                 continue
             position = np.int32(k - start)
             _unblend_box(
@@ -1404,6 +1457,9 @@ def composite_backward(
                 distortion,
                 pair_grads,
                 k,
+                abs_coef,
+                i,
+                abs_pairs,
             )
 
 
@@ -1583,6 +1639,54 @@ def sum_pair_rows(order, pair_start, pair_of, pair_grads, rows):
             k = pair_of[q]
             for j in range(GRAD_SIZE):
                 rows[i, j] += pair_grads[k, j]
+
+
+ABS_SIZE = 7  # columns of `surfel_abs_coefficients`: U (2), V (2), T_w[:2], k
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def surfel_abs_coefficients(order, means, rotations, scales, R_cw, t_cw, K, lowpass_sigma, geom, out):
+    """Per survivor (input indices `order`) the constants of its per-pixel centre gradients, row i of
+    out [N, ABS_SIZE] (the compositing dtype): U = (c_x T_w - T_x)[:2], V = (c_y T_w - T_y)[:2] about the
+    centre c as stored in geom (so h_u = U + dx T_w and h_v = V + dy T_w at the pixel's offset from it),
+    T_w[:2], and k = d c_lp,x / d T_x[2] = d c_lp,y / d T_y[2] of the low-pass centre: e T_w[2] / C22 for
+    the box centre, 1 / z for the projected one (the torch backend's `_abs_coefficients`)."""
+    for m in prange(order.shape[0]):
+        i = order[m]
+        mu = _camera_point(means[i], R_cw, t_cw)
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _surfel_matrix(
+            mu, rotations[i], scales[i, 0], scales[i, 1], R_cw, K
+        )
+        cx, cy = float(geom[i, GEOM_CX]), float(geom[i, GEOM_CY])
+        _, _, c22 = _lowpass_center(tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2, cx, cy, lowpass_sigma)
+        if c22 != 0.0:
+            kk = -tw2 / (lowpass_sigma * lowpass_sigma * c22)
+        else:
+            kk = 1.0 / (mu[2] if abs(mu[2]) > _NEAR_ZERO else 1.0)
+        out[i, 0] = cx * tw0 - tx0
+        out[i, 1] = cx * tw1 - tx1
+        out[i, 2] = cy * tw0 - ty0
+        out[i, 3] = cy * tw1 - ty1
+        out[i, 4] = tw0
+        out[i, 5] = tw1
+        out[i, 6] = kk
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def sum_pair_abs(order, pair_start, pair_of, abs_pairs, geom, out):
+    """Each survivor's absolute centre gradients: out[order[m]] += z times the sum of its entries'
+    rows of abs_pairs [pairs, 2] (`composite_backward`), in float64 and a fixed order (`sum_pair_rows`),
+    z its centre depth; the rows of culled Gaussians get nothing."""
+    for m in prange(order.shape[0]):
+        i = order[m]
+        x, y = 0.0, 0.0
+        for q in range(pair_start[m], pair_start[m + 1]):
+            k = pair_of[q]
+            x += abs_pairs[k, 0]
+            y += abs_pairs[k, 1]
+        z = float(geom[i, GEOM_DEPTH])
+        out[i, 0] += z * x
+        out[i, 1] += z * y
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
