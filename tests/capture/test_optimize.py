@@ -306,9 +306,9 @@ def test_reconstruct_flags_reach_the_library(monkeypatch, tmp_path):
 
     config = optimize_from_args(args)
     assert config.steps == 7 and config.scale == OptimizeConfig().scale
-    assert not config.antialiased and not config.plan(1.0, 3).antialiased
+    assert not config.antialiased and not config.plan(1.0, 3, 64 * 64).antialiased
     flagged = build_parser().parse_args(["reconstruct", "--images", "a.png", "b.png", "--optimize-antialiased"])
-    assert optimize_from_args(flagged).plan(1.0, 3).antialiased
+    assert optimize_from_args(flagged).plan(1.0, 3, 64 * 64).antialiased
     with pytest.raises(SurfSplatInputError, match="--optimize-steps"):
         optimize_from_args(build_parser().parse_args(["reconstruct", "--images", "a.png", "--optimize-steps", "-2"]))
 

@@ -66,18 +66,21 @@ def test_camera_model_is_checked_by_name():
 
 
 def test_camera_file_records_each_frame_lens_and_pinhole(tmp_path):
+    from surfsplat.data.cameras import pinhole_of
+
     lens = Lens("OPENCV", W, H, tuple(INITIAL["OPENCV"]))
-    pinhole = Lens("PINHOLE", 390, 292, (300.0, 301.0, 195.0, 146.0))
-    K = torch.tensor([[300.0, 0, 195], [0, 301, 146], [0, 0, 1]], dtype=torch.float64)
+    pinhole = pinhole_of(lens)  # what the photos are undistorted to, and K is in pixels of
+    K = pinhole.intrinsics().to(torch.float64)
     cameras = Cameras(torch.eye(4, dtype=torch.float64).repeat(2, 1, 1), K.repeat(2, 1, 1))
-    pairs = [(lens, pinhole)] * 2
-    path = save_cameras(tmp_path / "cameras.json", cameras, 390, 292, ["a.png", "b.png"], lenses=pairs)
+    path = save_cameras(
+        tmp_path / "cameras.json", cameras, pinhole.width, pinhole.height, ["a.png", "b.png"], lenses=[lens] * 2
+    )
     frames = json.loads(path.read_text())["frames"]
-    assert [(Lens.from_dict(f["lens"]), Lens.from_dict(f["pinhole"])) for f in frames] == pairs
+    assert [(Lens.from_dict(f["lens"]), Lens.from_dict(f["pinhole"])) for f in frames] == [(lens, pinhole)] * 2
     assert frames[0]["lens"] == {"model": "OPENCV", "width": W, "height": H, "params": INITIAL["OPENCV"]}
-    assert torch.equal(load_cameras(path).cameras.K, cameras.K)  # K stays the pinhole's
-    with pytest.raises(SurfSplatInputError, match=r"lenses: expected 2 \(lens, pinhole\) pairs, got 1"):
-        save_cameras(tmp_path / "other.json", cameras, 390, 292, lenses=pairs[:1])
+    assert torch.allclose(load_cameras(path).cameras.K, cameras.K)  # K stays the pinhole's
+    with pytest.raises(SurfSplatInputError, match=r"lenses: expected 2 lenses \(one a view\), got 1"):
+        save_cameras(tmp_path / "other.json", cameras, pinhole.width, pinhole.height, lenses=[lens])
 
 
 def test_aligned_pose_errors_ignore_a_similarity_and_measure_each_view():

@@ -210,13 +210,6 @@ class PoseSummary:
         out.extend(self.notes)
         return out
 
-    def lens_pairs(self, camera_set: CameraSet) -> list[tuple[Lens, Lens]] | None:
-        """(fitted lens, pinhole the photo is undistorted to) of each view of camera_set, as the camera
-        file records them (`save_cameras`); None where the views are pinhole."""
-        if camera_set.lenses is None:
-            return None
-        return [(lens, self.pinhole) for lens in camera_set.lenses]
-
     def _lens_lines(self) -> list[str]:
         if self.lens is None:
             return []
