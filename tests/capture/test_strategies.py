@@ -181,11 +181,11 @@ def test_absgs_reads_the_absolute_sums_in_ndc_and_grows_above_its_own_threshold(
 
 def test_the_registry_names_a_plan_of_the_one_loop_for_each_strategy():
     assert sorted(STRATEGIES) == ["3dgs", "absgs", "mcmc"]
-    plans = {s: OptimizeConfig(strategy=s).plan(1.0, 5).densify for s in STRATEGIES}
+    plans = {s: OptimizeConfig(strategy=s).plan(1.0, 5, 64 * 64).densify for s in STRATEGIES}
     assert plans["3dgs"] == DensifyConfig()
     assert plans["absgs"] == DensifyConfig(absgrad=True)
     assert plans["mcmc"] == MCMCConfig()
-    assert OptimizeConfig(strategy="mcmc", densify=None).plan(1.0, 5).densify is None
+    assert OptimizeConfig(strategy="mcmc", densify=None).plan(1.0, 5, 64 * 64).densify is None
     with pytest.raises(SurfSplatInputError, match="--optimize-strategy"):
         OptimizeConfig(strategy="nope")
 
