@@ -48,21 +48,27 @@ def view_cameras(
     if own_pixels:
         return given.cameras
     calibrated = (given.width, given.height)
+    crop = given.crop  # cameras of a working crop also fit the photos it was cut from (CameraSet.resized)
     Ks, c2ws = [], []
     for i, (w, h) in enumerate(sizes):
         K, c2w = given.cameras.K[i], given.cameras.c2w[i]
-        if _uniform(calibrated, (w, h)):
-            Ks.append(K * torch.tensor([w / given.width, h / given.height, 1.0], dtype=K.dtype)[:, None])
-            c2ws.append(c2w)
+        fits = _uniform(calibrated, (w, h)) or (
+            crop is not None and _uniform((crop.source_width, crop.source_height), (w, h))
+        )
+        if fits:
+            resized = given.resized(w, h, f"{source}: {names[i]}")
+            Ks.append(resized.K[i])
+            c2ws.append(resized.c2w[i])
         elif orientations[i] in TRANSPOSED and _uniform(calibrated, (h, w)):  # calibrated on the stored pixels
             stored = K * torch.tensor([h / given.width, w / given.height, 1.0], dtype=K.dtype)[:, None]
             K2, c2w2, _ = displayed_camera(stored, c2w, h, w, orientations[i], source=f"{source}: {names[i]}")
             Ks.append(K2)
             c2ws.append(c2w2)
         else:
+            also = f" or the {crop.source_width}x{crop.source_height} photos they were cropped from" if crop else ""
             raise SurfSplatInputError(
-                f"{source}: {names[i]} is {w}x{h} but the cameras are for {given.width}x{given.height} (only a "
-                "uniform rescale of the calibrated size is accepted, or of its transpose for a photo its EXIF "
+                f"{source}: {names[i]} is {w}x{h} but the cameras are for {given.width}x{given.height}{also} (only "
+                "a uniform rescale of the calibrated size is accepted, or of its transpose for a photo its EXIF "
                 "orientation turns by 90 degrees)"
             )
     return Cameras(torch.stack(c2ws), torch.stack(Ks))
