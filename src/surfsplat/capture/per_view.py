@@ -246,8 +246,9 @@ def align_held_out(
             E = correction(w, t * extent)
             colour = draw(move_surfels(frozen, c2w @ rigid_inverse(E) @ rigid_inverse(c2w)), cameras[v : v + 1])
             loss = (colour - photos[v : v + 1]).square().mean()
-            if float(loss) < best[0]:  # the loss of the parameters before this step's update
-                best = (float(loss), w.detach().clone(), t.detach().clone())
+            value = float(loss.detach())  # the loss of the parameters before this step's update
+            if value < best[0]:
+                best = (value, w.detach().clone(), t.detach().clone())
             if step == config.align_steps:
                 break
             optimizer.zero_grad(set_to_none=True)
