@@ -87,6 +87,14 @@ class CameraSet:
             self.crop,
         )
 
+    def fits(self, width: int, height: int) -> bool:
+        """Whether `resized` takes photos of width x height: a uniform rescale of the calibrated size or,
+        for cameras of a working crop, of the photos it was cut from."""
+        crop = self.crop
+        return is_uniform_rescale((self.width, self.height), (width, height)) or (
+            crop is not None and is_uniform_rescale((crop.source_width, crop.source_height), (width, height))
+        )
+
     def resized(self, width: int, height: int, source: str) -> Cameras:
         """K for images of width x height: the calibrated size, a uniform rescale of it (K' = diag(sx, sy, 1) K),
         or, for cameras of a working crop, the crop's source photos (the crop undone) or a uniform rescale of them."""
@@ -94,12 +102,12 @@ class CameraSet:
             return self.cameras
         cameras, cw, ch = self.cameras, self.width, self.height
         crop = self.crop
-        if crop is not None and _uniform(crop.source_width, crop.source_height, width, height):
+        if crop is not None and is_uniform_rescale((crop.source_width, crop.source_height), (width, height)):
             cameras = Cameras(cameras.c2w, crop.uncrop(cameras.K), validate=False)
             cw, ch = crop.source_width, crop.source_height
             if (width, height) == (cw, ch):
                 return cameras
-        if not _uniform(cw, ch, width, height):
+        if not is_uniform_rescale((cw, ch), (width, height)):
             also = f" or the {crop.source_width}x{crop.source_height} photos they were cropped from" if crop else ""
             raise SurfSplatInputError(
                 f"{source}: images are {width}x{height} but the cameras are for {self.width}x{self.height}{also} "
@@ -121,8 +129,10 @@ def pinhole_of(lens: Lens) -> Lens:
     return undistorted_pinhole(lens)
 
 
-def _uniform(cw: int, ch: int, width: int, height: int) -> bool:
-    """Whether width x height is cw x ch rescaled uniformly (the height within the half pixel of rounding)."""
+def is_uniform_rescale(calibrated: tuple[int, int], size: tuple[int, int]) -> bool:
+    """Whether size (width, height) is the calibrated (width, height) rescaled uniformly (the height within
+    the half pixel of rounding)."""
+    (cw, ch), (width, height) = calibrated, size
     return abs(ch * width / cw - height) <= 0.5 + 1e-9
 
 

@@ -18,18 +18,12 @@ from __future__ import annotations
 
 import torch
 
-from ..data.cameras import CameraSet
+from ..data.cameras import CameraSet, is_uniform_rescale
 from ..geometry.cameras import Cameras
 from ..geometry.orientation import TRANSPOSED, displayed_camera
 from ..utils.checks import SurfSplatInputError
 
 CROP_WARN_SHARE = 0.9  # a view keeping less than this share of its pixels is named in the warning
-
-
-def _uniform(calibrated: tuple[int, int], size: tuple[int, int]) -> bool:
-    """Whether `size` is a uniform rescale of `calibrated` (to half a pixel, as CameraSet.resized accepts)."""
-    (W, H), (w, h) = calibrated, size
-    return abs(H * w / W - h) <= 0.5 + 1e-9
 
 
 def view_cameras(
@@ -48,18 +42,16 @@ def view_cameras(
     if own_pixels:
         return given.cameras
     calibrated = (given.width, given.height)
-    crop = given.crop  # cameras of a working crop also fit the photos it was cut from (CameraSet.resized)
+    crop = given.crop
     Ks, c2ws = [], []
     for i, (w, h) in enumerate(sizes):
         K, c2w = given.cameras.K[i], given.cameras.c2w[i]
-        fits = _uniform(calibrated, (w, h)) or (
-            crop is not None and _uniform((crop.source_width, crop.source_height), (w, h))
-        )
-        if fits:
+        if given.fits(w, h):  # a uniform rescale, or the photos a working crop was cut from
             resized = given.resized(w, h, f"{source}: {names[i]}")
             Ks.append(resized.K[i])
             c2ws.append(resized.c2w[i])
-        elif orientations[i] in TRANSPOSED and _uniform(calibrated, (h, w)):  # calibrated on the stored pixels
+        elif orientations[i] in TRANSPOSED and is_uniform_rescale(calibrated, (h, w)):
+            # calibrated on the stored pixels: the camera turns with the photo
             stored = K * torch.tensor([h / given.width, w / given.height, 1.0], dtype=K.dtype)[:, None]
             K2, c2w2, _ = displayed_camera(stored, c2w, h, w, orientations[i], source=f"{source}: {names[i]}")
             Ks.append(K2)
