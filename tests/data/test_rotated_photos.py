@@ -269,3 +269,32 @@ def test_rotated_photos_with_a_lens_are_colmaps_undistortion_turned_for_display(
         shown = {1: (xs, ys), 3: (ws - xs, hs - ys), 6: (hs - ys, xs), 8: (ys, ws - xs)}[orientation]
         got_px = _pixels(scene.cameras.K[i].numpy(), scene.cameras.c2w[i].numpy(), world)
         assert np.abs(got_px - np.stack(shown, 1)).max() < 1e-6
+
+
+def test_camera_file_of_rotated_lens_photos_is_read_back_with_them(tmp_path, capsys):
+    """reconstruct's cameras.json records each lens with the orientation of its photos: given back with the
+    same photos it gives the same cameras, and `surfsplat optimize`'s reader undistorts them as before."""
+    from surfsplat.cli import main
+    from surfsplat.reconstruction.scene_fit import load_reconstruction
+
+    root, _ = rotated_lens_capture(tmp_path / "capture", [6] * 5, "colmap")
+    base = ["reconstruct", "--images", str(root / "images"), "--size", "32", "48", "--formats", "ply"]
+    base += ["--optimize-steps", "0", "--refine-steps", "0", "--no-progress", "--device", "cpu"]
+    assert main([*base, "--cameras", str(root), "--out", str(tmp_path / "a")]) == 0, capsys.readouterr().err
+    first = json.loads((tmp_path / "a" / "cameras.json").read_text())
+    assert {f["lens"]["orientation"] for f in first["frames"]} == {6}
+    assert "(the stored pixels of photos turned by EXIF orientation 6)" in capsys.readouterr().out
+    camera_file = tmp_path / "a" / "cameras.json"
+    assert main([*base, "--cameras", str(camera_file), "--out", str(tmp_path / "b")]) == 0, capsys.readouterr().err
+    again = json.loads((tmp_path / "b" / "cameras.json").read_text())
+    for a, b in zip(first["frames"], again["frames"]):
+        assert a["lens"] == b["lens"] and a["pinhole"] == b["pinhole"]
+        torch.testing.assert_close(torch.tensor(b["K"]), torch.tensor(a["K"]), rtol=0, atol=1e-9)
+        torch.testing.assert_close(torch.tensor(b["c2w"]), torch.tensor(a["c2w"]), rtol=0, atol=1e-9)
+    _, photos = load_reconstruction(tmp_path / "a")
+    scene = load_scene(root)  # the photos undistorted as displayed
+    for i, name in enumerate(json.loads((tmp_path / "a" / "reconstruction.json").read_text())["images"]):
+        expected, _, _ = rescale_and_crop(
+            scene.images[scene.names.index(Path(name).name)][None], torch.eye(3)[None], (32, 48)
+        )
+        assert (photos[i] - expected[0].clamp(0, 1)).abs().max() < 1e-6
