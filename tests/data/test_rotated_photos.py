@@ -14,6 +14,7 @@ calibration gives (1e-6 px) and each photo must be the original exactly; `recons
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -146,7 +147,8 @@ def test_reconstruct_on_rotated_phone_photos_gives_each_view_its_displayed_camer
 
     orientations = [6, 8, 6, 8] if given == "model" else [1, 6, 3, 8]  # a bare model holds one stored size
     root = rotated_capture(tmp_path / "capture", dtu, VIEWS, orientations)
-    cameras = root if given == "capture" else root / "sparse" / "0"
+    # the bare model: copied away from the photos, so that no reader sees them
+    cameras = root if given == "capture" else shutil.copytree(root / "sparse" / "0", tmp_path / "model")
     out = tmp_path / "out"
     argv = ["reconstruct", "--images", str(root / "images"), "--cameras", str(cameras), "--out", str(out)]
     argv += ["--size", "32", "48", "--formats", "ply", "--optimize-steps", "0", "--refine-steps", "0"]
@@ -298,3 +300,24 @@ def test_camera_file_of_rotated_lens_photos_is_read_back_with_them(tmp_path, cap
             scene.images[scene.names.index(Path(name).name)][None], torch.eye(3)[None], (32, 48)
         )
         assert (photos[i] - expected[0].clamp(0, 1)).abs().max() < 1e-6
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_bare_model_with_a_lens_turns_where_the_photos_meet_it(tmp_path, orientation):
+    """The same lens capture given as its bare model folder (cameras of the stored pixels, no photo read)
+    and its photos: the views reconstruct reads are the capture folder's, K, pose and pixels."""
+    from surfsplat.capture import FrameConfig
+    from surfsplat.reconstruction.inputs import read_capture
+    from surfsplat.reconstruction.pipeline import _undistorted_views
+
+    root, _ = rotated_lens_capture(tmp_path / "capture", [orientation] * 5, "colmap")
+    bare = load_cameras(shutil.copytree(root / "sparse" / "0", tmp_path / "model"))  # no photos beside it
+    assert bare.stored_pixels and {lens.orientation for lens in bare.lenses} == {1}
+    folder = load_scene(root, dtype=torch.float64)
+    photos = sorted((root / "images").iterdir())
+    views, K, c2w = _undistorted_views(read_capture(photos, FrameConfig()), bare.select(folder.names, "t"), "t")
+    torch.testing.assert_close(K, folder.cameras.K, rtol=0, atol=1e-12)
+    torch.testing.assert_close(c2w, folder.cameras.c2w, rtol=0, atol=1e-12)
+    assert {lens.orientation for lens, _ in views.lenses} == {orientation}
+    for i in range(len(views)):
+        assert torch.equal(views.image(i).double(), folder.images[i].to(torch.float32).double())
