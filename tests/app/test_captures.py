@@ -424,3 +424,53 @@ def test_the_command_reads_a_capture_folders_cameras_unless_told(tmp_path, monke
         with pytest.raises(Seen):
             command.run(args)
     assert seen == [(capture, "auto"), (capture, capture / "transforms.json")]
+
+
+# ----------------------------------------------------------------------- bad processed captures, uploaded
+def _bad_capture_cases():
+    from tests.commands.test_reliability import CAPTURE_CASES
+
+    return CAPTURE_CASES
+
+
+@pytest.mark.parametrize(
+    "make, needles", [c[1:] for c in _bad_capture_cases()], ids=[c[0] for c in _bad_capture_cases()]
+)
+def test_bad_processed_capture_uploaded_is_one_line_without_server_paths(tmp_path, make, needles):
+    """The CLI's processed-capture corpus (tests/commands/test_reliability.py) zipped and uploaded: the page
+    gets the same one line, naming the file by the zip's own name, and keeps no outputs."""
+    from tests.commands.test_reliability import _photos
+
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    _photos(capture)
+    make(capture)
+    config = AppConfig(sessions_dir=str(tmp_path / "sessions"), **SMALL)
+    outputs, folder = _request(config, files=[zip_folder(capture, tmp_path / "capture.zip")])
+    status = outputs[0]
+    assert status.startswith("**Cannot reconstruct:** capture/") and "\n" not in status, status
+    for needle in needles:
+        assert needle in status, (needle, status)
+    _no_server_path(outputs, config.root())
+    assert not (folder / "outputs").exists()
+
+
+def test_heic_upload_without_the_extra_is_one_line_naming_it(tmp_path, monkeypatch):
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'heic' extra) makes the HEIC fixture")
+    import sys
+
+    from PIL import Image
+
+    pillow_heif.register_heif_opener()
+    photos = tmp_path / "phone"
+    photos.mkdir()
+    for name in ("IMG_4026.png", "IMG_4027.png"):
+        Image.open(FERN / "images_16" / name).convert("RGB").save(photos / name.replace(".png", ".heic"), "HEIF")
+    monkeypatch.setitem(sys.modules, "pillow_heif", None)  # the extra uninstalled
+    config = AppConfig(sessions_dir=str(tmp_path / "sessions"), **SMALL)
+    outputs, folder = _request(config, files=[zip_folder(photos, tmp_path / "phone.zip")])
+    status = outputs[0]
+    assert status.startswith("**Cannot reconstruct:** phone/IMG_4026.heic") and "\n" not in status, status
+    assert "pip install 'surfsplat[heic]'" in status, status
+    _no_server_path(outputs, config.root())
+    assert not (folder / "outputs").exists()

@@ -14,6 +14,7 @@ import logging
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -806,3 +807,173 @@ def test_absurd_distortion_is_one_line_exit_2(world, tmp_path, capsys, monkeypat
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "OPENCV" in err, err
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------- processed captures, in a real process
+# Captures as other tools leave them, broken one way each, built from the repository's distorted DTU fixture
+# (photos, its COLMAP model in text and binary, its nerfstudio transforms.json and its fisheye one) and run as
+# a user runs them: `python -m surfsplat ...` in its own process. Each is exit code 2, stderr exactly one line
+# naming the file and the field or value (no traceback), and the output folder never made.
+DISTORTED = Path(__file__).resolve().parents[1] / "data" / "distorted"
+DTU = Path(__file__).resolve().parents[1] / "data" / "dtu_scan24" / "images_16"
+
+
+def _photos(tmp: Path) -> Path:
+    return Path(shutil.copytree(DISTORTED / "images", tmp / "images"))
+
+
+def _text_model(tmp: Path, camera_line: str) -> Path:
+    """The fixture's COLMAP text model with its one camera replaced by `camera_line` ("MODEL W H params")."""
+    model = Path(shutil.copytree(DISTORTED / "sparse" / "text", tmp / "sparse" / "0"))
+    (model / "cameras.txt").write_text(f"# one camera\n1 {camera_line}\n")
+    return model
+
+
+def _binary_model(tmp: Path, model_id: int | None = None, k1: float | None = None) -> Path:
+    """The fixture's binary COLMAP model (one OPENCV camera) with its model id or its k1 overwritten:
+    cameras.bin is a uint64 count, then per camera int32 id, int32 model id, uint64 width, uint64 height and
+    the parameters as float64 (COLMAP's WriteCamerasBinary), k1 the fifth of OPENCV's."""
+    model = Path(shutil.copytree(DISTORTED / "sparse" / "0", tmp / "sparse" / "0"))
+    data = bytearray((model / "cameras.bin").read_bytes())
+    if model_id is not None:
+        struct.pack_into("<i", data, 8 + 4, model_id)
+    if k1 is not None:
+        struct.pack_into("<d", data, 8 + 24 + 4 * 8, k1)
+    (model / "cameras.bin").write_bytes(bytes(data))
+    return model
+
+
+def _transforms(tmp: Path, fisheye: bool = False, **changes) -> Path:
+    """The fixture's transforms.json (or its fisheye one) with top-level keys changed, written beside the photos."""
+    source = DISTORTED / ("fisheye" if fisheye else "") / "transforms.json"
+    doc = json.loads(source.read_text())
+    doc.update(changes)
+    path = tmp / "transforms.json"
+    path.write_text(json.dumps(doc))  # NaN is written as the token JSON readers accept
+    return path
+
+
+def _no_photos_left(tmp: Path) -> Path:
+    doc = json.loads((DISTORTED / "transforms.json").read_text())
+    for frame in doc["frames"]:
+        frame["file_path"] = "left_out/" + Path(frame["file_path"]).name
+    path = tmp / "transforms.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+# (id, cameras from tmp, words the one line must contain)
+CAPTURE_CASES = [
+    (
+        "colmap-text-nan-distortion",
+        lambda t: _text_model(t, "OPENCV 100 75 190 190 51.5 38.7 nan 0.1 0.002 -0.001"),
+        ["sparse/0/cameras.txt:2: camera 1: camera model OPENCV: parameter k1 is NaN"],
+    ),
+    (
+        "colmap-binary-absurd-distortion",
+        lambda t: _binary_model(t, k1=1e6),
+        ["sparse/0/cameras.bin: camera 1: camera model OPENCV (fx 190, fy 190", "k1 1e+06", "no pinhole holds"],
+    ),
+    (
+        "colmap-text-fisheye-no-valid-region",
+        lambda t: _text_model(t, "OPENCV_FISHEYE 100 75 190 190 51.5 38.7 -5 0 0 0"),
+        ["cameras.txt: camera 1: camera model OPENCV_FISHEYE", "k1 -5", "no valid undistorted region"],
+    ),
+    (
+        "colmap-text-fisheye-beyond-90-degrees",
+        lambda t: _text_model(t, "OPENCV_FISHEYE 100 75 20 20 51.5 38.7 0 0 0 0"),
+        ["cameras.txt: camera 1: camera model OPENCV_FISHEYE (fx 20", "sees 182.5 degrees off the axis"],
+    ),
+    (
+        "colmap-binary-model-id-11",
+        lambda t: _binary_model(t, model_id=11),
+        ["sparse/0/cameras.bin: camera 1 has camera model id 11, which is not supported"],
+    ),
+    (
+        "colmap-text-unknown-model",
+        lambda t: _text_model(t, "DIVISION 100 75 190 51.5 38.7 0.1"),
+        ["cameras.txt:2: camera 1 has camera model DIVISION, which is not supported"],
+    ),
+    (
+        "transforms-nan-distortion",
+        lambda t: _transforms(t, k1=float("nan")),
+        ["transforms.json: field 'k1' must be a finite number, got nan"],
+    ),
+    (
+        "transforms-absurd-distortion",
+        lambda t: _transforms(t, k2=-1e6),
+        ["transforms.json: frame 0: camera model OPENCV (fx 190", "k2 -1e+06"],
+    ),
+    (
+        "transforms-fisheye-no-valid-region",
+        lambda t: _transforms(t, fisheye=True, k1=-5.0),
+        ["transforms.json: frame 0: camera model OPENCV_FISHEYE", "k1 -5", "no valid undistorted region"],
+    ),
+    (
+        "transforms-unknown-camera-model",
+        lambda t: _transforms(t, camera_model="EQUIRECTANGULAR"),
+        ["transforms.json: field 'camera_model' is 'EQUIRECTANGULAR', which is not supported"],
+    ),
+    (
+        "transforms-every-photo-missing",
+        _no_photos_left,
+        ["transforms.json: every photo listed in it is missing (5 frames"],
+    ),
+]
+
+
+def _surfsplat(args: list[str], cwd: Path, block: str | None = None) -> subprocess.CompletedProcess:
+    """`python -m surfsplat ARGS` in its own process; `block` names a module the process cannot import (an
+    optional extra that is not installed)."""
+    if block is None:
+        command = [sys.executable, "-m", "surfsplat", *args]
+    else:
+        run = f"import runpy, sys; sys.modules[{block!r}] = None; runpy.run_module('surfsplat', run_name='__main__')"
+        command = [sys.executable, "-c", run, *args]
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def _assert_one_line(proc: subprocess.CompletedProcess, command: str, needles: list[str]) -> None:
+    err = proc.stderr.strip()
+    assert proc.returncode == 2, (proc.returncode, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"surfsplat {command}: error: "), err
+    for needle in needles:
+        assert needle in lines[0], (needle, err)
+
+
+@pytest.mark.parametrize("make, needles", [c[1:] for c in CAPTURE_CASES], ids=[c[0] for c in CAPTURE_CASES])
+def test_processed_capture_case_in_a_process_is_one_line_exit_2_nothing_written(make, needles, tmp_path):
+    photos = _photos(tmp_path)
+    cameras = make(tmp_path)
+    before = _tree(tmp_path)
+    out = tmp_path / "out"
+    args = ["reconstruct", "--images", str(photos), "--cameras", str(cameras), "--out", str(out)]
+    proc = _surfsplat([*args, "--size", "32", "48", "--formats", "ply", "--no-progress", "--device", "cpu"], tmp_path)
+    _assert_one_line(proc, "reconstruct", needles)
+    assert not out.exists()
+    assert _tree(tmp_path) == before  # nothing made or changed beside it either
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "poses"])
+def test_heic_without_the_extra_in_a_process_is_one_line_exit_2_nothing_written(tmp_path, command):
+    pillow_heif = pytest.importorskip("pillow_heif", reason="pillow-heif (the 'heic' extra) makes the HEIC fixture")
+    from PIL import Image
+
+    pillow_heif.register_heif_opener()
+    photos = []
+    for name in ("000000.png", "000001.png"):
+        path = tmp_path / name.replace(".png", ".heic")
+        Image.open(DTU / name).convert("RGB").save(path, "HEIF", quality=90)
+        photos.append(str(path))
+    before = _tree(tmp_path)
+    out = tmp_path / ("out" if command == "reconstruct" else "cameras.json")
+    if command == "reconstruct":
+        args = ["reconstruct", "--images", *photos, "--out", str(out), "--formats", "ply", "--no-progress"]
+    else:
+        args = ["poses", *photos, "--out", str(out)]
+    proc = _surfsplat(args, tmp_path, block="pillow_heif")
+    _assert_one_line(proc, command, ["000000.heic", "pip install 'surfsplat[heic]'"])
+    assert not out.exists()
+    assert _tree(tmp_path) == before

@@ -160,6 +160,11 @@ def _case_blender_r8_term(tmp: Path) -> Path:
     return _blender(tmp, lambda m: m.update({"camera_model": "OPENCV", "k1": 0.1, "k4": 0.01}))
 
 
+def _case_blender_frame_r8_term(tmp: Path) -> Path:
+    # the same r^8 term held by one frame: the error names that frame, not the file's top level
+    return _blender(tmp, lambda m: m["frames"][1].update({"camera_model": "OPENCV", "k1": 0.1, "k4": 0.01}))
+
+
 def _case_blender_fisheye_tangential(tmp: Path) -> Path:
     return _blender(tmp, lambda m: m.update({"camera_model": "OPENCV_FISHEYE", "k1": 0.1, "p1": 0.01}))
 
@@ -269,8 +274,9 @@ CASES = [
     ("blender_no_frames", _case_blender_no_frames, "transforms.json: missing key 'frames'"),
     ("blender_no_matrix", _case_blender_no_matrix, "transforms.json: frame 1: missing key 'transform_matrix'"),
     ("blender_no_intrinsics", _case_blender_no_intrinsics, "frame 0: no intrinsics"),
-    ("blender_r8_term", _case_blender_r8_term, "frame 0: field 'k4' is 0.01"),
-    ("blender_fisheye_tangential", _case_blender_fisheye_tangential, "frame 0: field 'p1' is 0.01"),
+    ("blender_r8_term", _case_blender_r8_term, "transforms.json: field 'k4' is 0.01"),  # a top-level key
+    ("blender_frame_r8_term", _case_blender_frame_r8_term, "transforms.json: frame 1: field 'k4' is 0.01"),
+    ("blender_fisheye_tangential", _case_blender_fisheye_tangential, "transforms.json: field 'p1' is 0.01"),
     ("blender_unknown_model", _case_blender_unknown_model, "field 'camera_model' is 'EQUIRECTANGULAR'"),
     ("blender_every_photo_missing", _case_blender_every_photo_missing, "every photo listed in it is missing"),
     ("blender_fractional_size", _case_blender_fractional_size, "field 'w' must be a positive whole number"),

@@ -281,7 +281,8 @@ def test_no_valid_region_raises(model: str, width: int, height: int, params: tup
     with pytest.raises(SurfSplatInputError, match=reason) as err:
         undistorted_pinhole(lens)
     line = str(err.value)
-    assert "\n" not in line and line.startswith(f"camera model {model} {list(params)} ({width}x{height}): ")
+    named = ", ".join(f"{n} {v:g}" for n, v in zip(lens.param_names, params))
+    assert "\n" not in line and line.startswith(f"camera model {model} ({named}) at {width}x{height}: ")
 
 
 @pytest.mark.parametrize("model", MODELS)

@@ -152,3 +152,46 @@ def test_orientation_must_be_one_to_eight():
     for bad in (0, 9, True):
         with pytest.raises(SurfSplatInputError, match="EXIF orientation 1-8"):
             displayed_camera(K, c2w, W, H, bad)
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_displayed_image_is_what_pillows_exif_transpose_does(orientation):
+    """The tensor turn of stored pixels (photos, masks, depth after undistortion) equals Pillow's
+    `exif_transpose` of the same pixels tagged with the orientation, and `stored_image` undoes it."""
+    from PIL import ImageOps
+
+    from surfsplat.geometry.orientation import displayed_image, stored_image
+
+    rng = np.random.default_rng(orientation)
+    stored = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    tagged = Image.fromarray(stored)
+    exif = tagged.getexif()
+    exif[0x0112] = orientation
+    tagged.info["exif"] = exif.tobytes()
+    reference = np.asarray(ImageOps.exif_transpose(tagged))
+    ours = displayed_image(torch.from_numpy(stored).permute(2, 0, 1), orientation).permute(1, 2, 0).numpy()
+    assert ours.shape == reference.shape and np.array_equal(ours, reference)
+    back = stored_image(torch.from_numpy(reference.copy()).permute(2, 0, 1), orientation)
+    assert torch.equal(back, torch.from_numpy(stored).permute(2, 0, 1))
+
+
+def test_lens_of_turned_photos_keeps_its_stored_projection_and_round_trips():
+    """A Lens seeing turned photos: recorded and read back with its orientation; the projection functions
+    refuse it (they are of the stored pixels: `stored()`), and its pinhole is the stored pinhole turned."""
+    from surfsplat.data.cameras import pinhole_of, turned_pinhole
+    from surfsplat.geometry.lens import Lens, project, undistorted_pinhole
+
+    lens = Lens("OPENCV", 100, 75, (90.0, 92.0, 51.5, 38.7, -0.2, 0.05, 0.001, -0.002))
+    turned = lens.turned(6)
+    assert Lens.from_dict(turned.to_dict()) == turned and "orientation" not in lens.to_dict()
+    assert turned.rescaled(50, 37).orientation == 6 and turned.stored() == lens
+    with pytest.raises(ValueError, match="EXIF orientation 6"):
+        project(turned, torch.tensor([[0.0, 0.0, 1.0]]))
+    with pytest.raises(SurfSplatInputError, match="orientation must be an EXIF turn"):
+        lens.turned(5)  # a mirrored photo has no camera
+    flat = undistorted_pinhole(lens)
+    shown = pinhole_of(turned)
+    assert (shown.width, shown.height) == (flat.height, flat.width)
+    K, _, _ = displayed_camera(flat.intrinsics(), torch.eye(4, dtype=torch.float64), flat.width, flat.height, 6)
+    torch.testing.assert_close(shown.intrinsics(), K, rtol=0, atol=0)
+    assert turned_pinhole(shown, 8) == pinhole_of(lens)  # 8 undoes 6

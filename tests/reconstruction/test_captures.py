@@ -66,7 +66,8 @@ def _distorted_capture(root: Path, dtu: CameraSet) -> tuple[list[Path], Lens]:
 def test_views_with_a_lens_are_undistorted_as_they_are_read(tmp_path: Path, dtu: CameraSet) -> None:
     paths, lens = _distorted_capture(tmp_path, dtu)
     given = load_cameras(tmp_path)
-    views, K = _undistorted_views(read_capture(paths, FrameConfig()), given.select(VIEWS, "test"), "test")
+    views, K, c2w = _undistorted_views(read_capture(paths, FrameConfig()), given.select(VIEWS, "test"), "test")
+    assert torch.equal(c2w, given.select(VIEWS, "test").cameras.c2w)  # upright photos: the poses as given
     pinhole = reference_pinhole(lens)
     assert (views.width, views.height) == (pinhole.width, pinhole.height) != (lens.width, lens.height)
     torch.testing.assert_close(K, pinhole.intrinsics().expand(2, 3, 3))
@@ -77,7 +78,7 @@ def test_views_with_a_lens_are_undistorted_as_they_are_read(tmp_path: Path, dtu:
     for p, out in zip(paths, half):
         rgb, _ = read_image(p, background=None)
         write_photos(out.parent, [out.name], torch.nn.functional.interpolate(rgb[None], size=(38, 50), mode="area"))
-    views, K = _undistorted_views(read_capture(half, FrameConfig()), given, "test")
+    views, K, c2w = _undistorted_views(read_capture(half, FrameConfig()), given, "test")
     sx, sy = 50 / 100, 38 / 75  # COLMAP's per-axis factors
     expected = (lens.params[0] * sx, lens.params[1] * sy, lens.params[2] * sx, lens.params[3] * sy)
     assert (

@@ -60,6 +60,11 @@ class CameraSet:
     # the working crop K is in pixels of (a camera file written by reconstruct): `resized` to the
     # crop's source size undoes it (None: K is in pixels of the photos themselves)
     crop: WorkingCrop | None = None
+    # K, c2w and lenses describe the photos' STORED pixels (EXIF orientation not applied): a COLMAP model
+    # read without its photos. Where such cameras meet photos an orientation turns (3, 6, 8), each view's
+    # camera is turned with its photo (`surfsplat.reconstruction.sizes.view_cameras`); False: the cameras
+    # are of the photos as read (a reader that saw the photos turned them already, or this package's file)
+    stored_pixels: bool = False
 
     def select(self, wanted: list[str], source: str) -> CameraSet:
         """The cameras of the named images, in that order (matched by file name or stem)."""
@@ -85,6 +90,7 @@ class CameraSet:
             self.far,
             None if self.lenses is None else [self.lenses[i] for i in picked],
             self.crop,
+            self.stored_pixels,
         )
 
     def fits(self, width: int, height: int) -> bool:
@@ -117,16 +123,39 @@ class CameraSet:
         return Cameras(cameras.c2w, cameras.K * S[:, None], validate=False)
 
 
-def pinhole_of(lens: Lens) -> Lens:
+def pinhole_of(lens: Lens, source: str | None = None) -> Lens:
     """The pinhole a lens's photos are undistorted to: the lens itself where it is one (as PINHOLE), else
-    `undistorted_pinhole` (COLMAP image_undistorter's choice)."""
-    if lens.is_pinhole:
+    `undistorted_pinhole` (COLMAP image_undistorter's choice). For a lens of turned photos
+    (`Lens.orientation` 3, 6 or 8) it is the pinhole of the stored pixels turned for display
+    (`turned_pinhole`): the photo's pinhole as it is read. `source` (the camera file and record) starts
+    the error line of a lens with no valid region."""
+    stored = lens.stored()
+    if stored.is_pinhole:
         from .formats.common import pinhole_lens
 
-        return pinhole_lens(lens.intrinsics(), lens.width, lens.height)
-    from ..geometry.lens import undistorted_pinhole
+        pinhole = pinhole_lens(stored.intrinsics(), stored.width, stored.height)
+    else:
+        from ..geometry.lens import undistorted_pinhole
 
-    return undistorted_pinhole(lens)
+        try:
+            pinhole = undistorted_pinhole(stored)
+        except SurfSplatInputError as err:
+            if source is None:
+                raise
+            raise SurfSplatInputError(f"{source}: {err}") from None
+    return pinhole if lens.orientation == 1 else turned_pinhole(pinhole, lens.orientation)
+
+
+def turned_pinhole(pinhole: Lens, orientation: int) -> Lens:
+    """A pinhole of stored pixels as the photo displayed with this EXIF orientation sees it
+    (`surfsplat.geometry.orientation.displayed_camera`: exact for the turns 1, 3, 6, 8)."""
+    from ..geometry.orientation import displayed_camera
+    from .formats.common import pinhole_lens
+
+    K, _, (width, height) = displayed_camera(
+        pinhole.intrinsics(), torch.eye(4, dtype=torch.float64), pinhole.width, pinhole.height, orientation
+    )
+    return pinhole_lens(K, width, height)
 
 
 def is_uniform_rescale(calibrated: tuple[int, int], size: tuple[int, int]) -> bool:

@@ -169,7 +169,22 @@ def undistort(image: Tensor, lens: Lens, pinhole: Lens, mode: str = "bilinear") 
     bilinear weights are convex; COLMAP's undistorter is bilinear too), "bicubic" for sharper photos
     (OpenCV's cubic, clipped to each channel's range in the image), "nearest" for depth maps.
     Pixels showing nothing of the lens's image are 0 (see the module docs). A bool mask comes back
-    float32 under "bilinear" (its coverage) and bool under "nearest"."""
+    float32 under "bilinear" (its coverage) and bool under "nearest".
+
+    A lens of turned photos (`Lens.orientation` 3, 6 or 8) takes the photo as displayed and `pinhole` as
+    the displayed photo's (`surfsplat.data.cameras.pinhole_of`): the photo goes back to its stored pixels,
+    is undistorted there to the stored pinhole, and the result is turned for display. Each turn is an
+    exact permutation of pixels, so this is COLMAP's undistortion of the stored photo, displayed."""
+    if lens.orientation != 1:
+        from ..geometry.orientation import INVERSE, displayed_image, stored_image
+        from .cameras import turned_pinhole
+
+        o = lens.orientation
+        stored_lens, stored_pinhole = lens.stored(), turned_pinhole(pinhole, INVERSE[o])
+        flat = _remap(
+            stored_image(image, o), stored_lens, undistort_maps(stored_lens, stored_pinhole), mode, "undistort"
+        )
+        return displayed_image(flat, o)
     return _remap(image, lens, undistort_maps(lens, pinhole), mode, "undistort")
 
 

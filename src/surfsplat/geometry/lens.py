@@ -56,9 +56,15 @@ class Lens:
     """One camera's lens: COLMAP model name, the image size it was calibrated at, its parameters."""
 
     model: str  # a name of CAMERA_MODELS, e.g. "SIMPLE_RADIAL"
-    width: int  # calibrated image size in pixels
+    width: int  # calibrated image size in pixels (of the stored pixels where orientation is not 1)
     height: int
     params: tuple[float, ...]  # in COLMAP's order for the model
+    # EXIF orientation of the photos this lens sees (1: as read). Where it is 3, 6 or 8 the lens describes
+    # the photos' STORED pixels (as COLMAP, nerfstudio and instant-ngp calibrate them) while the photos are
+    # read as displayed: `undistort` takes a photo back to its stored pixels, undistorts it there and turns
+    # the pinhole photo for display (see surfsplat.geometry.orientation). The projection functions here
+    # take only stored-frame lenses (`stored()`).
+    orientation: int = 1
 
     def __post_init__(self) -> None:
         if self.model not in MODEL_IDS:
@@ -79,6 +85,11 @@ class Lens:
             raise SurfSplatInputError(f"camera model {self.model}: focal length {name} is {value} (must be positive)")
         if self.width < 1 or self.height < 1:
             raise SurfSplatInputError(f"camera model {self.model}: size {self.width}x{self.height} is not positive")
+        if self.orientation not in (1, 3, 6, 8) or isinstance(self.orientation, bool):
+            raise SurfSplatInputError(
+                f"camera model {self.model}: orientation must be an EXIF turn (1, 3, 6 or 8; a mirrored photo has "
+                f"no camera), got {self.orientation!r}"
+            )
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -125,16 +136,34 @@ class Lens:
             p[2] *= sy
         else:
             p[0], p[1], p[2], p[3] = p[0] * sx, p[1] * sy, p[2] * sx, p[3] * sy
-        return Lens(self.model, width, height, tuple(p))
+        return Lens(self.model, width, height, tuple(p), self.orientation)
+
+    def stored(self) -> Lens:
+        """The lens of the stored pixels (orientation 1), which `project` and `unproject` take."""
+        return Lens(self.model, self.width, self.height, self.params)
+
+    def turned(self, orientation: int) -> Lens:
+        """The same lens of the stored pixels, seeing photos displayed with this EXIF orientation."""
+        return Lens(self.model, self.width, self.height, self.params, orientation)
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "width": self.width, "height": self.height, "params": list(self.params)}
+        out = {"model": self.model, "width": self.width, "height": self.height, "params": list(self.params)}
+        if self.orientation != 1:
+            out["orientation"] = self.orientation
+        return out
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "lens") -> Lens:
         try:
+            orientation = data.get("orientation", 1)
+            if not isinstance(orientation, int) or isinstance(orientation, bool):
+                raise TypeError(f"orientation must be an integer, got {orientation!r}")
             return cls(
-                str(data["model"]), int(data["width"]), int(data["height"]), tuple(float(v) for v in data["params"])
+                str(data["model"]),
+                int(data["width"]),
+                int(data["height"]),
+                tuple(float(v) for v in data["params"]),
+                orientation,
             )
         except (KeyError, TypeError, ValueError) as err:
             raise SurfSplatInputError(
@@ -369,6 +398,15 @@ def _out_dtype(t: Tensor) -> torch.dtype:
     return t.dtype if t.is_floating_point() else torch.float64
 
 
+def _of_stored_pixels(lens: Lens, name: str) -> None:
+    """The projection is of the stored pixels: a lens seeing turned photos is a caller's mistake here."""
+    if lens.orientation != 1:
+        raise ValueError(
+            f"{name}: the lens sees photos displayed with EXIF orientation {lens.orientation}; its projection is "
+            "of their stored pixels: pass lens.stored()"
+        )
+
+
 def project(lens: Lens, points: Tensor) -> Tensor:
     """Points in the camera frame (OpenCV axes) -> pixels, COLMAP's `ImgFromCam` for `lens.model`.
 
@@ -389,6 +427,7 @@ def project(lens: Lens, points: Tensor) -> Tensor:
 def image_from_normalized(lens: Lens, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     """`project` of the rays (u, v, 1), float64 tensors of shapes that broadcast (a row of columns
     and a column of rows make a grid without building it first): pixel x, pixel y."""
+    _of_stored_pixels(lens, "project")
     fx, fy, cx, cy = lens.focal_and_centre
     model, e = lens.model, lens.extra_params
     if model == "FOV":
@@ -416,6 +455,7 @@ def unproject(lens: Lens, pixels: Tensor) -> Tensor:
     the iteration waits on the host twice per step (it stops, as COLMAP's, when every point has
     converged or after 100 steps); closed forms (pinhole, FOV) never wait.
     """
+    _of_stored_pixels(lens, "unproject")
     q = _float64(pixels, 2, "unproject: pixels")
     fx, fy, cx, cy = lens.focal_and_centre
     x0 = (q[..., 0] - cx) / fx
@@ -468,7 +508,8 @@ def _projection_jacobian_det(lens: Lens, rays: Tensor) -> Tensor:
 
 def _check_invertible(lens: Lens, border: Tensor, rays: Tensor) -> None:
     """Raise where the lens has no valid undistorted region (module docs of `undistorted_pinhole`)."""
-    what = f"camera model {lens.model} {list(lens.params)} ({lens.width}x{lens.height})"
+    named = ", ".join(f"{n} {v:g}" for n, v in zip(lens.param_names, lens.params))
+    what = f"camera model {lens.model} ({named}) at {lens.width}x{lens.height}"
     bad = ~torch.isfinite(rays).all(dim=-1)
     if lens.model in FISHEYE_MODELS and not bool(bad.any()):
         fx, fy, cx, cy = lens.focal_and_centre
@@ -547,6 +588,7 @@ def undistorted_pinhole(lens: Lens) -> Lens:
       four corners included (these segments sweep the image's rays), is not positive somewhere (a
       second preimage: the inverse converged beyond a fold).
     """
+    _of_stored_pixels(lens, "undistorted_pinhole")
     fx, fy, cx, cy = lens.focal_and_centre
     if lens.is_pinhole:
         return Lens("PINHOLE", lens.width, lens.height, (fx, fy, cx, cy))

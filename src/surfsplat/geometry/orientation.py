@@ -28,8 +28,19 @@ of the displayed photos. `camera_is_of_stored_image` decides by size where size 
 orientations 5-8 a camera calibrated at the stored size (w, h) of a photo displayed as (h, w) is the
 stored image's. For 2-4 (and square photos) both images have one size and the file's format decides.
 
+A camera with a lens (`surfsplat.geometry.lens.Lens.orientation`) is not mapped through the turn:
+COLMAP's choice of the undistorted pinhole (`undistorted_pinhole`, its `UndistortCamera`) is not
+symmetric under a turn of the image (its border formula uses cx on one side and W - 0.5 - cx on
+the other), so a turned lens would undistort to another pinhole than the turned one. The photo is
+taken back to its stored pixels instead (`stored_image`, an exact permutation of pixels), undistorted
+there as COLMAP's image_undistorter would, and the pinhole photo turned for display (`displayed_image`)
+with its pinhole camera (`displayed_camera`): every step exact.
+
 The arithmetic is a 3x3 product written here: no library maps a pinhole camera through an EXIF
-orientation (pycolmap's and OpenCV's cameras have no notion of it).
+orientation (pycolmap's and OpenCV's cameras have no notion of it). The pixel permutations of
+`displayed_image` are torch's flip and transpose; they are what Pillow's `exif_transpose` does to a
+decoded photo (tested against it), written for tensors so that an undistorted photo, a mask or a depth
+map on any device turns the same way.
 """
 
 from __future__ import annotations
@@ -52,6 +63,7 @@ _TRANSFORMS: dict[int, tuple[tuple[int, int, int, int], tuple[tuple[int, int], t
 }
 MIRRORED = (2, 4, 5, 7)
 TRANSPOSED = (5, 6, 7, 8)  # width and height swap
+INVERSE = {1: 1, 2: 2, 3: 3, 4: 4, 5: 5, 6: 8, 7: 7, 8: 6}  # the orientation that undoes each one
 
 
 def _check(orientation: int) -> int:
@@ -68,6 +80,24 @@ def displayed_size(orientation: int, width: int, height: int) -> tuple[int, int]
 def stored_size(orientation: int, width: int, height: int) -> tuple[int, int]:
     """(width, height) of the stored pixels of a photo displayed at width x height."""
     return displayed_size(orientation, width, height)  # every transform is its size's own inverse
+
+
+def displayed_image(image: Tensor, orientation: int) -> Tensor:
+    """The pixels [..., H, W] of a stored image as the orientation displays them ([..., W, H] for 5-8).
+
+    From the table of the module doc: a stored pixel (row i, column j) lands at the displayed pixel whose
+    centre is M (j + 0.5, i + 0.5) + b, e.g. for 6 at row j, column H - 1 - i (transpose, then flip left-right)."""
+    orientation = _check(orientation)
+    rows, cols = -2, -1
+    if orientation in TRANSPOSED:
+        image = image.transpose(rows, cols)
+    flips = {1: (), 2: (cols,), 3: (rows, cols), 4: (rows,), 5: (), 6: (cols,), 7: (rows, cols), 8: (rows,)}
+    return image.flip(flips[orientation]) if flips[orientation] else image
+
+
+def stored_image(image: Tensor, orientation: int) -> Tensor:
+    """The stored pixels [..., H, W] of an image displayed with this orientation (`displayed_image` undone)."""
+    return displayed_image(image, INVERSE[_check(orientation)])
 
 
 def orientation_transform(orientation: int, width: int, height: int, dtype=torch.float64) -> Tensor:

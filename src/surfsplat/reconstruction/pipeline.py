@@ -174,8 +174,7 @@ def reconstruct(
     from .sizes import crop_report, view_cameras
 
     if given.lenses is not None:  # every stage after this sees the pinhole photos
-        views, K = _undistorted_views(views, given, source)
-        c2w = given.cameras.c2w
+        views, K, c2w = _undistorted_views(views, given, source)
     else:
         # each view's K in pixels of its own photo as displayed (photos may differ in size and orientation)
         own = cameras is None or isinstance(cameras, Cameras)  # estimated K: each in its own photo's pixels
@@ -518,26 +517,45 @@ def _given_cameras(cameras, views: CaptureInput, images_folder: str | None):
     )
 
 
-def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[CaptureInput, torch.Tensor]:
-    """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), and their K [V, 3, 3]:
-    each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled with it,
-    `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
-    pinhole's, so every stage after this one sees pinhole photos and cameras."""
-    from ..data.cameras import pinhole_of
+def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[CaptureInput, torch.Tensor, torch.Tensor]:
+    """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), their K [V, 3, 3] and
+    c2w [V, 4, 4]: each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled
+    with it, `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter
+    chooses; K is that pinhole's, so every stage after this one sees pinhole photos and cameras.
 
-    pairs, Ks = [], []
+    A lens of the stored pixels (`Lens.orientation`, or cameras read without their photos,
+    `CameraSet.stored_pixels`) meets a photo read as displayed: the lens's size is the photo's stored
+    size, the photo is undistorted in its stored frame and turned back (`surfsplat.data.undistort`), and
+    its pinhole and pose turn with it (`displayed_camera`)."""
+    from ..data.cameras import pinhole_of
+    from ..geometry.orientation import displayed_camera, stored_size
+
+    pairs, Ks, c2ws = [], [], []
     for i, (name, lens) in enumerate(zip(views.names, given.lenses, strict=True)):
         size = views.sizes[i] if views.sizes else (views.width, views.height)
-        if size != (lens.width, lens.height):
-            if size[0] > lens.width or abs(lens.height * size[0] / lens.width - size[1]) > 0.5:
+        c2w = given.cameras.c2w[i]
+        turn = lens.orientation
+        if turn == 1 and given.stored_pixels and views.orientations:
+            turn = views.orientations[i]
+        stored = stored_size(turn, *size)
+        if stored != (lens.width, lens.height):
+            if stored[0] > lens.width or abs(lens.height * stored[0] / lens.width - stored[1]) > 0.5:
+                shown = f"{size[0]}x{size[1]}" + (f" (stored {stored[0]}x{stored[1]})" if turn != 1 else "")
                 raise SurfSplatInputError(
-                    f"{source}: image {name!r} is {size[0]}x{size[1]} but its {lens.model} lens is calibrated for "
+                    f"{source}: image {name!r} is {shown} but its {lens.model} lens is calibrated for "
                     f"{lens.width}x{lens.height} (the photos must be that size or a uniform downscale of it)"
                 )
-            lens = lens.rescaled(*size)
-        pinhole = pinhole_of(lens)
+            lens = lens.rescaled(*stored)
+        if turn != lens.orientation:  # cameras of the stored pixels meet the photo's EXIF turn here
+            flat = pinhole_of(lens, f"{source}: {name}")
+            _, c2w, _ = displayed_camera(
+                flat.intrinsics(c2w.dtype), c2w, flat.width, flat.height, turn, source=f"{source}: {name}"
+            )
+            lens = lens.turned(turn)
+        pinhole = pinhole_of(lens, f"{source}: {name}")
         pairs.append((lens, pinhole))
         Ks.append(pinhole.intrinsics())
+        c2ws.append(c2w)
     sizes = sorted({(p.width, p.height) for _, p in pairs})
     if len(sizes) != 1:
         raise SurfSplatInputError(
@@ -554,7 +572,7 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
             f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {width}x{height} pinholes "
             f"as they are read (from {views.width}x{views.height})"
         )
-    return undistorted, torch.stack(Ks).to(given.cameras.K.dtype)
+    return undistorted, torch.stack(Ks).to(given.cameras.K.dtype), torch.stack(c2ws)
 
 
 def _depth_range(near: float | None, far: float | None, cams) -> tuple[float, float]:

@@ -189,8 +189,11 @@ class Scene:
             names = Lens.from_dict(source).param_names
             params = ", ".join(f"{n} {v:.6g}" for n, v in zip(names, source["params"]))
             fx, fy, cx, cy = pinhole["params"]
+            turn = source.get("orientation", 1)
+            stored = f" (the stored pixels of photos turned by EXIF orientation {turn})" if turn != 1 else ""
             lines.append(
-                f"lens {source['model']} ({params}) at {source['width']}x{source['height']}, {len(group['views'])} "
+                f"lens {source['model']} ({params}) at {source['width']}x{source['height']}{stored}, "
+                f"{len(group['views'])} "
                 f"view{'s' if len(group['views']) > 1 else ''}: photos undistorted to a {pinhole['width']}x"
                 f"{pinhole['height']} pinhole (fx {fx:.6g}, fy {fy:.6g}, cx {cx:.6g}, cy {cy:.6g}), "
                 f"then rescaled and cropped to the {self.width}x{self.height} working size"

@@ -172,11 +172,13 @@ def load_reconstruction(folder: str | Path) -> tuple[Scene, Tensor]:
         rgb, _ = read_image(path, background=(0.0, 0.0, 0.0))  # as reconstruct composites them
         if lens is not None:  # undistorted to its pinhole first, as reconstruct read it
             from ..data.formats.common import undistort_photo
+            from ..geometry.orientation import displayed_size
 
-            if (rgb.shape[2], rgb.shape[1]) != (lens.width, lens.height):
+            shown = displayed_size(lens.orientation, lens.width, lens.height)  # a lens of stored pixels turns
+            if (rgb.shape[2], rgb.shape[1]) != shown:
                 raise SurfSplatInputError(
                     f"{path}: photo is {rgb.shape[2]}x{rgb.shape[1]} but its {lens.model} lens in {cameras_file} "
-                    f"is for {lens.width}x{lens.height}"
+                    f"is for {shown[0]}x{shown[1]}"
                 )
             rgb = undistort_photo(rgb, lens)
         resized, _, _ = rescale_and_crop(rgb[None].float(), torch.eye(3)[None], (height, width))

@@ -20,7 +20,7 @@ import torch
 
 from ..data.cameras import CameraSet, is_uniform_rescale
 from ..geometry.cameras import Cameras
-from ..geometry.orientation import TRANSPOSED, displayed_camera
+from ..geometry.orientation import TRANSPOSED, displayed_camera, stored_size
 from ..utils.checks import SurfSplatInputError
 
 CROP_WARN_SHARE = 0.9  # a view keeping less than this share of its pixels is named in the warning
@@ -38,7 +38,9 @@ def view_cameras(
 
     own_pixels: each K is already in pixels of its own view (Cameras given one per view), kept as they are.
     Otherwise K is in pixels of given.width x given.height, rescaled uniformly per view; a view turned by
-    its EXIF orientation (5-8) whose stored size fits the calibrated one is turned with its camera."""
+    its EXIF orientation (5-8) whose stored size fits the calibrated one is turned with its camera, and so
+    is every view an orientation turns (3, 6, 8) where the cameras are of the stored pixels
+    (`CameraSet.stored_pixels`); a mirrored one is one error line."""
     if own_pixels:
         return given.cameras
     calibrated = (given.width, given.height)
@@ -46,7 +48,22 @@ def view_cameras(
     Ks, c2ws = [], []
     for i, (w, h) in enumerate(sizes):
         K, c2w = given.cameras.K[i], given.cameras.c2w[i]
-        if given.fits(w, h):  # a uniform rescale, or the photos a working crop was cut from
+        turn = orientations[i] if orientations else 1
+        if given.stored_pixels and turn != 1:
+            # cameras of the stored pixels (a COLMAP model read without its photos): the photo's stored
+            # size is the calibrated one or a uniform rescale of it, and its camera turns with the photo
+            sw, sh = stored_size(turn, w, h)
+            if not is_uniform_rescale(calibrated, (sw, sh)):
+                raise SurfSplatInputError(
+                    f"{source}: {names[i]} is {w}x{h} as displayed (EXIF orientation {turn}; stored {sw}x{sh}) but "
+                    f"the cameras are for {given.width}x{given.height} (only a uniform rescale of the calibrated "
+                    "size is accepted)"
+                )
+            stored = K * torch.tensor([sw / given.width, sh / given.height, 1.0], dtype=K.dtype)[:, None]
+            K2, c2w2, _ = displayed_camera(stored, c2w, sw, sh, turn, source=f"{source}: {names[i]}")
+            Ks.append(K2)
+            c2ws.append(c2w2)
+        elif given.fits(w, h):  # a uniform rescale, or the photos a working crop was cut from
             resized = given.resized(w, h, f"{source}: {names[i]}")
             Ks.append(resized.K[i])
             c2ws.append(resized.c2w[i])

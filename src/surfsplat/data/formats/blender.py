@@ -37,7 +37,9 @@ import torch
 
 from ...geometry.cameras import Cameras
 from ...geometry.lens import Lens
+from ...geometry.orientation import stored_size
 from ...utils.checks import SurfSplatInputError, read_json
+from ..images import image_orientation
 from ..posed_images import PosedImages, check_finite_rows, downscale_from_folder
 from .common import (
     camera_set,
@@ -86,49 +88,72 @@ def _size(entry: dict[str, Any], key: str, source: str) -> int:
     return int(round(value))
 
 
-def frame_lens(entry: dict[str, Any], image_size: tuple[int, int], source: str) -> Lens:
-    """The lens of one frame (its keys over the top level's) at its calibrated size, as a COLMAP model."""
+def frame_lens(
+    entry: dict[str, Any],
+    image_size: tuple[int, int],
+    source: str,
+    frame_keys=None,
+    top_source: str | None = None,
+) -> Lens:
+    """The lens of one frame (its keys over the top level's) at its calibrated size, as a COLMAP model.
+
+    image_size: the stored pixels' (width, height), the default of a missing w / h. An error about a key
+    names the frame (`source`) where the frame holds it (`frame_keys`), else the file's top level
+    (`top_source`)."""
+    if frame_keys is not None and top_source is not None:
+        keys = set(frame_keys)
+        frame_source = source
+
+        def at(key: str) -> str:
+            return frame_source if key in keys else top_source
+    else:
+
+        def at(key: str) -> str:
+            return source
+
     w, h = image_size
     if "fl_x" in entry:
-        fx = _number(entry, "fl_x", source)
-        fy = _number(entry, "fl_y", source) if "fl_y" in entry else fx
-        cw = _size(entry, "w", source) if "w" in entry else w
-        ch = _size(entry, "h", source) if "h" in entry else h
-        cx = _number(entry, "cx", source) if "cx" in entry else cw / 2
-        cy = _number(entry, "cy", source) if "cy" in entry else ch / 2
+        fx = _number(entry, "fl_x", at("fl_x"))
+        fy = _number(entry, "fl_y", at("fl_y")) if "fl_y" in entry else fx
+        cw = _size(entry, "w", at("w")) if "w" in entry else w
+        ch = _size(entry, "h", at("h")) if "h" in entry else h
+        cx = _number(entry, "cx", at("cx")) if "cx" in entry else cw / 2
+        cy = _number(entry, "cy", at("cy")) if "cy" in entry else ch / 2
     elif "camera_angle_x" in entry:
-        cw = _size(entry, "w", source) if "w" in entry else w
-        ch = _size(entry, "h", source) if "h" in entry else h
-        fx = 0.5 * cw / math.tan(0.5 * _number(entry, "camera_angle_x", source))
+        cw = _size(entry, "w", at("w")) if "w" in entry else w
+        ch = _size(entry, "h", at("h")) if "h" in entry else h
+        fx = 0.5 * cw / math.tan(0.5 * _number(entry, "camera_angle_x", at("camera_angle_x")))
         angle_y = "camera_angle_y" in entry
-        fy = 0.5 * ch / math.tan(0.5 * _number(entry, "camera_angle_y", source)) if angle_y else fx
+        fy = 0.5 * ch / math.tan(0.5 * _number(entry, "camera_angle_y", at("camera_angle_y"))) if angle_y else fx
         cx, cy = cw / 2, ch / 2
     else:
         raise SurfSplatInputError(f"{source}: no intrinsics (expected 'fl_x' or 'camera_angle_x')")
     for key, value in (("fl_x", fx), ("fl_y", fy)):
         if not value > 0:
-            raise SurfSplatInputError(f"{source}: field '{key}' must be a positive focal length, got {value!r}")
-    k = {key: _number(entry, key, source) for key in DISTORTION_KEYS if key in entry}
+            raise SurfSplatInputError(f"{at(key)}: field '{key}' must be a positive focal length, got {value!r}")
+    k = {key: _number(entry, key, at(key)) for key in DISTORTION_KEYS if key in entry}
     k1, k2, k3, k4, p1, p2 = (k.get(key, 0.0) for key in DISTORTION_KEYS)
     model = entry.get("camera_model")
     if model is None:  # instant-ngp: the keys present decide
         fisheye = entry.get("is_fisheye", False)
         if not isinstance(fisheye, bool):
-            raise SurfSplatInputError(f"{source}: field 'is_fisheye' must be true or false, got {fisheye!r}")
+            raise SurfSplatInputError(f"{at('is_fisheye')}: field 'is_fisheye' must be true or false, got {fisheye!r}")
         model = "OPENCV_FISHEYE" if fisheye else "OPENCV"
     elif model not in PERSPECTIVE_MODELS + FISHEYE_MODELS:
         supported = ", ".join(PERSPECTIVE_MODELS + FISHEYE_MODELS)
-        raise SurfSplatInputError(f"{source}: field 'camera_model' is {model!r}, which is not supported ({supported})")
+        raise SurfSplatInputError(
+            f"{at('camera_model')}: field 'camera_model' is {model!r}, which is not supported ({supported})"
+        )
     if model in FISHEYE_MODELS:
         for key in ("p1", "p2"):
             if k.get(key, 0.0) != 0:
                 raise SurfSplatInputError(
-                    f"{source}: field '{key}' is {k[key]!r}, but the OpenCV fisheye model has no tangential terms"
+                    f"{at(key)}: field '{key}' is {k[key]!r}, but the OpenCV fisheye model has no tangential terms"
                 )
         return Lens("OPENCV_FISHEYE", cw, ch, (fx, fy, cx, cy, k1, k2, k3, k4))
     if k4 != 0:
         raise SurfSplatInputError(
-            f"{source}: field 'k4' is {k4!r}: a perspective lens's r^8 term has no COLMAP camera model "
+            f"{at('k4')}: field 'k4' is {k4!r}: a perspective lens's r^8 term has no COLMAP camera model "
             "(k1, k2, k3, p1, p2 are read); undistort these photos first"
         )
     if k3 != 0:
@@ -205,16 +230,23 @@ def read_transforms(
     c2w_gl_t = c2w_gl_t[keep]
 
     sizes = image_sizes(paths)
-    views = []
-    for i, frame, path, size in zip(keep, frames, paths, sizes):
-        entry = {**meta, **frame}  # per-frame intrinsics override the shared ones
-        lens = frame_lens(entry, size, f"{json_path}: frame {i}")
-        views.append(lens_view(lens, size, str(path), downscale_from_folder(path.parent)))
-    Ks, lenses, view_sizes = view_lenses(views)
-
     # OpenGL -> OpenCV flips the camera's y and z axes (the same matrix as Cameras.from_opengl,
     # applied here so that validation errors name the JSON file).
     c2w_cv = c2w_gl_t @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+    views = []
+    for j, (i, frame, path, size) in enumerate(zip(keep, frames, paths, sizes)):
+        entry = {**meta, **frame}  # per-frame intrinsics override the shared ones
+        # the file's camera is of the STORED pixels: nerfstudio and instant-ngp copy COLMAP's camera
+        # (w, h and the intrinsics of the image COLMAP read, which ignores the EXIF tag)
+        orientation = image_orientation(path)
+        stored = stored_size(orientation, *size)
+        where = f"{json_path}: frame {i}"
+        lens = frame_lens(entry, stored, where, frame.keys(), str(json_path))
+        views.append(
+            lens_view(lens, size, str(path), downscale_from_folder(path.parent), where, orientation, c2w_cv[j])
+        )
+    Ks, lenses, view_sizes = view_lenses(views)
+    c2w_cv = torch.stack([view[3] for view in views])
     cameras = make_cameras(c2w_cv, Ks, str(json_path), dtype)
     return TransformsCameras(json_path, paths, cameras, frames, lenses, view_sizes)
 

@@ -33,6 +33,7 @@ from ...geometry.cameras import rigid_inverse
 from ...geometry.lens import CAMERA_MODELS, MODEL_IDS, Lens
 from ...geometry.rotations import quat_to_matrix
 from ...utils.checks import SurfSplatInputError
+from ..images import image_orientation
 from ..posed_images import PosedImages, downscale_from_folder
 from .common import (
     camera_set,
@@ -239,6 +240,11 @@ def read_model(model_dir: Path) -> tuple[dict[int, Lens], dict[int, ColmapImage]
     return cameras, images, points
 
 
+def cameras_file(model_dir: Path) -> Path:
+    """The cameras file `read_model` reads in a model folder (binary preferred over text)."""
+    return model_dir / ("cameras.bin" if (model_dir / "cameras.bin").is_file() else "cameras.txt")
+
+
 def model_root(model_dir: Path) -> Path:
     """The capture folder of a model folder: <root>/sparse/0, <root>/sparse, or the model folder itself."""
     if model_dir.parent.name == "sparse":  # <root>/sparse/0
@@ -286,9 +292,10 @@ def model_cameras(model_dir: Path, dtype: torch.dtype = torch.float64):
     src = f"{model_dir}/images"
     c2w, _, _ = _poses(ordered, src)
     views = []
+    where = cameras_file(model_dir)
     for r in ordered:
         lens = _camera_of(cameras, r, src)
-        views.append(lens_view(lens, (lens.width, lens.height), f"{model_dir}/cameras: camera {r.camera_id}", False))
+        views.append(lens_view(lens, (lens.width, lens.height), f"{where}: camera {r.camera_id}", False))
     Ks, lenses, sizes = view_lenses(views)
     sizes_set = sorted(set(sizes))
     if len(sizes_set) != 1:
@@ -300,7 +307,8 @@ def model_cameras(model_dir: Path, dtype: torch.dtype = torch.float64):
 
     cams = make_cameras(c2w, Ks, src, dtype)
     (width, height) = sizes_set[0]
-    return CameraSet(cams, width, height, [r.name for r in ordered], lenses=lenses)
+    # no photo was read: the cameras are of the stored pixels, turned where the photos meet them
+    return CameraSet(cams, width, height, [r.name for r in ordered], lenses=lenses, stored_pixels=True)
 
 
 def load_colmap(
@@ -331,10 +339,19 @@ def load_colmap(
     c2w, R, t = _poses(ordered, src)
     sizes = image_sizes(paths)
     views = []
-    for r, p, size in zip(ordered, paths, sizes):
+    where = cameras_file(model_dir)
+    for i, (r, p, size) in enumerate(zip(ordered, paths, sizes)):
         lens = _camera_of(cameras, r, src)
-        views.append(lens_view(lens, size, str(p), downscale_from_folder(folder)))
+        # COLMAP calibrates the stored pixels (its Bitmap::Read sets oiio:reorient 0): a photo its EXIF
+        # orientation turns gets its camera turned with it
+        orientation = image_orientation(p)
+        views.append(
+            lens_view(
+                lens, size, str(p), downscale_from_folder(folder), f"{where}: camera {r.camera_id}", orientation, c2w[i]
+            )
+        )
     Ks, lenses, view_sizes = view_lenses(views)
+    c2w = torch.stack([view[3] for view in views])
     cams = make_cameras(c2w, Ks, src, dtype)
 
     near = far = None

@@ -147,36 +147,61 @@ def present_views(paths: list[Path], source: str) -> list[int]:
 
 
 def lens_view(
-    lens: Lens, image_size: tuple[int, int], source: str, allow_downscale: bool
-) -> tuple[Tensor, Lens | None, tuple[int, int]]:
-    """What one view is once read: (K [3, 3] float64, the lens at the photo's size or None, (width, height)).
+    lens: Lens,
+    image_size: tuple[int, int],
+    source: str,
+    allow_downscale: bool,
+    camera_source: str | None = None,
+    orientation: int = 1,
+    c2w: Tensor | None = None,
+) -> tuple[Tensor, Lens | None, tuple[int, int], Tensor | None]:
+    """What one view is once read: (K [3, 3] float64, the lens at the photo's size or None, (width, height),
+    c2w [4, 4] or None).
 
     A pinhole lens (or a perspective model with zero distortion) is its K, fitted to the photo's size as
     `fit_intrinsics` allows; any other lens is rescaled with the photo and undistorted to the pinhole
     COLMAP's image_undistorter chooses, whose K and size the view then has. Photos in a downscaled folder
-    carry the lens rescaled with them (`Lens.rescaled`, COLMAP's Camera::Rescale)."""
-    K = fit_intrinsics(lens.intrinsics(), (lens.width, lens.height), image_size, source, allow_downscale)
-    if lens.is_pinhole:
-        return K, None, image_size
-    if image_size != (lens.width, lens.height):
-        lens = lens.rescaled(*image_size)
+    carry the lens rescaled with them (`Lens.rescaled`, COLMAP's Camera::Rescale).
+
+    image_size is the photo as displayed (`read_image_size`) and `orientation` its EXIF orientation: the
+    lens describes the STORED pixels (COLMAP's image reader ignores the tag, and so do the tools that write
+    transforms.json from COLMAP's cameras), so for orientation 3, 6 or 8 the view's pinhole and its pose
+    `c2w` are turned with the photo (`surfsplat.geometry.orientation.displayed_camera`, exact) and its lens
+    carries the orientation (`Lens.orientation`: undistorted in the stored frame, then turned). A mirrored
+    orientation (2, 4, 5, 7) is one error line. `camera_source` (the camera record) starts the error line of
+    a lens with no valid region, and of a mirrored photo."""
+    from ...geometry.orientation import displayed_camera, stored_size
     from ..cameras import pinhole_of
 
-    pinhole = pinhole_of(lens)
-    return pinhole.intrinsics(), lens, (pinhole.width, pinhole.height)
+    where = camera_source or source
+    stored = stored_size(orientation, *image_size)
+    K = fit_intrinsics(lens.intrinsics(), (lens.width, lens.height), stored, source, allow_downscale)
+    if lens.is_pinhole:
+        flat, out_lens, size = pinhole_lens(K, *stored), None, stored
+    else:
+        out_lens = lens.rescaled(*stored) if stored != (lens.width, lens.height) else lens
+        flat = pinhole_of(out_lens, where)
+        size = (flat.width, flat.height)
+    if orientation == 1:
+        return flat.intrinsics(), out_lens, size, c2w
+    pose = torch.eye(4, dtype=torch.float64) if c2w is None else c2w
+    K_d, c2w_d, size_d = displayed_camera(
+        flat.intrinsics(), pose, flat.width, flat.height, orientation, source=f"{where} ({Path(source).name})"
+    )
+    return K_d, None if out_lens is None else out_lens.turned(orientation), size_d, None if c2w is None else c2w_d
 
 
 def view_lenses(
-    views: list[tuple[Tensor, Lens | None, tuple[int, int]]],
+    views: list[tuple[Tensor, Lens | None, tuple[int, int], Tensor | None]],
 ) -> tuple[Tensor, list[Lens] | None, list[tuple[int, int]]]:
     """(K [N, 3, 3], lenses, sizes) of `lens_view` results. `lenses` is None when every view is a
     pinhole, else one Lens a view (a pinhole view's own PINHOLE lens, which needs no undistortion)."""
-    Ks = torch.stack([K for K, _, _ in views])
-    sizes = [size for _, _, size in views]
-    if all(lens is None for _, lens, _ in views):
+    Ks = torch.stack([K for K, _, _, _ in views])
+    sizes = [size for _, _, size, _ in views]
+    if all(lens is None for _, lens, _, _ in views):
         return Ks, None, sizes
     lenses = [
-        lens if lens is not None else pinhole_lens(K, *size) for (K, lens, _), size in zip(views, sizes, strict=True)
+        lens if lens is not None else pinhole_lens(K, *size) for (K, lens, _, _), size in zip(views, sizes, strict=True)
     ]
     return Ks, lenses, sizes
 
@@ -188,7 +213,7 @@ def pinhole_lens(K: Tensor, width: int, height: int) -> Lens:
 
 
 def undistort_photo(image: Tensor, lens: Lens, mode: str = "bilinear") -> Tensor:
-    """One photo [C, H, W] at its lens's size undistorted to the lens's pinhole (unchanged for a pinhole)."""
+    """One photo [C, H, W] as read (displayed) undistorted to the lens's pinhole (unchanged for a pinhole)."""
     if lens.is_pinhole:
         return image
     from ..cameras import pinhole_of
