@@ -522,8 +522,12 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
     """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), and their K [V, 3, 3]:
     each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled with it,
     `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter chooses; K is that
-    pinhole's, so every stage after this one sees pinhole photos and cameras."""
+    pinhole's, so every stage after this one sees pinhole photos and cameras. Lenses of several sizes (portrait
+    and landscape photos, two phones) give pinholes of several sizes: each view keeps its own, and the views
+    then go the way of photos of several sizes (`surfsplat.reconstruction.sizes`: each rescaled and cropped
+    to the working size on its own, the reference size the most common orientation's)."""
     from ..data.cameras import pinhole_of
+    from .inputs import reference_size
 
     pairs, Ks = [], []
     for i, (name, lens) in enumerate(zip(views.names, given.lenses, strict=True)):
@@ -538,21 +542,18 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
         pinhole = pinhole_of(lens)
         pairs.append((lens, pinhole))
         Ks.append(pinhole.intrinsics())
-    sizes = sorted({(p.width, p.height) for _, p in pairs})
-    if len(sizes) != 1:
-        raise SurfSplatInputError(
-            f"{source}: the views' lenses undistort to different sizes {[f'{w}x{h}' for w, h in sizes]}; "
-            "a reconstruction has one size"
-        )
-    ((width, height),) = sizes
+    sizes = [(p.width, p.height) for _, p in pairs]
+    width, height = reference_size(sizes)
     undistorted = views.subset(list(range(len(views))))
     undistorted.width, undistorted.height, undistorted.lenses = width, height, pairs
-    undistorted.sizes = [(width, height)] * len(pairs)
+    undistorted.sizes = sizes
     models = sorted({lens.model for lens, _ in pairs if not lens.is_pinhole})
     if models:
+        shown = ", ".join(f"{w}x{h}" for w, h in dict.fromkeys(sizes))
+        before = ", ".join(f"{w}x{h}" for w, h in dict.fromkeys(views.sizes or [(views.width, views.height)]))
         logger.info(
-            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {width}x{height} pinholes "
-            f"as they are read (from {views.width}x{views.height})"
+            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {shown} pinholes "
+            f"as they are read (from {before})"
         )
     return undistorted, torch.stack(Ks).to(given.cameras.K.dtype)
 
