@@ -103,7 +103,7 @@ def test_dtu_scan24_of_two_sizes_pose_free_within_a_degree_and_each_k_its_own(da
 def test_fixture_pair_landscape_and_portrait_two_cameras_each_its_exif_focal(tmp_path, capsys):
     """The 100x75 fixture's views 12 and 13, the second turned to a 75x100 portrait, each with its 35 mm
     equivalent focal length in EXIF; `surfsplat poses` with the pinhole model (at 100x75 a SIMPLE_RADIAL's k
-    is not determined by two views: it ran to 0.6-6 on the fixture's pairs): two cameras, each its size's
+    is not determined by two views: it came out from -2.5 to 6 on the fixture's pairs): two cameras, each its size's
     EXIF focal and centre, the relative rotation within 1 degree of the calibration turned with the photo,
     and a camera file whose frames each record their own size's lens."""
     paths, _, c2w_true, f35 = _mixed_views(FIXTURE, "images_16", [12, 13], "portrait", tmp_path, 2, exif=True)
