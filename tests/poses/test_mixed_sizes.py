@@ -215,3 +215,54 @@ def test_reconstruct_pose_free_dtu_with_portraits_undistorts_each_view_to_its_ow
     again = surfsplat.reconstruct(paths, cameras=out / "estimated_cameras.json", **run)
     torch.testing.assert_close(again.cameras.K, scene.cameras.K, rtol=0, atol=0)
     torch.testing.assert_close(again.cameras.c2w, scene.cameras.c2w, rtol=0, atol=1e-6)
+
+
+def test_each_size_is_extracted_at_its_own_size_with_its_own_first_octave(tmp_path, monkeypatch):
+    """Sizes on both sides of sift_upsample_below: every photo goes to SIFT once, at its own size's extraction
+    size, with its size's first octave (-1, upsampled, below the threshold), and its keypoints come back in
+    its own pixels (the extraction-size keypoints divided by its own scale)."""
+    import pycolmap
+
+    from surfsplat.poses.estimate import _extraction_size, _Workspace
+
+    small = np.asarray(Image.open(FIXTURE / "images_16" / "000012.png").convert("RGB"))  # 100x75
+    large = np.asarray(Image.fromarray(small).resize((160, 120), Image.Resampling.LANCZOS))
+    config = PoseConfig(min_extraction_size=64, max_size=140, sift_upsample_below=120)
+    sizes = [(100, 75), (160, 120)]
+    ext = [_extraction_size(s, config) for s in sizes]
+    assert ext == [(100, 75), (140, 105)]  # kept, and the long side brought down to max_size
+    calls, real = [], pycolmap.extract_features
+
+    def spy(*args, **kwargs):
+        calls.append((list(kwargs["image_names"]), kwargs["extraction_options"].sift.first_octave))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "extract_features", spy)
+    monkeypatch.setattr(pycolmap.logging, "minloglevel", 3)  # as estimate_cameras runs COLMAP: quiet
+    work = _Workspace(tmp_path, ["a", "b", "c"], sizes, [0, 1, 0], [120.0, 192.0], "prior", "SIMPLE_RADIAL", config)
+    work.extract([small, large, small], ext)
+    assert calls == [(["s0/000000.png", "s0/000002.png"], -1), (["s1/000001.png"], 0)]
+    db = pycolmap.Database.open(work.database)
+    try:
+        cameras = {c.camera_id: c for c in db.read_all_cameras()}
+        images = {im.name: im for im in db.read_all_images()}
+        assert [images[f].camera_id for f in work.files] == [1, 2, 1]  # a camera per size
+        for camera_id, (w, h), f in ((1, sizes[0], 120.0), (2, sizes[1], 192.0)):
+            assert (cameras[camera_id].width, cameras[camera_id].height) == (w, h)
+            assert list(cameras[camera_id].params) == [f, w / 2, h / 2, 0.0]  # in the input pixels of its size
+        kp_large = db.read_keypoints(images["s1/000001.png"].image_id)
+    finally:
+        db.close()
+    # keypoints in the 160x120 photo's own pixels: the keypoints of its 140x105 extraction copy, extracted
+    # alone (one size, nothing rescaled), times 160 / 140
+    copy = np.asarray(Image.fromarray(large).resize((140, 105), Image.Resampling.LANCZOS))
+    (tmp_path / "alone").mkdir()
+    alone = _Workspace(tmp_path / "alone", ["b"], [(140, 105)], [0], [168.0], "prior", "SIMPLE_RADIAL", config)
+    alone.extract([copy], [(140, 105)])
+    db = pycolmap.Database.open(alone.database)
+    try:
+        reference = db.read_keypoints(alone.ids["b"])
+    finally:
+        db.close()
+    assert len(reference) == len(kp_large) > 20
+    np.testing.assert_allclose(kp_large[:, :2], reference[:, :2] * np.float32(160 / 140), rtol=1e-6)
