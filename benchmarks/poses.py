@@ -20,6 +20,16 @@ it) by OpenCV's inverse map, then estimated pose-free with each camera model; pe
 error after aligning the estimated world to the calibration's (`aligned_pose_errors`), the fitted
 distortion beside the true one. Results: benchmarks/results/poses_lens.json and a table.
 --repeat N: N estimations of the same distorted photos per thread setting, compared bit for bit.
+
+    python benchmarks/poses.py --mixed               # photos of several sizes: a camera per size
+
+--mixed: DTU scan 24's views 12..26 (400x300, from the full samples) as one size (the control), with
+every other view resized to 300x225 (Lanczos), and with every third view turned 90 degrees clockwise to a
+300x400 portrait (pixels turned, no EXIF); estimated pose-free (focal unknown, --mixed-model, default
+auto); per capture the rotation error of each view after aligning
+to the calibration (turned with the photo for the portraits), and each camera's fitted focal length
+against its true one (the calibration's, scaled or turned with the photo). Results:
+benchmarks/results/poses_mixed.json and a table.
 """
 
 from __future__ import annotations
@@ -243,6 +253,137 @@ def run_repeat(folder: Path, threads: int, mapping_threads: int, repeats: int) -
     }
 
 
+MIXED_KINDS = ("one size", "resized", "portrait")
+
+
+def write_mixed_dtu(folder: Path, data: Path, kind: str) -> list[Path]:
+    """DTU scan 24 views 12..26 into folder as `kind` (see --mixed), with truth.pt: each view's true K and c2w."""
+    import torch
+    from PIL import Image
+
+    from surfsplat.data.load import load_scene
+    from surfsplat.geometry.orientation import displayed_camera
+
+    scene = load_scene(data / "dtu_scan24", images="images_4", dtype=torch.float64)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, Ks, c2ws = [], [], []
+    for k, v in enumerate(DTU_VIEWS):
+        photo = Image.open(data / "dtu_scan24" / "images_4" / f"{v:06d}.png").convert("RGB")
+        W, H = photo.size
+        K, c2w = scene.cameras.K[v].clone(), scene.cameras.c2w[v].clone()
+        K[0, 1] = 0.0  # the calibration's 5e-5 px skew: no turned pinhole keeps one
+        if kind == "resized" and k % 2 == 1:
+            w, h = round(0.75 * W), round(0.75 * H)
+            photo = photo.resize((w, h), Image.Resampling.LANCZOS)
+            K[:2] *= torch.tensor([w / W, h / H], dtype=K.dtype)[:, None]
+        elif kind == "portrait" and k % 3 == 1:
+            photo = photo.transpose(Image.Transpose.ROTATE_270)  # 90 degrees clockwise, as EXIF orientation 6 shows
+            K, c2w, _ = displayed_camera(K, c2w, W, H, 6)
+        paths.append(folder / f"{k:02d}_{v:06d}.png")
+        photo.save(paths[-1])
+        Ks.append(K)
+        c2ws.append(c2w)
+    torch.save({"names": [p.name for p in paths], "K": torch.stack(Ks), "c2w": torch.stack(c2ws)}, folder / "truth.pt")
+    return paths
+
+
+def run_mixed(folder: Path, kind: str, model: str, threads: int) -> dict:
+    import torch
+
+    from surfsplat.poses import PoseConfig, aligned_pose_errors, estimate_cameras
+
+    truth = torch.load(folder / "truth.pt")
+    paths = [folder / n for n in truth["names"]]
+    start, start_cpu = time.perf_counter(), _cpu_seconds()
+    cams, summary = estimate_cameras(paths, config=PoseConfig(camera_model=model, threads=threads))
+    seconds, cpu = time.perf_counter() - start, _cpu_seconds() - start_cpu
+    picked = [truth["names"].index(n) for n in cams.names]
+    rot, centre = aligned_pose_errors(cams.cameras.c2w, truth["c2w"][picked])
+    cameras = []
+    for camera in summary.cameras:
+        first = truth["names"].index(camera.images[0])
+        true_f = float(truth["K"][first, 0, 0])
+        cameras.append(
+            {
+                "size": f"{camera.width}x{camera.height}",
+                "images": len(camera.images),
+                "model": camera.lens.model,
+                "params": dict(zip(camera.lens.param_names, camera.lens.params)),
+                "true_f": true_f,
+                "focal_error": camera.lens.params[0] / true_f - 1,
+                "pinhole": camera.pinhole.to_dict(),
+            }
+        )
+    return {
+        "capture": kind,
+        "camera_model": model,
+        "model_choice": summary.model_choice,
+        "registered": len(summary.registered),
+        "views": len(paths),
+        "points": summary.points,
+        "reprojection_error_px": summary.reprojection_error,
+        "cameras": cameras,
+        "rotation_error_deg": {n: float(r) for n, r in zip(cams.names, rot)},
+        "max_rotation_error_deg": float(rot.max()),
+        "median_rotation_error_deg": float(statistics.median(rot.tolist())),
+        "max_centre_error_share": float(centre.max()),
+        "seconds": seconds,
+        "cpu_s": cpu,
+        "stages_s": summary.timings,
+    }
+
+
+def mixed_main(args) -> int:
+    import pycolmap
+
+    data = sample_data()
+    if data != SHARED_DATA:
+        print(f"--mixed needs DTU scan 24 at 400x300 from the full samples ({SHARED_DATA})", file=sys.stderr)
+        return 1
+    model = args.mixed_model
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="poses-mixed-") as tmp:
+        for kind in MIXED_KINDS:
+            folder = Path(tmp) / kind.replace(" ", "_")
+            write_mixed_dtu(folder, data, kind)
+            cmd = [sys.executable, __file__, "--mixed-single", str(folder), kind, model, "--threads", str(args.threads)]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                print(f"mixed {kind}: failed\n{done.stderr.strip()[-2000:]}", file=sys.stderr)
+                return 1
+            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(f"mixed {kind}: done", file=sys.stderr)
+    report = {
+        "benchmark": "pose-free camera estimation of photos of several sizes (surfsplat.poses.estimate_cameras)",
+        "images": f"DTU scan 24 views {DTU_VIEWS[0]}..{DTU_VIEWS[-1]} (images_4, 400x300): one size; every other "
+        "view resized to 300x225; every third view turned 90 degrees clockwise to 300x400 (no EXIF)",
+        "alignment": "rotations: the chordal mean rotation onto the calibration's (turned with the portraits)",
+        "machine": {**machine(), "pycolmap": pycolmap.__version__},
+        "results": rows,
+    }
+    out = write_results(args.out or "poses_mixed", report)
+    headers = ["capture", "registered", "cameras: size, images, f (error)", "reproj px", "max rot deg"]
+    headers += ["median rot deg", "CPU s", "seconds"]
+    table = [
+        [
+            r["capture"],
+            f"{r['registered']}/{r['views']}",
+            "; ".join(
+                f"{c['size']}, {c['images']}, {c['params']['f']:.1f} ({c['focal_error']:+.2%})" for c in r["cameras"]
+            ),
+            f"{r['reprojection_error_px']:.3f}",
+            f"{r['max_rotation_error_deg']:.3f}",
+            f"{r['median_rotation_error_deg']:.3f}",
+            f"{r['cpu_s']:.0f}",
+            f"{r['seconds']:.1f}",
+        ]
+        for r in rows
+    ]
+    print(text_table(headers, table))
+    print(f"(load average at the end {os.getloadavg()[0]:.2f}; written to {out})")
+    return 0
+
+
 def _cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
@@ -269,7 +410,17 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default benchmarks/results/...)")
     parser.add_argument("--lens-single", nargs=3, help=argparse.SUPPRESS)  # internal: FOLDER MODEL CENTRED -> JSON
     parser.add_argument("--repeat-single", nargs=2, help=argparse.SUPPRESS)  # internal: FOLDER THREADS/MAPPING -> JSON
+    parser.add_argument("--mixed", action="store_true", help="photos of several sizes: DTU views resized or turned")
+    parser.add_argument("--mixed-model", default="auto", help="--mixed: the camera model fitted (default auto)")
+    parser.add_argument("--mixed-single", nargs=3, help=argparse.SUPPRESS)  # internal: FOLDER KIND MODEL -> JSON
     args = parser.parse_args()
+
+    if args.mixed_single:
+        folder, kind, model = args.mixed_single
+        print(json.dumps(run_mixed(Path(folder), kind, model, args.threads)))
+        return 0
+    if args.mixed:
+        return mixed_main(args)
 
     if args.lens_single:
         folder, model, centred = args.lens_single

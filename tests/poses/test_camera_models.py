@@ -196,7 +196,9 @@ def _observed_through(lens: Lens, noise_px: float, tmp_path):
         seen = truth.img_from_cam(points @ w2c[:3, :3].T + w2c[:3, 3])
         inside &= ((seen > 1) & (seen < [W - 1, H - 1])).all(1)
     points = points[inside][:400]
-    work = _Workspace(tmp_path, [f"v{i}" for i in range(5)], (W, H), F, "prior", "SIMPLE_RADIAL", PoseConfig())
+    work = _Workspace(
+        tmp_path, [f"v{i}" for i in range(5)], [(W, H)], [0] * 5, [F], "prior", "SIMPLE_RADIAL", PoseConfig()
+    )
     recon = pycolmap.Reconstruction()
     recon.add_camera_with_trivial_rig(work.camera())
     observations = []

@@ -294,12 +294,19 @@ def test_unreadable_and_non_image_files(orbit_views, tmp_path, capsys):
     assert not (tmp_path / "c.json").exists()
 
 
-def test_images_of_different_sizes(orbit_views, tmp_path, capsys):
+def test_focal_with_photos_of_several_sizes_is_refused(orbit_views, tmp_path, capsys):
+    """One focal length in pixels fits photos of one size: with several, --focal is one line, exit 2, no file."""
     paths = _save(orbit_views[0][:2], tmp_path)
     Image.open(paths[1]).resize((320, 240)).save(paths[1])
-    assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json")]) == 2
+    with pytest.raises(SurfSplatInputError, match=r"^--focal: one focal length in pixels fits photos of one size, "):
+        estimate_cameras(paths, focal=300.0)
+    assert main(["poses", *map(str, paths), "--out", str(tmp_path / "c.json"), "--focal", "300"]) == 2
     err = capsys.readouterr().err
-    assert "all images must have one size" in err and "view0.png 400x300, view1.png 320x240" in err
+    assert err == (
+        "surfsplat poses: error: --focal: one focal length in pixels fits photos of one size, these have 2 "
+        "(400x300, 320x240); leave it out (EXIF, else bundle adjustment, finds one per size)\n"
+    )
+    assert not (tmp_path / "c.json").exists()
 
 
 def test_too_few_matches_names_the_pair_and_count(orbit_views, tmp_path, capsys):

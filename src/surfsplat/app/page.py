@@ -24,9 +24,9 @@ logger = logging.getLogger(__name__)
 
 INTRO = """# SurfSplat: photos to a surface of 2D Gaussian surfels
 
-Drop **two or more photos** of one scene (one size, taken a step apart), **one video** filmed while moving
-around it, or **a processed capture**: a zip (or a folder) of photos with the `transforms.json` of nerfstudio /
-instant-ngp or a COLMAP model (`sparse/0`). Cameras are estimated from the pictures unless a camera file
+Drop **two or more photos** of one scene (taken a step apart; portrait and landscape may mix), **one video**
+filmed while moving around it, or **a processed capture**: a zip (or a folder) of photos with the `transforms.json`
+of nerfstudio / instant-ngp or a COLMAP model (`sparse/0`). Cameras are estimated from the pictures unless a camera file
 comes with them. The result is a 3D scene you can turn in the viewer below, renders at x1 and x4, and files
 to download.
 """

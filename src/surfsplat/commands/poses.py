@@ -6,7 +6,8 @@
 Writes the JSON camera file `load_cameras` reads (OpenCV camera-to-world, near/far; K of the pinhole
 the photos are undistorted to, and each frame's fitted lens as "lens": COLMAP model, size and
 parameters) and prints what happened: images registered, matches and inliers per pair, 3D points,
-mean reprojection error, the focal length and where it came from, the camera model fitted and why. World frame: the first
+mean reprojection error, the focal length and where it came from, the camera model fitted and why
+(photos of several sizes: a camera per size, each frame's "lens" that of its size). World frame: the first
 registered photo's camera; unit of length: the median depth of the points it sees is 4. See
 `surfsplat.poses` for the pipeline.
 """
@@ -44,7 +45,12 @@ def add_pose_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", type=Path, help="two or more photos of one scene, all of one size")
+    parser.add_argument(
+        "images",
+        nargs="+",
+        type=Path,
+        help="two or more photos of one scene (of one size, or of several: a camera per size)",
+    )
     parser.add_argument("--out", type=Path, default=Path("cameras.json"), help="camera file to write (.json)")
     add_pose_arguments(parser)
     add_depth_range(

@@ -2,12 +2,13 @@
 `surfsplat reconstruct` without a camera file. See `estimate.py` for the pipeline and conventions."""
 
 from .errors import aligned_pose_errors, relative_pose_errors
-from .estimate import PairStats, PoseConfig, PoseSummary, estimate_cameras
+from .estimate import PairStats, PoseCamera, PoseConfig, PoseSummary, estimate_cameras
 from .exif import exif_focal
 
 __all__ = [
     "PairStats",
     "aligned_pose_errors",
+    "PoseCamera",
     "PoseConfig",
     "PoseSummary",
     "estimate_cameras",

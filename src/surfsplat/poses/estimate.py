@@ -42,6 +42,18 @@ Pipeline (every estimator is pycolmap's; this module only chooses options and gl
    views 0-3 span 11 degrees) focal length and depth trade off, and refining a correct EXIF focal
    moved it by 16 % and the rotations by 1.8 degrees. With two views f is not observable and stays
    at its source; a given f is never changed.
+   Photos of several sizes (a phone's portrait and landscape photos, two phones, resized copies) get a
+   camera each per distinct (width, height), as COLMAP's automatic reconstruction does (its AUTO
+   camera mode shares a camera between photos whose EXIF make, model, focal length and size agree;
+   here every photo of one size shares its size's camera, EXIF or not, with its EXIF focal the
+   median of that size's). Each size has its own extraction size (step 1), focal source and lens,
+   mapped back to its own pixels; each view's K is its own size's pinhole, and `CameraSet.lenses`
+   gives every view its lens (pinhole models too: the lens's size says which pixels its K is in).
+   The lens model is chosen once for all cameras (the mapper fits one model; auto's OPENCV trial
+   refines every camera and is judged on their pooled reprojection error): the sizes are most
+   often one lens, and a size with a few photos alone would decide on too few observations. An
+   EXIF focal is kept (narrow spreads) only where every size has one, and `focal` (pixels of one
+   size) is refused for photos of several.
 5. Frame and scale: world = the first registered camera (identity rotation, centre at the
    origin), OpenCV axes. Scale: the median depth of the triangulated points seen from that camera
    is `PoseConfig.median_depth` (4 by default: the room scale RealEstate10K-trained checkpoints and
@@ -186,17 +198,33 @@ class PoseSummary:
     # auto: the largest distance (px) between the pixels SIMPLE_RADIAL's and OPENCV's fits give one ray, over the image
     model_difference_px: float | None = None
     model_excess_px: float | None = None  # auto: the reprojection error SIMPLE_RADIAL leaves that OPENCV explains
+    # (width, height) of every input image: photos of several sizes get a camera each (see PoseCamera)
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    # one per image size with a registered image, in order of first appearance; lens, pinhole, width, height,
+    # focal and extraction_size above are the first registered image's camera's
+    cameras: list[PoseCamera] = field(default_factory=list)
 
     @property
     def unregistered(self) -> list[str]:
         return [n for n in self.images if n not in self.registered]
 
+    def lens_of(self, name: str) -> Lens | None:
+        """The fitted lens of a registered image (its size's camera), in pixels of that image."""
+        for camera in self.cameras:
+            if name in camera.images:
+                return camera.lens
+        return self.lens if name in self.registered else None
+
     def lines(self) -> list[str]:
         """The human-readable summary printed by `surfsplat poses` and `reconstruct`."""
+        several = len(self.cameras) > 1
         out = [
             f"registered {len(self.registered)} of {len(self.images)} images ({self.method}) in {self.seconds:.1f} s",
-            f"focal {self.focal:.1f} px for {self.width}x{self.height} images ({self.focal_source})",
-            *self._lens_lines(),
+            f"focal {self.focal:.1f} px for {self.width}x{self.height} images ({self.focal_source})"
+            if not several
+            else f"{len(self.cameras)} cameras, one per image size (the lens model chosen once for all: "
+            f"{self.model_choice})",
+            *(self._lens_lines() if not several else [line for c in self.cameras for line in c.lines()]),
             f"{self.points} 3D points, mean reprojection error {self.reprojection_error:.3f} px",
             f"world: first camera at the origin, median point depth {self.median_depth:g}; "
             f"near {self.near:.3f}, far {self.far:.3f}",
@@ -241,6 +269,8 @@ class PoseSummary:
             "reprojection_error_px_by_model": self.model_errors,
             "model_difference_px": self.model_difference_px,
             "model_excess_px": self.model_excess_px,
+            "image_sizes": {name: list(size) for name, size in self.sizes.items()},
+            "cameras": [c.to_dict() for c in self.cameras],
             "width": self.width,
             "height": self.height,
             "extraction_size": list(self.extraction_size),
@@ -252,6 +282,46 @@ class PoseSummary:
             "timings": self.timings,
             "pairs": [vars(p) for p in self.pairs],
             "notes": self.notes,
+        }
+
+
+@dataclass
+class PoseCamera:
+    """The camera of the photos of one size: COLMAP's automatic reconstruction gives photos of another
+    size (a portrait photo among landscape ones, a second phone) a camera of their own."""
+
+    width: int
+    height: int
+    images: list[str]  # the registered images of this size, in input order
+    lens: Lens  # the fitted camera, in pixels of this size
+    pinhole: Lens  # the PINHOLE its photos are undistorted to
+    focal_source: str  # where its initial focal length came from
+    extraction_size: tuple[int, int]  # (width, height) at which SIFT ran on these photos
+
+    def lines(self) -> list[str]:
+        values = ", ".join(f"{n} {_format_param(n, v)}" for n, v in zip(self.lens.param_names, self.lens.params))
+        shown = ", ".join(self.images[:4]) + (", ..." if len(self.images) > 4 else "")
+        out = [
+            f"camera {self.width}x{self.height} ({len(self.images)} image{'s' if len(self.images) != 1 else ''}: "
+            f"{shown}): {self.lens.model} {values} (initial focal: {self.focal_source})"
+        ]
+        if not self.lens.is_pinhole:
+            fx, fy, cx, cy = self.pinhole.params
+            out.append(
+                f"  photos undistorted to PINHOLE {self.pinhole.width}x{self.pinhole.height}: "
+                f"fx {fx:.1f}, fy {fy:.1f}, cx {cx:.1f}, cy {cy:.1f}"
+            )
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "width": self.width,
+            "height": self.height,
+            "images": self.images,
+            "lens": self.lens.to_dict(),
+            "pinhole": self.pinhole.to_dict(),
+            "focal_source": self.focal_source,
+            "extraction_size": list(self.extraction_size),
         }
 
 
@@ -273,14 +343,17 @@ def estimate_cameras(
     """Cameras of two or more photos of one scene, estimated from the photos alone.
 
     images_or_paths: image files, or arrays ([H, W, 3] uint8 / float in [0, 1], or tensors
-        [3, H, W] in [0, 1]); all of one size.
-    focal: focal length in pixels of these images (overrides EXIF and the prior).
+        [3, H, W] in [0, 1]); of one size, or of several (portrait and landscape photos, two
+        phones): each size gets a camera of its own (see the module doc, 4).
+    focal: focal length in pixels of these images (overrides EXIF and the prior); photos of one size only.
     names: a name per image (default: the file names, or view_000, ... for arrays).
     colmap_model: a folder to write the reconstruction to as a COLMAP model (pycolmap's binary
         cameras/images/points3D files, the images by these names, the fitted lens in the input
         pixels, the world of the returned cameras: first camera at the origin, their scale).
-    Returns the cameras of the registered images (OpenCV c2w, K in pixels of the images, near/far)
-    in input order, and the summary. Raises SurfSplatInputError naming the cause when the photos
+    Returns the cameras of the registered images (OpenCV c2w, each K in pixels of the pinhole its
+    photo is undistorted to, near/far) in input order, and the summary. With several sizes
+    `CameraSet.lenses` holds every view's lens (pinhole models too), whose sizes say which pixels each
+    K is in; width x height are then the first registered image's. Raises SurfSplatInputError naming the cause when the photos
     do not define cameras (too few matches, pure rotation, a plane, unreadable files).
     """
     config = config or PoseConfig()
@@ -300,17 +373,27 @@ def estimate_cameras(
 
 
 def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_model) -> tuple[CameraSet, PoseSummary]:
-    height, width = arrays[0].shape[:2]
-    f0, focal_source, focal_origin = _initial_focal(config, paths, width, height)
-    long_side = max(width, height)
-    target = min(max(long_side, config.min_extraction_size), config.max_size)
-    s = target / long_side
-    ext_size = (max(1, round(width * s)), max(1, round(height * s)))
+    sizes = [(a.shape[1], a.shape[0]) for a in arrays]
+    distinct = list(dict.fromkeys(sizes))  # one camera per (width, height), in order of first appearance
+    groups = [distinct.index(size) for size in sizes]
+    if config.focal is not None and len(distinct) > 1:
+        listing = ", ".join(f"{w}x{h}" for w, h in distinct)
+        raise SurfSplatInputError(
+            f"--focal: one focal length in pixels fits photos of one size, these have {len(distinct)} ({listing}); "
+            "leave it out (EXIF, else bundle adjustment, finds one per size)"
+        )
+    focals = [
+        _initial_focal(config, [p for p, g in zip(paths, groups) if g == k], *distinct[k]) for k in range(len(distinct))
+    ]
+    # one rule for bundle adjustment: an EXIF focal is kept (narrow spreads) only where every size has one
+    origins = {origin for _, _, origin in focals}
+    focal_origin = origins.pop() if len(origins) == 1 else "prior"
+    ext_sizes = [_extraction_size(size, config) for size in distinct]
     model = MAPPING_MODEL.get(config.camera_model, config.camera_model)
     with tempfile.TemporaryDirectory(prefix="surfsplat-poses-") as tmp:
-        work = _Workspace(Path(tmp), names, (width, height), f0, focal_origin, model, config)
+        work = _Workspace(Path(tmp), names, distinct, groups, [f for f, _, _ in focals], focal_origin, model, config)
         timings = {"read": time.perf_counter() - start}
-        work.extract(arrays, ext_size)
+        work.extract(arrays, ext_sizes)
         timings["extract"] = time.perf_counter() - start - sum(timings.values())
         pairs = work.match()
         timings["match"] = time.perf_counter() - start - sum(timings.values())
@@ -320,11 +403,14 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_mod
             method = "two-view"
         else:
             recon, method, focal_note = work.incremental(pairs)
-        if focal_note is not None:
-            focal_source = focal_note.format(source=focal_source)
         recon, choice = work.choose_model(recon)
         timings["reconstruct"] = time.perf_counter() - start - sum(timings.values())
-        cameras, K, registered, depths, lens, pinhole = _export(recon, work.ids, names)
+        cameras, K, registered, depths, view_lenses, view_pinholes = _export(recon, work.ids, names)
+    first = groups[names.index(registered[0])]  # the summary's size, focal and lens: the first registered image's
+    lens, pinhole = view_lenses[0], view_pinholes[0]
+    focal_source = focals[first][1]
+    if focal_note is not None:
+        focal_source = focal_note.format(source=focal_source)
     notes = []
     dropped = [n for n in names if n not in registered]
     if dropped:
@@ -337,9 +423,21 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_mod
     if colmap_model is not None:
         _write_colmap_model(recon, work.ids, Path(colmap_model), scale * first_w2c[:3, :4])
     near, far = _depth_range(depths, config)
-    lenses = None if lens.is_pinhole else [lens] * len(registered)
-    views = Cameras(cameras, K.expand(len(registered), 3, 3).clone())
-    camera_set = CameraSet(views, pinhole.width, pinhole.height, registered, near, far, lenses)
+    # one size: the lens of every view where it has distortion (none: K says it all); several sizes: every
+    # view's lens, pinhole models too, since each lens's size says which pixels its view's K is in
+    several = len(distinct) > 1
+    lenses = list(view_lenses) if several or not lens.is_pinhole else None
+    camera_set = CameraSet(Cameras(cameras, K), pinhole.width, pinhole.height, registered, near, far, lenses)
+    per_size = []
+    for k, (w, h) in enumerate(distinct):
+        members = [i for i, n in enumerate(registered) if groups[names.index(n)] == k]
+        if members:
+            per_size.append(
+                PoseCamera(
+                    w, h, [registered[i] for i in members], view_lenses[members[0]], view_pinholes[members[0]],
+                    focals[k][1], ext_sizes[k],
+                )
+            )  # fmt: skip
     summary = PoseSummary(
         images=list(names),
         registered=registered,
@@ -349,9 +447,9 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_mod
         reprojection_error=float(recon.compute_mean_reprojection_error()),
         focal=float(lens.params[0]),
         focal_source=focal_source,
-        width=width,
-        height=height,
-        extraction_size=ext_size,
+        width=distinct[first][0],
+        height=distinct[first][1],
+        extraction_size=ext_sizes[first],
         near=near,
         far=far,
         median_depth=config.median_depth,
@@ -364,6 +462,8 @@ def _estimate(arrays, names, paths, config: PoseConfig, start: float, colmap_mod
         model_errors=choice.errors,
         model_difference_px=choice.difference_px,
         model_excess_px=choice.excess_px,
+        sizes=dict(zip(names, sizes)),
+        cameras=per_size,
     )
     return camera_set, summary
 
@@ -400,12 +500,6 @@ def _load_images(items: Sequence[ImageInput], names: Sequence[str] | None) -> tu
         raise SurfSplatInputError(
             f"images: file names must be unique (cameras are keyed by name), repeated: {repeated}"
         )
-    sizes = {a.shape[1::-1] for a in arrays}
-    if len(sizes) != 1:
-        listing = ", ".join(f"{n} {a.shape[1]}x{a.shape[0]}" for n, a in zip(names, arrays))
-        raise SurfSplatInputError(
-            f"images: all images must have one size (one shared camera), got {listing}; resize or crop them alike"
-        )
     return arrays, names, paths
 
 
@@ -419,6 +513,15 @@ def _to_uint8(array: np.ndarray, source: str) -> np.ndarray:
     if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all():
         raise SurfSplatInputError(f"{source}: expected uint8 or finite float values in [0, 1], got {array.dtype}")
     return np.round(np.clip(array, 0, 1) * 255).astype(np.uint8)
+
+
+def _extraction_size(size: tuple[int, int], config: PoseConfig) -> tuple[int, int]:
+    """(width, height) SIFT runs at for photos of `size`: the long side brought into
+    [min_extraction_size, max_size] (step 1 of the module doc)."""
+    width, height = size
+    long_side = max(width, height)
+    s = min(max(long_side, config.min_extraction_size), config.max_size) / long_side
+    return max(1, round(width * s)), max(1, round(height * s))
 
 
 def _initial_focal(config: PoseConfig, paths: list, width: int, height: int) -> tuple[float, str, str]:
@@ -444,8 +547,9 @@ class _Workspace:
         self,
         root: Path,
         names: list[str],
-        size: tuple[int, int],
-        focal: float,
+        sizes: list[tuple[int, int]],
+        groups: list[int],
+        focals: list[float],
         focal_origin: str,
         model: str,
         config: PoseConfig,
@@ -454,10 +558,13 @@ class _Workspace:
 
         self.pycolmap = pycolmap
         self.root = root
-        self.names = names  # user names; files inside are 000000.png, ...
-        self.files = [f"{i:06d}.png" for i in range(len(names))]
-        self.size = size
-        self.focal = focal
+        self.names = names  # user names; files inside are 000000.png, ... (s0/000000.png, ... for several sizes)
+        # photos of several sizes: a folder per size, for COLMAP's camera per folder (CameraMode.PER_FOLDER)
+        several = len(sizes) > 1
+        self.files = [f"s{g}/{i:06d}.png" if several else f"{i:06d}.png" for i, g in enumerate(groups)]
+        self.sizes = sizes  # (width, height) of each camera, one per image size
+        self.groups = dict(zip(names, groups))  # user name -> its camera (index into sizes; camera_id = index + 1)
+        self.focals = focals  # initial focal length of each camera, in pixels of its images
         self.focal_origin = focal_origin  # "given", "exif" or "prior"
         self.model = model  # COLMAP camera model the mapper fits (MAPPING_MODEL of the one asked for)
         self.refine_focal = False  # whether the final bundle adjustment refined the focal length
@@ -465,70 +572,87 @@ class _Workspace:
         self.database = root / "database.db"
         self.images = root / "images"
         self.images.mkdir()
+        for g in range(len(sizes) if several else 0):
+            (self.images / f"s{g}").mkdir()
         self.ids: dict[str, int] = {}  # user name -> database image id
         pycolmap.set_random_seed(config.seed)
 
-    def camera(self):
-        """The starting camera at the input size: COLMAP's initial parameters for the model (principal
-        point at the centre, distortion zero) with this focal length."""
-        w, h = self.size
-        return self.pycolmap.Camera.create_from_model_name(1, self.model, self.focal, w, h)
+    def camera(self, group: int = 0):
+        """The starting camera of the photos of one size (camera_id = group + 1), at that size: COLMAP's
+        initial parameters for the model (principal point at the centre, distortion zero) with its focal length."""
+        w, h = self.sizes[group]
+        return self.pycolmap.Camera.create_from_model_name(group + 1, self.model, self.focals[group], w, h)
 
-    def extract(self, arrays: list[np.ndarray], ext_size: tuple[int, int]) -> None:
+    def extract(self, arrays: list[np.ndarray], ext_sizes: list[tuple[int, int]]) -> None:
+        """SIFT on every photo at its size's extraction size, keypoints mapped back to its own pixels."""
         pycolmap = self.pycolmap
-        for array, file in zip(arrays, self.files):
+        for array, file, name in zip(arrays, self.files, self.names):
             image = Image.fromarray(array)
+            ext_size = ext_sizes[self.groups[name]]
             if image.size != ext_size:
                 image = image.resize(ext_size, Image.Resampling.LANCZOS)
             image.save(self.images / file)
-        sx, sy = ext_size[0] / self.size[0], ext_size[1] / self.size[1]
+        scales = [(e[0] / s[0], e[1] / s[1]) for e, s in zip(ext_sizes, self.sizes)]
         # the camera at the extraction size: focal length and principal point scale with the image, the
-        # distortion coefficients act on normalized coordinates and do not (pycolmap's Camera.rescale)
+        # distortion coefficients act on normalized coordinates and do not (pycolmap's Camera.rescale).
+        # With several sizes the reader starts every folder's camera from the first one's; each is replaced
+        # by its own size's below.
         at_extraction = self.camera()
-        at_extraction.rescale(*ext_size)
+        at_extraction.rescale(*ext_sizes[0])
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = self.model
         reader.camera_params = at_extraction.params_to_string()
+        # COLMAP's automatic reconstruction (CameraMode.AUTO) shares a camera between photos whose EXIF make,
+        # model, focal length and width x height agree, and gives every other photo one of its own; here the
+        # photos of one size share one (a folder each: PER_FOLDER), EXIF or not, so that a size's few photos
+        # still pin its focal length and distortion together.
+        mode = pycolmap.CameraMode.PER_FOLDER if len(self.sizes) > 1 else pycolmap.CameraMode.SINGLE
         # The images enter the database one by one in input order first, so their ids are 1, 2, ... in
         # that order: feature extraction on several threads numbers them as they finish (measured: of
         # two runs on six DTU photos, one gave the first photo id 2), the mapper breaks ties by id,
         # and the same photos then gave other cameras in one run of three.
         pycolmap.Database.open(self.database).close()
-        pycolmap.import_images(self.database, self.images, pycolmap.CameraMode.SINGLE, self.files, reader)
-        options = pycolmap.FeatureExtractionOptions()
-        options.num_threads = self.config.threads
-        options.sift.max_num_features = self.config.max_features
+        pycolmap.import_images(self.database, self.images, mode, self.files, reader)
         # SIFT's first octave at twice the resolution (COLMAP's default) finds the fine features small
-        # photos need; at 1000 px and more it costs 4x the time for features the photo already has.
-        options.sift.first_octave = -1 if max(ext_size) < self.config.sift_upsample_below else 0
-        pycolmap.extract_features(
-            self.database,
-            self.images,
-            image_names=self.files,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=options,
-            device=pycolmap.Device.cpu,
-        )
+        # photos need; at 1000 px and more it costs 4x the time for features the photo already has. One
+        # extraction per setting (sizes on both sides of sift_upsample_below), in input order within each.
+        octaves = [-1 if max(ext_sizes[self.groups[n]]) < self.config.sift_upsample_below else 0 for n in self.names]
+        for octave in dict.fromkeys(octaves):
+            options = pycolmap.FeatureExtractionOptions()
+            options.num_threads = self.config.threads
+            options.sift.max_num_features = self.config.max_features
+            options.sift.first_octave = octave
+            pycolmap.extract_features(
+                self.database,
+                self.images,
+                image_names=[f for f, o in zip(self.files, octaves) if o == octave],
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=options,
+                device=pycolmap.Device.cpu,
+            )
         # Back to the pixels of the input images: matching thresholds, the camera and every
         # reprojection error are then in the user's pixels. Pixel centres sit at +0.5 in both
         # COLMAP and this package, so a resize maps coordinates by a plain scale.
         db = pycolmap.Database.open(self.database)
         try:
-            by_file = {im.name: im.image_id for im in db.read_all_images()}
+            records = {im.name: im for im in db.read_all_images()}
+            camera_group = {}  # database camera id -> image size group
             for name, file in zip(self.names, self.files):
-                if file not in by_file:
+                if file not in records:
                     raise SurfSplatInputError(f"{name}: feature extraction produced no entry for this image")
-                self.ids[name] = by_file[file]
-                keypoints = db.read_keypoints(by_file[file]).copy()
+                self.ids[name] = records[file].image_id
+                camera_group[records[file].camera_id] = self.groups[name]
+                sx, sy = scales[self.groups[name]]
+                keypoints = db.read_keypoints(self.ids[name]).copy()
                 keypoints[:, 0] /= sx
                 keypoints[:, 1] /= sy
                 if keypoints.shape[1] == 6:  # affine shape [a11 a12; a21 a22] of each keypoint
                     keypoints[:, 2:4] /= sx
                     keypoints[:, 4:6] /= sy
-                db.update_keypoints(by_file[file], keypoints)
+                db.update_keypoints(self.ids[name], keypoints)
             for cam in db.read_all_cameras():
-                fixed = self.camera()
+                fixed = self.camera(camera_group[cam.camera_id])
                 fixed.camera_id = cam.camera_id
                 fixed.has_prior_focal_length = True
                 db.update_camera(fixed)
@@ -613,25 +737,26 @@ class _Workspace:
             inlier_matches = db.read_two_view_geometry(a, b).inlier_matches
         finally:
             db.close()
-        camera = self.camera()
+        camera1, camera2 = self.camera(self.groups[pair.first]), self.camera(self.groups[pair.second])
         p1, p2 = kp1[inlier_matches[:, 0]], kp2[inlier_matches[:, 1]]
         ransac = pycolmap.RANSACOptions()
         ransac.max_error = 1.0  # px; the verified matches are already consistent to 4 px
         ransac.random_seed = cfg.seed
-        estimate = pycolmap.estimate_relative_pose(camera, p1, camera, p2, ransac)
+        estimate = pycolmap.estimate_relative_pose(camera1, p1, camera2, p2, ransac)
         if estimate is None:
             raise SurfSplatInputError(
                 f"{what}: no relative pose fits the {len(p1)} verified matches; give the focal length "
                 "(--focal) or take photos with more overlap"
             )
         mask = np.asarray(estimate["inlier_mask"], dtype=bool).reshape(-1)
-        self._check_not_homography(what, camera, p1, p2, mask, ransac)
-        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera, p1, camera, p2, mask)
+        self._check_not_homography(what, camera1, camera2, p1, p2, mask, ransac)
+        pose = pycolmap.refine_relative_pose(estimate["cam2_from_cam1"], camera1, p1, camera2, p2, mask)
         if isinstance(pose, dict):
             pose = pose["cam2_from_cam1"]
         recon = pycolmap.Reconstruction()
-        recon.add_camera_with_trivial_rig(camera)
-        for image_id, kp, cam_from_world in ((a, kp1, pycolmap.Rigid3d()), (b, kp2, pose)):
+        for camera in {camera1.camera_id: camera1, camera2.camera_id: camera2}.values():  # one, or one per size
+            recon.add_camera_with_trivial_rig(camera)
+        for image_id, kp, cam_from_world, camera in ((a, kp1, pycolmap.Rigid3d(), camera1), (b, kp2, pose, camera2)):
             name = pair.first if image_id == a else pair.second
             image = pycolmap.Image(name=name, keypoints=kp, camera_id=camera.camera_id, image_id=image_id)
             recon.add_image_with_trivial_frame(image, cam_from_world)
@@ -652,7 +777,7 @@ class _Workspace:
         return recon
 
     def _check_not_homography(
-        self, what: str, camera, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
+        self, what: str, camera1, camera2, p1: np.ndarray, p2: np.ndarray, e_mask: np.ndarray, ransac
     ) -> None:
         """Refuse pairs that one homography explains: a camera that only turned (any translation then
         fits E) or a single plane (two poses fit). COLMAP's own verdict (PLANAR_OR_PANORAMIC when H
@@ -678,10 +803,10 @@ class _Workspace:
         parallax = float((offset > cfg.parallax_px).mean())
         if explained < cfg.max_homography_share or parallax >= cfg.min_parallax_share:
             return
-        rays1 = np.concatenate([camera.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
-        rays2 = np.concatenate([camera.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
-        K = camera.calibration_matrix()
-        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K, K, rays1, rays2)
+        rays1 = np.concatenate([camera1.cam_from_img(p1[inliers]), np.ones((inliers.sum(), 1))], 1)
+        rays2 = np.concatenate([camera2.cam_from_img(p2[inliers]), np.ones((inliers.sum(), 1))], 1)
+        K1, K2 = camera1.calibration_matrix(), camera2.calibration_matrix()
+        decomposed = pycolmap.pose_from_homography_matrix(homography["H"], K1, K2, rays1, rays2)
         # H = R - t n^T / d: the translation comes out in units of the plane's distance d
         moved = float(np.linalg.norm(decomposed["cam2_from_cam1"].translation))
         if moved < cfg.min_homography_translation:
@@ -695,11 +820,11 @@ class _Workspace:
 
     def _triangulate(self, recon, a: int, b: int, matches: np.ndarray) -> None:
         pycolmap = self.pycolmap
-        camera = recon.cameras[1]
         image_a, image_b = recon.images[a], recon.images[b]
+        camera_a, camera_b = recon.cameras[image_a.camera_id], recon.cameras[image_b.camera_id]
         P1, P2 = image_a.cam_from_world().matrix(), image_b.cam_from_world().matrix()
-        xy1 = camera.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
-        xy2 = camera.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
+        xy1 = camera_a.cam_from_img(np.array([image_a.points2D[i].xy for i in matches[:, 0]]))
+        xy2 = camera_b.cam_from_img(np.array([image_b.points2D[i].xy for i in matches[:, 1]]))
         c1, c2 = image_a.projection_center(), image_b.projection_center()
         for (i, j), u, v in zip(matches, xy1, xy2):
             point = pycolmap.triangulate_point(P1, P2, u, v)
@@ -901,30 +1026,39 @@ def _rotation_error(what: str, angle: float | None) -> SurfSplatInputError:
 
 # ----------------------------------------------------------------------------------------- outputs
 def _export(recon, ids: dict[str, int], names: list[str]):
-    """(c2w [R, 4, 4] float64, K [3, 3], registered names, per-view point depths, the fitted lens,
-    the pinhole the photos are undistorted to) in input order. K is that pinhole's (the lens's own
-    for the pinhole models and for a distortion that came out exactly zero)."""
-    from ..geometry.lens import undistorted_pinhole
-
+    """(c2w [R, 4, 4] float64, K [R, 3, 3], registered names, per-view point depths, each view's fitted
+    lens, each view's pinhole its photo is undistorted to) in input order. Each K is its view's pinhole's
+    (the lens's own for the pinhole models and for a distortion that came out exactly zero); views of one
+    size share their camera's lens."""
     registered = [n for n in names if ids[n] in recon.images and recon.images[ids[n]].has_pose]
-    camera = recon.cameras[recon.images[ids[registered[0]]].camera_id]
-    lens = Lens(camera.model.name, int(camera.width), int(camera.height), tuple(float(v) for v in camera.params))
-    if lens.is_pinhole:
-        M = camera.calibration_matrix()
-        pinhole = Lens(
-            "PINHOLE", lens.width, lens.height, tuple(float(M[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
-        )
-    else:
-        pinhole = undistorted_pinhole(lens)
-    fx, fy, cx, cy = pinhole.params
-    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    by_camera: dict[int, tuple[Lens, Lens]] = {}
+    lenses, pinholes = [], []
+    for name in registered:
+        camera_id = recon.images[ids[name]].camera_id
+        if camera_id not in by_camera:
+            by_camera[camera_id] = _lens_and_pinhole(recon.cameras[camera_id])
+        lenses.append(by_camera[camera_id][0])
+        pinholes.append(by_camera[camera_id][1])
+    K = torch.stack([p.intrinsics() for p in pinholes])
     w2c = np.tile(np.eye(4), (len(registered), 1, 1))
     for k, name in enumerate(registered):
         w2c[k, :3, :4] = recon.images[ids[name]].cam_from_world().matrix()
     c2w = np.linalg.inv(w2c)
     xyz = np.array([p.xyz for p in recon.points3D.values()]).reshape(-1, 3)
     depths = [(xyz @ w[:3, :3].T + w[:3, 3])[:, 2] for w in w2c]
-    return torch.from_numpy(c2w), K, registered, depths, lens, pinhole
+    return torch.from_numpy(c2w), K, registered, depths, lenses, pinholes
+
+
+def _lens_and_pinhole(camera) -> tuple[Lens, Lens]:
+    """A pycolmap camera as the fitted Lens and the PINHOLE its photos are undistorted to."""
+    from ..geometry.lens import undistorted_pinhole
+
+    lens = Lens(camera.model.name, int(camera.width), int(camera.height), tuple(float(v) for v in camera.params))
+    if not lens.is_pinhole:
+        return lens, undistorted_pinhole(lens)
+    M = camera.calibration_matrix()
+    params = tuple(float(M[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    return lens, Lens("PINHOLE", lens.width, lens.height, params)
 
 
 def _normalize(c2w: torch.Tensor, depths: list[np.ndarray], median_depth: float):

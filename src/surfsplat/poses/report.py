@@ -108,13 +108,14 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
     # drawn on the host, wherever the cameras are
     c2w = camera_set.cameras.c2w.detach().to("cpu", torch.float64).numpy()
     K = camera_set.cameras.K.detach().to("cpu", torch.float64).numpy()
+    widths = _view_widths(camera_set)
     centres = c2w[:, [0, 2], 3]
     span = max(float(np.ptp(centres, axis=0).max()), 1e-9)
     wedge = 0.5 * span  # wedge length: half the extent of the camera layout
     points = [centres]
     shapes = []
     for i in range(len(c2w)):
-        half = math.atan(camera_set.width / (2 * K[i, 0, 0]))
+        half = math.atan(widths[i] / (2 * K[i, 0, 0]))
         axis = c2w[i, [0, 2], 2]
         axis = axis / max(np.linalg.norm(axis), 1e-12)
         left = _rotate(axis, -half) * wedge / math.cos(half) + centres[i]
@@ -153,6 +154,20 @@ def top_view_svg(camera_set: CameraSet, size: int = 480) -> str:
         )
     parts.append("</svg>\n")
     return "\n".join(parts)
+
+
+def _view_widths(camera_set: CameraSet) -> list[int]:
+    """The width in pixels of each view's K: its pinhole's where the views have lenses (photos of several
+    sizes each have their own), else the camera set's."""
+    if camera_set.lenses is None:
+        return [camera_set.width] * len(camera_set.names)
+    from ..data.cameras import pinhole_of
+
+    pinholes: dict = {}
+    for lens in camera_set.lenses:
+        if lens not in pinholes:
+            pinholes[lens] = pinhole_of(lens).width
+    return [pinholes[lens] for lens in camera_set.lenses]
 
 
 _CHAR_W, _LINE_H = 6.2, 12.0  # rough extent of an 11-pixel sans-serif character

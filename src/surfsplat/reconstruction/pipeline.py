@@ -521,7 +521,10 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
     """The views of cameras with a lens, read undistorted (`CaptureInput.lenses`), their K [V, 3, 3] and
     c2w [V, 4, 4]: each photo is at its lens's calibrated size (or a uniform downscale of it, the lens rescaled
     with it, `Lens.rescaled`, COLMAP's Camera::Rescale) and becomes the pinhole COLMAP's image_undistorter
-    chooses; K is that pinhole's, so every stage after this one sees pinhole photos and cameras.
+    chooses; K is that pinhole's, so every stage after this one sees pinhole photos and cameras. Lenses of
+    several sizes (portrait and landscape photos, two phones) give pinholes of several sizes: each view keeps
+    its own, and the views then go the way of photos of several sizes (`surfsplat.reconstruction.sizes`: each
+    rescaled and cropped to the working size on its own, the reference size the most common orientation's).
 
     A lens of the stored pixels (`Lens.orientation`, or cameras read without their photos,
     `CameraSet.stored_pixels`) meets a photo read as displayed: the lens's size is the photo's stored
@@ -529,6 +532,7 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
     its pinhole and pose turn with it (`displayed_camera`)."""
     from ..data.cameras import pinhole_of
     from ..geometry.orientation import displayed_camera, stored_size
+    from .inputs import reference_size
 
     pairs, Ks, c2ws = [], [], []
     for i, (name, lens) in enumerate(zip(views.names, given.lenses, strict=True)):
@@ -556,21 +560,18 @@ def _undistorted_views(views: CaptureInput, given, source: str) -> tuple[Capture
         pairs.append((lens, pinhole))
         Ks.append(pinhole.intrinsics())
         c2ws.append(c2w)
-    sizes = sorted({(p.width, p.height) for _, p in pairs})
-    if len(sizes) != 1:
-        raise SurfSplatInputError(
-            f"{source}: the views' lenses undistort to different sizes {[f'{w}x{h}' for w, h in sizes]}; "
-            "a reconstruction has one size"
-        )
-    ((width, height),) = sizes
+    sizes = [(p.width, p.height) for _, p in pairs]
+    width, height = reference_size(sizes)
     undistorted = views.subset(list(range(len(views))))
     undistorted.width, undistorted.height, undistorted.lenses = width, height, pairs
-    undistorted.sizes = [(width, height)] * len(pairs)
+    undistorted.sizes = sizes
     models = sorted({lens.model for lens, _ in pairs if not lens.is_pinhole})
     if models:
+        shown = ", ".join(f"{w}x{h}" for w, h in dict.fromkeys(sizes))
+        before = ", ".join(f"{w}x{h}" for w, h in dict.fromkeys(views.sizes or [(views.width, views.height)]))
         logger.info(
-            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {width}x{height} pinholes "
-            f"as they are read (from {views.width}x{views.height})"
+            f"cameras with a lens ({', '.join(models)}): the photos are undistorted to {shown} pinholes "
+            f"as they are read (from {before})"
         )
     return undistorted, torch.stack(Ks).to(given.cameras.K.dtype), torch.stack(c2ws)
 

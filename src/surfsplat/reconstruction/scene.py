@@ -182,10 +182,10 @@ class Scene:
         lines = []
         for group in self.lens_summary() or []:
             source, pinhole = group["source"], group["pinhole"]
-            if source["model"] == "PINHOLE":
-                continue
             from ..geometry.lens import Lens
 
+            if Lens.from_dict(source).is_pinhole:  # photos read as they are
+                continue
             names = Lens.from_dict(source).param_names
             params = ", ".join(f"{n} {v:.6g}" for n, v in zip(names, source["params"]))
             fx, fy, cx, cy = pinhole["params"]
