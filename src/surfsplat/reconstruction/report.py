@@ -46,7 +46,13 @@ def zoom_line(zoom: dict, antialiased: bool) -> str:
     line += f", {down}" if down else ""
     line += f", {up} ({zoom.get('upsample', 'bicubic')}-upsampled photos)" if up else ""
     ratio = zoom.get("coverage_x4_over_x1")
-    return line + " dB" + (f"; mean alpha x4 / x1 {ratio:.3f}" if ratio is not None else "")
+    line += " dB" + (f"; mean alpha x4 / x1 {ratio:.3f}" if ratio is not None else "")
+    factors, asked = zoom.get("supersample", {}), zoom.get("drawn_at_size", {})
+    if any(k > 1 for k in factors.values()):
+        drawn = ", ".join(f"x1/{s} at {factors[f'x1/{s}']}x" for s in (2, 4) if f"x1/{s}" in factors)
+        plain = ", ".join(f"x1/{s} {asked[f'x1/{s}']:.2f}" for s in (2, 4) if f"x1/{s}" in asked)
+        line += f"; zoomed out drawn finer and averaged down ({drawn}; drawn at the size asked: {plain} dB)"
+    return line
 
 
 def write_capture_outputs(scene, out_dir: str | Path, options) -> dict[str, Path]:

@@ -285,16 +285,26 @@ class Scene:
         if not isinstance(cams, Cameras):
             raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cams).__name__}")
         w, h = max(1, round(self.width * scale)), max(1, round(self.height * scale))
+        cams = cams.to(self.gaussians.means).scaled(scale)
         with torch.inference_mode():
             return render(
                 self.gaussians,
-                cams.to(self.gaussians.means).scaled(scale),
+                cams,
                 w,
                 h,
                 mode=self.mode,
                 alpha_threshold=self.alpha_threshold,
                 antialiased=self.antialiased,
+                supersample=self.supersampling(cams, w, h),
             )
+
+    def supersampling(self, cameras: Cameras, width: int, height: int) -> int:
+        """How many times finer than width x height a render from `cameras` is drawn and averaged down
+        (`surfsplat.render.supersample`): 1 at the zoom the scene was made at, up to 4 for views whose
+        pixels are that much larger on its surfaces (a smaller image, a camera moved back)."""
+        from ..render.supersample import supersampling
+
+        return supersampling(self.gaussians, self.cameras, self.width, self.height, cameras, width, height)
 
     def summary(self) -> dict:
         """reconstruction.json without the written files."""
@@ -327,9 +337,16 @@ class Scene:
             out["capture"] = self.capture_summary()
         return out
 
-    def zoom_scores(self, cameras: Cameras | None = None, images: Tensor | None = None):
+    def zoom_scores(
+        self,
+        cameras: Cameras | None = None,
+        images: Tensor | None = None,
+        supersample: bool = True,
+        up: tuple[int, ...] = (2, 4),
+    ):
         """`metrics.zoom.ZoomScores` of the scene from `cameras` against `images` (default: the held-out
-        views), rendered as the scene renders (its mode, forced-alpha threshold and antialiasing)."""
+        views), rendered as the scene renders (its mode, forced-alpha threshold and antialiasing, and the
+        zoomed-out views supersampled, `supersampling`; `supersample=False`: the renders at the sizes asked)."""
         from ..metrics.zoom import zoom_scores
         from ..render import render
 
@@ -339,19 +356,21 @@ class Scene:
             cameras, images = self.holdout.cameras, self.holdout.images
 
         def draw(cams: Cameras, w: int, h: int):
+            cams = cams.to(self.gaussians.means)
             with torch.inference_mode():
                 return render(
                     self.gaussians,
-                    cams.to(self.gaussians.means),
+                    cams,
                     w,
                     h,
                     mode=self.mode,
                     alpha_threshold=self.alpha_threshold,
                     antialiased=self.antialiased,
+                    supersample=self.supersampling(cams, w, h) if supersample else 1,
                 )
 
         return zoom_scores(
-            draw, cameras.to(self.gaussians.means), images.to(self.gaussians.means), self.width, self.height
+            draw, cameras.to(self.gaussians.means), images.to(self.gaussians.means), self.width, self.height, up=up
         )
 
     def score_holdout(self):

@@ -55,6 +55,7 @@ def render(
     distortion: bool = False,
     antialiased: bool = False,
     absgrad: bool = False,
+    supersample: int = 1,
 ) -> RenderOutput:
     """Render unbatched Gaussians ([N, ...]) from C cameras at width x height pixels.
 
@@ -87,6 +88,13 @@ def render(
                      (gsplat's 2DGS kernel takes absolute values on its low-pass branch only); the torch
                      backend leaves the depth distortion out of it, so it refuses both at once. Off by
                      default: the backward computes nothing of it.
+    supersample:     k > 1 renders at k times the width and height (K scaled exactly, k^2 times the pixels)
+                     and averages each k x k block of every map (colour, alpha, depth, normal, distortion):
+                     the image a camera with k times larger pixels records of the full-size render, its
+                     area integral rather than point samples. What a render far smaller than the size the
+                     scene was fitted at needs (`Scene.supersampling`): the antialiasing filter keeps each
+                     surfel's integrated opacity, but cannot undo the occlusion between surfels that a
+                     pixel covering many of them averages over. Differentiable; not with `absgrad`.
     Returns RenderOutput with colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W]
     (and distortion [C, 1, H, W] when asked).
 
@@ -102,6 +110,33 @@ def render(
     The map is the raw per-ray sum: no forced-alpha normalization, no background.
     """
     _validate(gaussians, cameras, width, height, mode, alpha_threshold)
+    if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+        raise SurfSplatInputError(f"supersample: expected an integer >= 1, got {supersample!r}")
+    if supersample > 1:
+        if absgrad:
+            raise SurfSplatInputError("supersample: the absolute screen gradient is of one render; use supersample=1")
+        k = supersample
+        fine = render(
+            gaussians,
+            cameras.scaled(k),
+            width * k,
+            height * k,
+            mode=mode,
+            backend=backend,
+            background=background,
+            alpha_threshold=alpha_threshold,
+            settings=settings,
+            distortion=distortion,
+            antialiased=antialiased,
+        )
+        pool = lambda t: None if t is None else torch.nn.functional.avg_pool2d(t, k)  # noqa: E731
+        return RenderOutput(
+            color=pool(fine.color),
+            alpha=pool(fine.alpha),
+            depth=pool(fine.depth),
+            normal=pool(fine.normal),
+            distortion=pool(fine.distortion),
+        )
     if not isinstance(distortion, bool):
         raise SurfSplatInputError(f"distortion: expected True or False, got {distortion!r}")
     if distortion and mode != "surfel":

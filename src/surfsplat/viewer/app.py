@@ -305,14 +305,23 @@ class SurfelViewer:
             raise SurfSplatInputError(f"output: expected one of {OUTPUTS}, got {output!r}")
         cams, width, height = view_cameras(view, self.render_height())
         cams = cams.scaled(scale).to(self.scene.gaussians.means.dtype)
+        scene = self.scene
+        supersample = 1
+        if scene.cameras is not None and scene.width and scene.height:  # zoomed out: drawn at the fitted zoom
+            from ..render.supersample import supersampling
+
+            supersample = supersampling(
+                scene.gaussians, scene.cameras, scene.width, scene.height, cams, width * scale, height * scale
+            )
         out = render(
-            self.scene.gaussians,
+            scene.gaussians,
             cams,
             width * scale,
             height * scale,
-            mode=self.scene.mode,
-            alpha_threshold=self.scene.alpha_threshold,
-            antialiased=self.scene.antialiased,
+            mode=scene.mode,
+            alpha_threshold=scene.alpha_threshold,
+            antialiased=scene.antialiased,
+            supersample=supersample,
         )
         if output == "image":
             return to_uint8(out.color[0])
