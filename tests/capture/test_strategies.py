@@ -245,7 +245,7 @@ def test_the_strategy_flag_reaches_the_library():
     from surfsplat.commands.reconstruct import optimize_from_args
 
     parse = build_parser().parse_args
-    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).strategy == "3dgs"
+    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).strategy == "absgs"
     for name in ("absgs", "mcmc"):
         args = parse(["reconstruct", "--images", "a.png", "--optimize-strategy", name])
         assert optimize_from_args(args).strategy == name

@@ -64,7 +64,9 @@ class DensifyConfig:
 
     start: float = 0.25  # densification begins (3DGS: step 500 of 30,000; OpenSplat: 500 of 2,000)
     stop: float = 0.5  # ... and ends (3DGS: 15,000 of 30,000)
-    every: int = 100  # steps between densifications (3DGS: densification_interval)
+    # steps between densifications (3DGS: densification_interval 100 of 30,000 steps): 50, so that a fit of
+    # 1,500 steps grows in 8 rounds, not 4 (DTU scan 24 held out: 20.20 -> 20.72 dB; 25 overgrew: 19.63)
+    every: int = 50
     reset_every: float | None = None  # share of the fit between opacity resets (3DGS: 0.1; None: never)
     grad_threshold: float = 0.0002  # mean NDC screen-space gradient above which a surfel grows (3DGS)
     percent_dense: float = 0.01  # clone below, split above this share of the scene extent (3DGS)
