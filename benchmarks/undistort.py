@@ -171,6 +171,41 @@ def _run(name: str, images: list[Path], cameras: Path, out: Path, extra: list[st
     return {"run": name, "out": str(out), **run, "held_out_names": held.get("names"), "psnr": held.get("psnr")}
 
 
+def _compare(result: dict, run: dict) -> None:
+    """`run` (a lens's) against (a), the first of result's runs: on their own photos, and (a)'s scene scored
+    on the run's photos; appended to the runs, the worst difference updated."""
+    original = result["runs"][0]
+    fair = _scored_on(Path(original["out"]), Path(run["out"]))
+    run["original_scored_on_these_photos"] = fair
+    run["minus_original_db"] = run["held_out_psnr"] - original["held_out_psnr"]
+    run["minus_original_on_these_photos_db"] = run["held_out_psnr"] - fair["mean_psnr"]
+    result["runs"].append(run)
+    worst = min(r["minus_original_db"] for r in result["runs"][1:])
+    result.update(worst_minus_original_db=worst, within_target=worst >= -TARGET_DB)
+
+
+def _finished_run(name: str, out: Path) -> dict:
+    """A run made before (`--reference`): its held-out scores, crop and lenses from its reconstruction.json
+    (its CPU seconds are not known here)."""
+    import json
+
+    summary = json.loads((out / "reconstruction.json").read_text())
+    held = summary["capture"]["held_out"]
+    return {
+        "run": name,
+        "out": str(out),
+        "reference": "made by an earlier process",
+        "cpu_seconds": None,
+        "held_out_psnr": held["mean_psnr"],
+        "held_out": held,
+        "size": summary.get("size"),
+        "working_crop": summary.get("working_crop"),
+        "lenses": summary.get("lenses"),
+        "held_out_names": held["names"],
+        "psnr": held["psnr"],
+    }
+
+
 def _scored_on(reference: Path, lens_run: Path) -> dict:
     """The scene of the run in `reference` rendered from the held-out cameras of the run in `lens_run`
     and scored against that run's held-out photos (those photos through the lens, undistorted)."""
@@ -238,10 +273,9 @@ def reconstruct(args, save) -> dict | None:
         work.mkdir(parents=True, exist_ok=True)
         photos = [folder / "images_4" / v.name for v in views]
         extra = ["--images-folder", "images_4", *args.cli_args]
-        original = _run("(a) DTU's photos and calibration", photos, folder, work / "a", extra)
-        original_out = Path(original["out"])
-        result["runs"].append(original)
-        save(result)
+        if not args.reference:
+            result["runs"].append(_run("(a) DTU's photos and calibration", photos, folder, work / "a", extra))
+            save(result)
         captures = []
         for letter, (model, coeffs) in zip("bc", RECONSTRUCT_LENSES.items()):
             lens = Lens(model, width, height, calibration + coeffs)
@@ -251,24 +285,26 @@ def reconstruct(args, save) -> dict | None:
             result["lenses"].append({"run": letter, "lens": lens.to_dict(), "blank_pixels_per_photo": blank})
             captures.append((letter, model, capture))
         # the COLMAP runs of both lenses first, then nerfstudio's: each run is saved as soon as it is measured
-        for dialect in ("COLMAP", "nerfstudio"):
+        lens_runs = []
+        for dialect in args.dialects:
             for letter, model, capture in captures:
                 cameras = capture / "sparse" / "0" if dialect == "COLMAP" else capture / "transforms.json"
                 images = [capture / "images" / v.name for v in views]
                 name = f"({letter}) {model} lens, {dialect}"
                 run = _run(name, images, cameras, work / f"{letter}_{dialect.lower()}", args.cli_args)
-                fair = _scored_on(original_out, Path(run["out"]))
-                run["original_scored_on_these_photos"] = fair
-                run["minus_original_db"] = run["held_out_psnr"] - original["held_out_psnr"]
-                run["minus_original_on_these_photos_db"] = run["held_out_psnr"] - fair["mean_psnr"]
                 if letter == "b" and dialect == "COLMAP" and args.figure:
                     _figure(capture, run, Path(args.figure))
-                run["out"] = Path(run["out"]).name  # the folders are temporary (or --keep's)
-                result["runs"].append(run)
-                worst = min(r["minus_original_db"] for r in result["runs"][1:])
-                result.update(worst_minus_original_db=worst, within_target=worst >= -TARGET_DB)
-                save(result)
-        original["out"] = original_out.name
+                lens_runs.append(run)
+                if not args.reference:
+                    _compare(result, run)
+                    save(result)
+        if args.reference:  # (a) made by another process, finished by now
+            result["runs"].append(_finished_run("(a) DTU's photos and calibration", Path(args.reference)))
+            for run in lens_runs:
+                _compare(result, run)
+            save(result)
+        for run in result["runs"]:
+            run["out"] = Path(run["out"]).name  # the folders are temporary (or --keep's)
     return result
 
 
@@ -284,7 +320,7 @@ def print_reconstruct(result: dict) -> None:
                 r["run"],
                 *r["psnr"],
                 r["held_out_psnr"],
-                r["minus_original_db"],
+                r.get("minus_original_db"),
                 fair["mean_psnr"] if fair else None,
                 r.get("minus_original_on_these_photos_db"),
                 f"{pinhole['width']}x{pinhole['height']}" if pinhole else "",
@@ -312,6 +348,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     parser.add_argument("--keep", default="", help="reconstruct: keep the captures and runs under this folder")
     parser.add_argument("--figure", default=str(ROOT / "docs" / "images" / "lens_capture_held_out.jpg"))
+    parser.add_argument("--dialects", nargs="+", default=["COLMAP", "nerfstudio"], choices=["COLMAP", "nerfstudio"])
+    parser.add_argument("--reference", default="", help="reconstruct: a finished (a) run folder, not run again")
     parser.add_argument("--out", default="lens_capture", help="reconstruct: results file (a name or a path)")
     parser.add_argument("--cli-args", nargs=argparse.REMAINDER, default=[], help="more reconstruct flags (last)")
     args = parser.parse_args()
