@@ -278,6 +278,8 @@ def reconstruct(args, save) -> dict | None:
             save(result)
         captures = []
         for letter, (model, coeffs) in zip("bc", RECONSTRUCT_LENSES.items()):
+            if model not in args.lenses:
+                continue
             lens = Lens(model, width, height, calibration + coeffs)
             capture = work / f"capture_{model.lower()}"
             write_lens_capture(capture, views, lens, full_cover=False)
@@ -349,6 +351,7 @@ def main() -> None:
     parser.add_argument("--keep", default="", help="reconstruct: keep the captures and runs under this folder")
     parser.add_argument("--figure", default=str(ROOT / "docs" / "images" / "lens_capture_held_out.jpg"))
     parser.add_argument("--dialects", nargs="+", default=["COLMAP", "nerfstudio"], choices=["COLMAP", "nerfstudio"])
+    parser.add_argument("--lenses", nargs="+", default=list(RECONSTRUCT_LENSES), choices=list(RECONSTRUCT_LENSES))
     parser.add_argument("--reference", default="", help="reconstruct: a finished (a) run folder, not run again")
     parser.add_argument("--out", default="lens_capture", help="reconstruct: results file (a name or a path)")
     parser.add_argument("--cli-args", nargs=argparse.REMAINDER, default=[], help="more reconstruct flags (last)")
