@@ -175,10 +175,12 @@ def _compare(result: dict, run: dict) -> None:
     """`run` (a lens's) against (a), the first of result's runs: on their own photos, and (a)'s scene scored
     on the run's photos; appended to the runs, the worst difference updated."""
     original = result["runs"][0]
-    fair = _scored_on(Path(original["out"]), Path(run["out"]))
+    fair = _scored_on(Path(original["out"]), Path(run["out"]), Path(run["capture"]))
     run["original_scored_on_these_photos"] = fair
     run["minus_original_db"] = run["held_out_psnr"] - original["held_out_psnr"]
     run["minus_original_on_these_photos_db"] = run["held_out_psnr"] - fair["mean_psnr"]
+    valid = fair["valid_region"]
+    run["minus_original_on_the_valid_region_db"] = valid["this_run_mean_psnr"] - valid["original_mean_psnr"]
     result["runs"].append(run)
     worst = min(r["minus_original_db"] for r in result["runs"][1:])
     result.update(worst_minus_original_db=worst, within_target=worst >= -TARGET_DB)
@@ -206,17 +208,62 @@ def _finished_run(name: str, out: Path) -> dict:
     }
 
 
-def _scored_on(reference: Path, lens_run: Path) -> dict:
+def _valid_masks(capture: Path, crop: dict, names: list[str]) -> torch.Tensor:
+    """[V, H, W] bool: the pixels of the named held-out photos (undistorted, at the working crop) that show
+    the pinhole photo they were made from, none of the lens's blank border: the lens's photo of a white
+    image, undistorted and cropped as the run did, at least 0.999."""
+    import json
+
+    from surfsplat.data.transforms import rescale_and_crop
+    from surfsplat.geometry.lens import undistorted_pinhole as pinhole_of
+
+    truth = json.loads((capture / "truth.json").read_text())
+    lens = Lens.from_dict(truth["lens"])
+    pinhole = pinhole_of(lens)
+    by_name = {Path(v["image"]).name: v for v in truth["views"]}
+    masks = []
+    for name in names:
+        source = Lens.from_dict(by_name[Path(name).name]["pinhole"])
+        seen = undistort(distort(torch.ones(1, source.height, source.width), source, lens), lens, pinhole)
+        cropped, _, _ = rescale_and_crop(
+            seen.expand(3, -1, -1)[None], torch.eye(3)[None], (crop["height"], crop["width"])
+        )
+        masks.append(cropped[0, 0] >= 0.999)
+    return torch.stack(masks)
+
+
+def _masked_psnr(renders: torch.Tensor, photos: torch.Tensor, masks: torch.Tensor) -> list[float]:
+    """PSNR per view over the pixels of `masks` (mean squared error over channels and those pixels)."""
+    err = ((renders.clamp(0, 1) - photos) ** 2).mean(1)  # [V, H, W]
+    mse = (err * masks).sum((1, 2)) / masks.sum((1, 2))
+    return (-10 * torch.log10(mse)).tolist()
+
+
+def _scored_on(reference: Path, lens_run: Path, capture: Path) -> dict:
     """The scene of the run in `reference` rendered from the held-out cameras of the run in `lens_run`
-    and scored against that run's held-out photos (those photos through the lens, undistorted)."""
+    and scored against that run's held-out photos (those photos through the lens, undistorted); and both
+    scenes scored on the pixels of those photos that the lens saw of the pinhole photos (`_valid_masks`)."""
     from optimize import held_out_scores
     from surfsplat.reconstruction.scene_fit import load_reconstruction
 
     ref, _ = load_reconstruction(reference)
     other, _ = load_reconstruction(lens_run)
     held = other.holdout
-    seen = dataclasses.replace(ref, width=other.width, height=other.height)
-    return held_out_scores(ref.gaussians, seen, held.cameras, held.images)
+    seen = dataclasses.replace(ref, width=other.width, height=other.height, holdout=None)
+    scores = held_out_scores(ref.gaussians, seen, held.cameras, held.images)
+    crop = other.crop.to_dict()
+    masks = _valid_masks(capture, crop, held.names)
+    photos = held.images.to(torch.float32)
+    lens_psnr = _masked_psnr(other.render(held.cameras).color, photos, masks)
+    ref_psnr = _masked_psnr(seen.render(held.cameras).color, photos, masks)
+    scores["valid_region"] = {
+        "share_of_pixels": masks.float().mean((1, 2)).tolist(),
+        "this_run_psnr": lens_psnr,
+        "this_run_mean_psnr": statistics.mean(lens_psnr),
+        "original_psnr": ref_psnr,
+        "original_mean_psnr": statistics.mean(ref_psnr),
+    }
+    return scores
 
 
 def _figure(capture: Path, run: dict, path: Path) -> None:
@@ -294,6 +341,7 @@ def reconstruct(args, save) -> dict | None:
                 images = [capture / "images" / v.name for v in views]
                 name = f"({letter}) {model} lens, {dialect}"
                 run = _run(name, images, cameras, work / f"{letter}_{dialect.lower()}", args.cli_args)
+                run["capture"] = str(capture)
                 if letter == "b" and dialect == "COLMAP" and args.figure:
                     _figure(capture, run, Path(args.figure))
                 lens_runs.append(run)
@@ -305,8 +353,10 @@ def reconstruct(args, save) -> dict | None:
             for run in lens_runs:
                 _compare(result, run)
             save(result)
-        for run in result["runs"]:
-            run["out"] = Path(run["out"]).name  # the folders are temporary (or --keep's)
+        for run in result["runs"]:  # the folders are temporary (or --keep's)
+            run["out"] = Path(run["out"]).name
+            if "capture" in run:
+                run["capture"] = Path(run["capture"]).name
     return result
 
 
