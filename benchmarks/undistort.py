@@ -360,6 +360,8 @@ def reconstruct(args, save) -> dict | None:
                 if not args.reference:
                     _compare(result, run)
                     save(result)
+                else:  # compared at the end, with (a) finished by then; saved as measured
+                    save({**result, "runs": lens_runs})
         if args.reference:  # (a) made by another process, finished by now
             result["runs"].append(_finished_run("(a) DTU's photos and calibration", Path(args.reference)))
             for run in lens_runs:
