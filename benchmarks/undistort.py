@@ -3,7 +3,7 @@ and the seconds the undistortion maps of a photo take.
 
     python benchmarks/undistort.py                 # parts models, photos, timing
     python benchmarks/undistort.py --threads 2     # torch threads for the timing (default: torch's)
-    python benchmarks/undistort.py --parts reconstruct   # DTU through two lenses, end to end (about 45 CPU min)
+    python benchmarks/undistort.py --parts reconstruct   # DTU through two lenses, end to end (five runs, about 12 CPU min)
 
 1. Per COLMAP model 0-10 (`surfsplat.testing.lenses.CALIBRATIONS`, 640x480): the largest
    difference of `project` from pycolmap's `img_from_cam` (px), of `unproject` from `cam_from_img`
