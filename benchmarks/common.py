@@ -10,6 +10,10 @@ from __future__ import annotations
 import json
 import os
 import platform
+import resource
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import torch
@@ -68,6 +72,44 @@ def text_table(headers: list[str], rows: list[list[object]]) -> str:
         return "  ".join(c.rjust(w) if n else c.ljust(w) for c, w, n in zip(row, widths, numeric)).rstrip()
 
     return "\n".join([line(cells[0]), line(["-" * w for w in widths])] + [line(r) for r in cells[1:]])
+
+
+def reconstruct_cli(images: list[str], cameras: Path, out: Path, flags: list[str]) -> dict:
+    """`surfsplat reconstruct --images ... --cameras CAMERAS --out OUT FLAGS --device cpu` as a child process:
+    its CPU seconds (user + system, from the operating system), wall seconds, peak memory, the held-out
+    scores its reconstruction.json reports, and that file's working crop and lenses."""
+    command = [
+        sys.executable, "-m", "surfsplat", "reconstruct", "--images", *images, "--cameras", str(cameras),
+        *flags, "--device", "cpu", "--out", str(out),
+    ]  # fmt: skip
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    tick = time.perf_counter()
+    run = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - tick
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if run.returncode:
+        raise SystemExit(f"{cameras}: surfsplat reconstruct failed:\n{run.stderr[-3000:]}")
+    summary = json.loads((out / "reconstruction.json").read_text())
+    capture = summary.get("capture", {})
+    held = capture.get("held_out", {})
+    return {
+        "command": " ".join(command[1:]),
+        "cpu_seconds": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "wall_seconds": wall,
+        "peak_rss_mb": after.ru_maxrss / 1024,
+        "load_average_after": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "held_out_psnr": held.get("mean_psnr"),
+        "held_out_psnr_before": (held.get("before_optimization") or {}).get("mean_psnr"),
+        "held_out": held,
+        "size": summary.get("size"),
+        "working_crop": summary.get("working_crop"),
+        "lenses": summary.get("lenses"),
+        "antialiased": summary.get("antialiased", False),
+        "held_out_zoom": held.get("zoom"),
+        "seconds": summary.get("seconds"),
+        "optimize": summary.get("optimize"),
+        "stdout_tail": run.stdout[-2000:],
+    }
 
 
 def _cell(value: object) -> str:

@@ -3,22 +3,37 @@ makes one: the 20 photos at 504x378 (`images_8` of the full samples), one shared
 
     python benchmarks/fern_model.py                          # model in benchmarks/results/fern_model/sparse/0
     python benchmarks/fern_model.py --out DIR --camera-model auto
+    python benchmarks/fern_model.py --parts reconstruct      # that model against LLFF's cameras, end to end
 
 pycolmap writes the model (cameras.bin, images.bin, points3D.bin, with the photos' names), in the
 world of the returned cameras (the first photo's camera at the origin, median depth 4). The figures
 (registered photos, 3D points, mean reprojection error, the fitted f and k, and the rotation error
 against LLFF's own calibration after aligning the worlds) go to benchmarks/results/fern_model.json
 and are printed.
+
+Part `reconstruct` (the model must have been made first, by the part `model`): `surfsplat reconstruct`
+of the same 20 photos with `--cameras <the model> --holdout-every 8 --formats ply --raw-3dgs` and the
+shipped defaults, beside the given-camera run (`--cameras <fern's folder> --images-folder images_8`:
+LLFF's poses_bounds.npy, benchmarks/optimize.py's fern-cli), each a child process one after the other.
+Both hold out the same photos (IMG_4026, IMG_4034, IMG_4042; an error otherwise); the model's run sees
+them undistorted from its SIMPLE_RADIAL camera to the pinhole COLMAP's image_undistorter would choose.
+Per run: held-out PSNR per view and mean, the pinhole and working crop the run reports, CPU seconds;
+the difference of the model's run to the given-camera run (the target: within 0.3 dB). Results go to
+benchmarks/results/fern_model_reconstruct.json and a table is printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, ROOT, SHARED_DATA, machine, write_results
+from common import RESULTS, ROOT, SHARED_DATA, machine, reconstruct_cli, text_table, write_results
+
+HELD_OUT = ["IMG_4026", "IMG_4034", "IMG_4042"]  # every 8th of fern's 20 photos
+TARGET_DB = 0.3  # the model's run within this of the given-camera run (held-out mean PSNR)
 
 
 def _shown(path: Path) -> str:
@@ -29,14 +44,85 @@ def _shown(path: Path) -> str:
         return path.name
 
 
+def _run_row(name: str, run: dict) -> dict:
+    held = run["held_out"]
+    names = [Path(n).stem for n in held.get("names", [])]
+    if names != HELD_OUT:
+        raise SystemExit(f"{name}: held out {names}, expected {HELD_OUT}")
+    return {"run": name, **run, "held_out_names": names, "held_out_psnr_per_view": held.get("psnr")}
+
+
+def reconstruct(args, photos: list[Path]) -> int:
+    """The model's run and the given-camera run of fern, end to end; their held-out PSNR compared."""
+    import tempfile
+
+    model_dir = args.out / "sparse" / "0"
+    if not (model_dir / "cameras.bin").is_file():
+        print(f"{model_dir}: no COLMAP model; make it first (python benchmarks/fern_model.py)", file=sys.stderr)
+        return 1
+    flags = ["--holdout-every", "8", "--formats", "ply", "--raw-3dgs"]
+    images = [str(p) for p in photos]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        keep = Path(args.keep) if args.keep else Path(tmp)
+        for name, cameras, extra in (
+            ("given cameras (LLFF poses_bounds.npy)", args.data, ["--images-folder", "images_8"]),
+            ("COLMAP SIMPLE_RADIAL model", model_dir, []),
+        ):
+            print(f"fern: {name} ...", flush=True)
+            rows.append(_run_row(name, reconstruct_cli(images, cameras, keep / f"run{len(rows)}", [*flags, *extra])))
+    given, model = rows
+    difference = model["held_out_psnr"] - given["held_out_psnr"]
+    figures = {
+        "benchmark": "LLFF fern end to end: the COLMAP SIMPLE_RADIAL model of fern_model.py against LLFF's cameras",
+        "photos": f"{len(photos)} of llff_fern/images_8",
+        "model_dir": _shown(model_dir),
+        "runs": rows,
+        "model_minus_given_db": difference,
+        "target_db": TARGET_DB,
+        "within_target": abs(difference) <= TARGET_DB,
+        "machine": machine(),
+    }
+    out = write_results(args.json or "fern_model_reconstruct", figures)
+    table = []
+    for row in rows:
+        pinhole = (row["lenses"] or [{}])[0].get("pinhole")
+        crop = row["working_crop"] or {}
+        table.append(
+            [
+                row["run"],
+                *row["held_out_psnr_per_view"],
+                row["held_out_psnr"],
+                row["held_out_psnr"] - given["held_out_psnr"],
+                "x".join(map(str, pinhole["params"][:1] + [pinhole["width"], pinhole["height"]])) if pinhole else "",
+                json.dumps(crop, separators=(",", ":")) if crop else "",
+                row["cpu_seconds"],
+            ]
+        )
+    print(text_table(["run", *HELD_OUT, "mean", "vs given", "pinhole f x W x H", "crop", "CPU s"], table))
+    print(f"model - given: {difference:+.3f} dB (target within {TARGET_DB}); figures in {out}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", nargs="+", default=["model"], choices=["model", "reconstruct"])
     parser.add_argument("--data", type=Path, default=SHARED_DATA / "llff_fern", help="LLFF fern folder")
     parser.add_argument("--out", type=Path, default=RESULTS / "fern_model", help="folder for sparse/0")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL")
     parser.add_argument("--json", type=Path, default=None, help="figures (default benchmarks/results/fern_model.json)")
+    parser.add_argument("--keep", default="", help="reconstruct: keep the runs' output folders under this folder")
     args = parser.parse_args()
+    if "model" in args.parts and model(args):
+        return 1
+    if "reconstruct" in args.parts:
+        photos = sorted((args.data / "images_8").glob("*.png"))
+        return reconstruct(args, photos)
+    return 0
 
+
+def model(args) -> int:
+    """The SIMPLE_RADIAL model of fern's photos and its figures."""
     import pycolmap
 
     from surfsplat.data.load import load_scene_cameras

@@ -37,15 +37,12 @@ import dataclasses
 import json
 import platform
 import resource
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
-from common import ROOT, machine, sample_data, text_table, write_results
+from common import ROOT, machine, reconstruct_cli, sample_data, text_table, write_results
 
 STARTS = ("points", "network", "both", "auto")
 STRATEGIES = ("3dgs", "absgs", "mcmc")
@@ -341,35 +338,8 @@ def cli_run(args, name: str, folder: Path, images_folder: str, holdout_every: in
         if views is not None:
             images = [images[i] for i in views]
         out = Path(args.keep) / name if args.keep else Path(tmp) / "out"
-        command = [
-            sys.executable, "-m", "surfsplat", "reconstruct", "--images", *images, "--cameras", str(folder),
-            "--images-folder", images_folder, "--holdout-every", str(holdout_every), "--formats", "ply",
-            "--raw-3dgs", "--device", "cpu", "--out", str(out), *args.cli_args,
-        ]  # fmt: skip
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        tick = time.perf_counter()
-        run = subprocess.run(command, capture_output=True, text=True)
-        wall = time.perf_counter() - tick
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        if run.returncode:
-            raise SystemExit(f"{name}: surfsplat reconstruct failed:\n{run.stderr[-3000:]}")
-        summary = json.loads((out / "reconstruction.json").read_text())
-    capture = summary.get("capture", {})
-    held = capture.get("held_out", {})
-    return {
-        "command": " ".join(command[1:]),
-        "cpu_seconds": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
-        "wall_seconds": wall,
-        "peak_rss_mb": after.ru_maxrss / 1024,
-        "held_out_psnr": held.get("mean_psnr"),
-        "held_out_psnr_before": (held.get("before_optimization") or {}).get("mean_psnr"),
-        "held_out": held,
-        "antialiased": summary.get("antialiased", False),
-        "held_out_zoom": held.get("zoom"),
-        "seconds": summary.get("seconds"),
-        "optimize": summary.get("optimize"),
-        "stdout_tail": run.stdout[-2000:],
-    }
+        flags = ["--images-folder", images_folder, "--holdout-every", str(holdout_every), "--formats", "ply"]
+        return reconstruct_cli(images, folder, out, [*flags, "--raw-3dgs", *args.cli_args])
 
 
 def plot(results: dict, path: Path) -> None:

@@ -205,6 +205,11 @@ def _triangulate(pycolmap, images: Tensor, cameras: Cameras, config: StartConfig
     rgb = np.array([p.color for p in points], dtype=np.float64).reshape(-1, 3) / 255
     errors = np.array([p.error for p in points], dtype=np.float64)
     tracks = np.array([p.track.length() for p in points], dtype=np.int64)
+    # COLMAP's threads triangulate and number the points in an order that varies from run to run (the same
+    # points): a canonical order (by x, then y, then z) makes the start, and the fit from it, repeat bit for bit
+    key = xyz.astype(np.float32)  # the points' coordinates as they are returned
+    order = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+    xyz, rgb, errors, tracks = xyz[order], rgb[order], errors[order], tracks[order]
     keep = (errors <= config.max_reprojection_error) & (tracks >= config.min_track_length)
     if not keep.any():
         raise SurfSplatInputError(
