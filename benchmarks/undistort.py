@@ -21,13 +21,13 @@ Results go to benchmarks/results/undistort.json with the machine and its load, a
    reconstruct --holdout-every 3 --formats ply --raw-3dgs`, the shipped defaults, each a child process one
    after the other; 12, 15, 18, 21, 24 held out), (a) from the photos and their calibration, and from the
    same photos through an OPENCV lens (b: k1 -0.1, k2 0.05, p1 0.001, p2 -0.001) and an OPENCV_FISHEYE
-   lens (c: part 2's coefficients), both at the calibration's focal length and principal point (the mean
-   of the 15 views' K; they differ by 1e-3 px), each written by `surfsplat.testing.lens_capture` as a
+   lens (c: part 2's coefficients), both at the calibration's principal point and 1.04 times its focal
+   length (`--focal-scale`; the mean of the 15 views' K, which differ by 1e-3 px), each written by `surfsplat.testing.lens_capture` as a
    COLMAP model (pycolmap, binary, no 3D points: every run triangulates its start from the cameras alike)
    and as nerfstudio's transforms.json, and reconstructed from each. Per run: held-out PSNR per view and
-   mean, the difference to (a), the pinhole and working crop the run reports, CPU seconds. With the
-   lens's focal length a lens sees a little beyond the pinhole photo at its corners (those pixels are
-   blank: counted per lens), so (a)'s scene is also scored on the photos each lens's run is scored on
+   mean, the difference to (a), the pinhole and working crop the run reports, CPU seconds. At the
+   calibration's own focal length (`--focal-scale 1`) a lens sees a little beyond the pinhole photo at its
+   corners (those pixels are blank: counted per lens, none at 1.04), so (a)'s scene is also scored on the photos each lens's run is scored on
    (distorted, saved, undistorted: rendered with that run's held-out cameras), the comparison that
    separates what the lens costs from what the resampled and blank pixels cost. One held-out view of
    (b) is drawn as the photo through the lens, its undistorted pinhole photo and the render
@@ -419,9 +419,10 @@ def main() -> None:
     parser.add_argument(
         "--focal-scale",
         type=float,
-        default=1.0,
-        help="reconstruct: the lenses' focal length times this (a diagnostic: the calibration's is 1; above 1.04 "
-        "both lenses see only within the pinhole photos, no blank pixel)",
+        default=1.04,
+        help="reconstruct: the lenses' focal length times the calibration's (default 1.04: both lenses then see "
+        "only within the DTU photos, as a real lens sees the scene; at 1 the lens photos hold a blank border "
+        "that no fit of the scene reproduces)",
     )
     parser.add_argument("--reference", default="", help="reconstruct: a finished (a) run folder, not run again")
     parser.add_argument("--out", default="lens_capture", help="reconstruct: results file (a name or a path)")

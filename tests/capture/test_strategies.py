@@ -253,3 +253,7 @@ def test_the_strategy_flag_reaches_the_library():
         assert optimize_from_args(args).strategy == name
     with pytest.raises(SystemExit):
         parse(["reconstruct", "--images", "a.png", "--optimize-strategy", "nope"])
+    # the fit's seed: 0 by default, any integer by --optimize-seed, in both commands
+    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).seed == 0
+    assert optimize_from_args(parse(["reconstruct", "--images", "a.png", "--optimize-seed", "3"])).seed == 3
+    assert optimize_from_args(parse(["optimize", "out", "--optimize-seed", "7"])).seed == 7

@@ -198,6 +198,14 @@ def add_optimize_arguments(group, continuing: bool = False) -> None:
         "absgs (the same with the absolute screen gradient of AbsGS), mcmc (3DGS-MCMC: faint surfels relocated "
         f"under a fixed budget) (default {optimize.strategy})",
     )
+    group.add_argument(
+        "--optimize-seed",
+        type=int,
+        default=optimize.seed,
+        metavar="N",
+        help=f"seed of the optimization (which views each step renders, the splits' samples); a fit repeats bit "
+        f"for bit with the same seed (default {optimize.seed})",
+    )
 
 
 def optimize_from_args(args: argparse.Namespace):
@@ -215,6 +223,7 @@ def optimize_from_args(args: argparse.Namespace):
         appearance=args.optimize_appearance,
         refine_cameras={"on": True, "off": False, "auto": "auto"}[args.optimize_cameras],
         strategy=args.optimize_strategy,
+        seed=args.optimize_seed,
     )
 
 
