@@ -210,6 +210,29 @@ def test_fit_with_camera_refinement_recovers_a_camera_error():
     assert after[0] < 0.25 * before[0] and after[1] < 0.5 * before[1], (before, after)
 
 
+def test_camera_refinement_hands_absgs_its_absolute_screen_gradients():
+    """With camera refinement each view renders the surfels moved by its correction; AbsGS's densification
+    must still get the render's absolute screen gradients (the shipped strategy with estimated cameras).
+    Corrections held at the identity (rates of 1e-12) densify as the fit without them does."""
+    from surfsplat.capture.densify import DensifyConfig
+
+    plane, cameras, _ = _two_views_of_a_textured_plane()
+    photos = render(plane, cameras, SIZE, SIZE).color
+    shifted = surfsplat.Gaussians(
+        plane.means + 0.01, plane.quats, plane.scales * 1.5, plane.opacities, plane.sh
+    )  # a start to fit, so the screen gradients are not zero
+    densify = DensifyConfig(start=0.0, stop=1.0, every=10, absgrad=True, abs_grad_threshold=1e-6)
+    histories = []
+    for per_view in (None, PerViewConfig(cameras=True, camera_rates=(1e-12, 1e-12))):
+        plan = FitPlan(name="optimize", steps=30, rates={"means": 1e-4, "quats": 1e-3, "log_scales": 5e-3,
+                       "logits": 0.05, "sh_dc": 2.5e-3, "sh_rest": 1.25e-4}, views_per_step=1, extent=1.0,
+                       densify=densify, per_view=per_view)  # fmt: skip
+        _, stats = fit_on_views(shifted, cameras, photos, SIZE, SIZE, plan, backend="torch", per_view_out={})
+        histories.append([(h["cloned"], h["split"], h["pruned"]) for h in stats["densify"]])
+    assert len(histories[0]) == 3 and sum(c + s for c, s, _ in histories[0]) > 0  # it grew
+    assert histories[1] == histories[0]
+
+
 def _pose_error(truth: Tensor, c2w: Tensor) -> tuple[float, float]:
     """(degrees, distance) between two camera-to-world matrices."""
     delta = rigid_inverse(truth.double()) @ c2w.double()

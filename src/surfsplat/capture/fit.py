@@ -190,7 +190,7 @@ def fit_on_views(
             out = draw(g, cams[which], w, h, distortion, absgrad)
             return out, out.color
         if views.config.cameras:
-            parts = [draw(views.moved(g, int(i)), cams[int(i)], w, h, distortion) for i in which.tolist()]
+            parts = [draw(views.moved(g, int(i)), cams[int(i)], w, h, distortion, absgrad) for i in which.tolist()]
             out = concat_outputs(parts)
         else:
             out = draw(g, cams[which], w, h, distortion, absgrad)
