@@ -6,6 +6,7 @@ fits of each strategy that repeat bit for bit."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -180,7 +181,7 @@ def test_absgs_reads_the_absolute_sums_in_ndc_and_grows_above_its_own_threshold(
 
 
 def test_the_registry_names_a_plan_of_the_one_loop_for_each_strategy():
-    assert sorted(STRATEGIES) == ["3dgs", "absgs", "mcmc"]
+    assert sorted(STRATEGIES) == ["3dgs", "absgs", "auto", "mcmc"]
     plans = {s: OptimizeConfig(strategy=s).plan(1.0, 5, 64 * 64).densify for s in STRATEGIES}
     assert plans["3dgs"] == DensifyConfig()
     assert plans["absgs"] == DensifyConfig(absgrad=True)
@@ -245,7 +246,7 @@ def test_the_strategy_flag_reaches_the_library():
     from surfsplat.commands.reconstruct import optimize_from_args
 
     parse = build_parser().parse_args
-    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).strategy == "absgs"
+    assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).strategy == "auto"
     for name in ("absgs", "mcmc"):
         args = parse(["reconstruct", "--images", "a.png", "--optimize-strategy", name])
         assert optimize_from_args(args).strategy == name
@@ -257,3 +258,27 @@ def test_the_strategy_flag_reaches_the_library():
     assert optimize_from_args(parse(["reconstruct", "--images", "a.png"])).seed == 0
     assert optimize_from_args(parse(["reconstruct", "--images", "a.png", "--optimize-seed", "3"])).seed == 3
     assert optimize_from_args(parse(["optimize", "out", "--optimize-seed", "7"])).seed == 7
+
+
+@pytest.mark.parametrize(("backend", "expected"), [("torch", "absgs"), ("cpu", "absgs"), ("gsplat", "3dgs")])
+def test_auto_strategy_is_absgs_where_the_backend_gives_the_absolute_gradient(monkeypatch, backend, expected):
+    """The shipped "auto": AbsGS on the torch and compiled CPU backends, 3DGS's on gsplat, whose 2DGS kernel
+    cannot give surfels' absolute screen gradient."""
+    from surfsplat.capture import optimize as optimize_module
+
+    plane, cameras, _ = _two_views_of_a_textured_plane()
+    from surfsplat.render import render
+
+    photos = render(plane, cameras, SIZE, SIZE).color
+    seen = {}
+
+    def fake_fit(start, cams, images, width, height, plan, **kwargs):
+        seen["densify"] = plan.densify
+        return start, {"kept": 1.0, "steps": 0}
+
+    monkeypatch.setattr(optimize_module, "fit_on_views", fake_fit)
+    monkeypatch.setattr("surfsplat.render.resolve_backend", lambda *args, **kwargs: backend)
+    config = OptimizeConfig(steps=10, start=dataclasses.replace(OptimizeConfig().start, kind="network"))
+    _, stats = optimize_module.optimize_on_views(plane, cameras, photos, SIZE, SIZE, config, backend=backend)
+    assert stats["strategy"] == expected
+    assert seen["densify"] == (DensifyConfig(absgrad=True) if expected == "absgs" else DensifyConfig())

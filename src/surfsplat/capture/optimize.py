@@ -54,9 +54,12 @@ VIEW_PIXELS_PER_STEP = 768
 MIN_STEPS = 1000
 MAX_STEPS = 3000
 
-Strategy = Literal["3dgs", "absgs", "mcmc"]
-# OptimizeConfig.strategy -> the plan's densification, from the configuration's `densify` and `mcmc`
+Strategy = Literal["auto", "3dgs", "absgs", "mcmc"]
+# OptimizeConfig.strategy -> the plan's densification, from the configuration's `densify` and `mcmc`;
+# "auto" is absgs where the renderer gives the absolute screen gradient (torch, cpu), 3dgs on gsplat,
+# whose 2DGS kernel cannot (`optimize_on_views` decides, knowing the backend)
 STRATEGIES = {
+    "auto": lambda config: replace(config.densify, absgrad=True),
     "3dgs": lambda config: config.densify,
     "absgs": lambda config: replace(config.densify, absgrad=True),
     "mcmc": lambda config: config.mcmc,
@@ -87,9 +90,10 @@ class OptimizeConfig:
     # None: the surfels neither grow nor go (the fit of the network's start alone)
     densify: DensifyConfig | None = field(default_factory=DensifyConfig)
     # how the surfels grow (`STRATEGIES`): 3DGS's densification, AbsGS's (3DGS's with the absolute screen
-    # gradient), or 3DGS-MCMC's relocation (`mcmc`). "absgs" from the curves (docs/optimize.md): at 3,000
-    # steps on fern 24.62 dB held out against 3dgs 24.52 and mcmc (relocation every 10 steps) 24.18
-    strategy: Strategy = "absgs"
+    # gradient), or 3DGS-MCMC's relocation (`mcmc`). "auto": absgs, from the curves (docs/optimize.md: at
+    # 3,000 steps on fern 24.62 dB held out against 3dgs 24.52 and mcmc, relocation every 10 steps, 24.18),
+    # and 3dgs on the gsplat backend, which cannot give surfels' absolute screen gradient
+    strategy: Strategy = "auto"
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)  # the "mcmc" strategy's schedule and constants
     views_per_step: int = 1  # context views rendered in one step (3DGS: 1)
     scale: float = 1.0  # the fit renders at this fraction of the working size (photos area-averaged)
@@ -334,6 +338,13 @@ def optimize_on_views(
     if threshold == "auto":
         threshold = alpha_threshold if kind in ("network", "continue") else None
     plan = replace(config.plan(extent, len(cameras), width * height), per_view=config.per_view_for(estimated_cameras))
+    strategy = config.strategy
+    if strategy == "auto":
+        from ..render import resolve_backend
+
+        gsplat = resolve_backend(backend, start.means.device, None, cameras) == "gsplat"
+        strategy = "3dgs" if gsplat else "absgs"
+        plan = replace(plan, densify=None if config.densify is None else STRATEGIES[strategy](config))
     if config.normal_weight == "auto" and keeps_threshold:
         plan = replace(plan, normal_weight=NETWORK_NORMAL_WEIGHT)
     if kind == "continue":
@@ -355,6 +366,7 @@ def optimize_on_views(
         per_view_out=per_view_out,
     )
     stats["alpha_threshold"] = threshold
+    stats["strategy"] = strategy if plan.densify is not None else None
     stats["antialiased"] = plan.antialiased
     stats["normal_weight"] = plan.normal_weight
     if not stats["kept"] and gaussians is not None:  # the fit raised its error: the given surfels stay

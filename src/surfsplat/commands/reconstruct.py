@@ -196,7 +196,8 @@ def add_optimize_arguments(group, continuing: bool = False) -> None:
         default=optimize.strategy,
         help="how the optimization grows the surfels: 3dgs (clone and split where the screen gradient is high), "
         "absgs (the same with the absolute screen gradient of AbsGS), mcmc (3DGS-MCMC: faint surfels relocated "
-        f"under a fixed budget) (default {optimize.strategy})",
+        "under a fixed budget), auto (absgs; 3dgs on the gsplat backend, which cannot give the absolute "
+        f"gradient of surfels) (default {optimize.strategy})",
     )
     group.add_argument(
         "--optimize-seed",
