@@ -27,7 +27,7 @@ def _inputs(given: str) -> dict:
     size, the working crop, and the context and held-out photos at the working size with their K."""
     photos = sorted((DISTORTED / "images").glob("*.png"))
     cams = load_cameras(DISTORTED / given)
-    views, K = _undistorted_views(read_capture(photos, FrameConfig()), cams, given)
+    views, K, c2w = _undistorted_views(read_capture(photos, FrameConfig()), cams, given)
     shape = _working_shape(views, None, 512, DEFAULT_SIZE_MULTIPLE)
     images, K_work = [], []
     for i in range(len(views)):
@@ -43,7 +43,7 @@ def _inputs(given: str) -> dict:
         "images": torch.stack(images),
         "K_work": torch.stack(K_work),
         "held_out": torch.stack([images[i] for i in held]),
-        "c2w": cams.cameras.c2w,
+        "c2w": c2w,
     }
 
 

@@ -670,8 +670,9 @@ def composite(
     )  # [M, G + F + 5]
     if abs_probe is not None:
         probe_sorted = _take(abs_probe, proj.index)  # [M, 2]
-        abs_table = torch.cat((proj.abs_coef.to(dtype), proj.transform[:, 2, :2].detach().to(dtype)), dim=1)
-        abs_table = abs_table[:, [0, 1, 2, 3, 5, 6, 4]]  # U, V, T_w[:2], k
+        # U, V, T_w[:2], k (slices, not a list index: that would be a host tensor on another device)
+        coef = proj.abs_coef.to(dtype)
+        abs_table = torch.cat((coef[:, :4], proj.transform[:, 2, :2].detach().to(dtype), coef[:, 4:5]), dim=1)
 
     tile_feats = torch.zeros(n_tiles, P, F_, dtype=dtype, device=device)
     tile_depth = torch.zeros(n_tiles, P, dtype=dtype, device=device)
