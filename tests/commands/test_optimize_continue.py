@@ -100,7 +100,8 @@ def test_a_chosen_start_restarts_the_fit(views, fits, tmp_path, capsys):
     assert len(start) == len(saved) < optimize_module.OptimizeConfig().start.budget  # all kept by the thinning
     # the whole schedule again: coarse to fine, the position rate's decay, growth
     default = optimize_module.OptimizeConfig()
-    assert plan.levels == default.levels and plan.densify == default.densify
+    # growth: the default strategy "auto" is absgs on the CPU, 3DGS's densification with the absolute gradient
+    assert plan.levels == default.levels and plan.densify == optimize_module.STRATEGIES["absgs"](default)
     assert plan.means_final_rate == pytest.approx(plan.rates["means"] / 100)
     assert "from the network's surfels" in capsys.readouterr().out
 
