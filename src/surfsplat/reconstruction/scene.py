@@ -277,7 +277,6 @@ class Scene:
     def render(self, cameras: Cameras | None = None, scale: float = 1.0):
         """RenderOutput of the scene from `cameras` (default: the context cameras; K in pixels of
         width x height) at scale times the resolution, K scaled exactly."""
-        from ..render import render
 
         if not (math.isfinite(scale) and scale > 0):
             raise SurfSplatInputError(f"scale: expected a positive factor, got {scale}")
@@ -285,17 +284,23 @@ class Scene:
         if not isinstance(cams, Cameras):
             raise SurfSplatInputError(f"cameras: expected surfsplat.Cameras, got {type(cams).__name__}")
         w, h = max(1, round(self.width * scale)), max(1, round(self.height * scale))
-        cams = cams.to(self.gaussians.means).scaled(scale)
+        return self._draw(cams.to(self.gaussians.means).scaled(scale), w, h)
+
+    def _draw(self, cams: Cameras, width: int, height: int, supersample: bool = True):
+        """RenderOutput from `cams` (on the surfels' device) at width x height, as the scene renders: its mode,
+        forced-alpha threshold, antialiasing, and zoomed-out views supersampled (`supersampling`)."""
+        from ..render import render
+
         with torch.inference_mode():
             return render(
                 self.gaussians,
                 cams,
-                w,
-                h,
+                width,
+                height,
                 mode=self.mode,
                 alpha_threshold=self.alpha_threshold,
                 antialiased=self.antialiased,
-                supersample=self.supersampling(cams, w, h),
+                supersample=self.supersampling(cams, width, height) if supersample else 1,
             )
 
     def supersampling(self, cameras: Cameras, width: int, height: int) -> int:
@@ -348,7 +353,6 @@ class Scene:
         views), rendered as the scene renders (its mode, forced-alpha threshold and antialiasing, and the
         zoomed-out views supersampled, `supersampling`; `supersample=False`: the renders at the sizes asked)."""
         from ..metrics.zoom import zoom_scores
-        from ..render import render
 
         if cameras is None:
             if self.holdout is None:
@@ -356,18 +360,7 @@ class Scene:
             cameras, images = self.holdout.cameras, self.holdout.images
 
         def draw(cams: Cameras, w: int, h: int):
-            cams = cams.to(self.gaussians.means)
-            with torch.inference_mode():
-                return render(
-                    self.gaussians,
-                    cams,
-                    w,
-                    h,
-                    mode=self.mode,
-                    alpha_threshold=self.alpha_threshold,
-                    antialiased=self.antialiased,
-                    supersample=self.supersampling(cams, w, h) if supersample else 1,
-                )
+            return self._draw(cams.to(self.gaussians.means), w, h, supersample)
 
         return zoom_scores(
             draw, cameras.to(self.gaussians.means), images.to(self.gaussians.means), self.width, self.height, up=up
