@@ -6,6 +6,10 @@
   the image s times smaller, moved back to depth s d, or with a focal s times shorter needs s; zoomed in, at the
   fitted zoom, or seeing nothing: 1; capped at 4.
 - A scene's x1/2 and x1/4 zoom scores then equal those of its x1 render averaged down.
+- Zoomed in (`zoom_in_floor`): the tangent scales' floor against its closed form (the fitted footprint d / f
+  times sqrt(1 - 1 / z^2) / sqrt(2) for the zoom z, however the view zooms in), surfels wider than it and views
+  below 1.5 x untouched; on a surface of surfels a tenth of a pixel wide it keeps the x4 render covered and equal
+  to the x1 render where, drawn as asked, the surface breaks into dots.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import torch.nn.functional as F
 
 from surfsplat import Cameras, Gaussians
 from surfsplat.render import render
-from surfsplat.render.supersample import MAX_SUPERSAMPLE, pixel_footprints, supersampling
+from surfsplat.render.supersample import MAX_SUPERSAMPLE, pixel_footprints, supersampling, zoom_in_floor
 from surfsplat.utils.checks import SurfSplatInputError
 
 from .test_render import pinhole, random_scene
@@ -135,4 +139,55 @@ def test_scene_zoom_out_scores_equal_the_x1_render_averaged_down():
         assert ss[f"x1/{s}"] == pytest.approx(ss[f"x1/{s}_target"], abs=1e-4)
         assert ss[f"x1/{s}_vs_render"] > 60  # the same image up to float rounding
         assert asked[f"x1/{s}_vs_render"] < 45  # drawn at the size asked it is not
-    assert ss["x1"] == asked["x1"] and ss["x2"] == asked["x2"]  # at and above the fitted zoom: unchanged
+    assert ss["x1"] == asked["x1"]  # at the fitted zoom: unchanged
+
+
+def test_zoom_in_floor_against_closed_forms():
+    d, f, W, H = 3.0, 100.0, 64, 48
+    g = plane(d)  # tangent scales 0.01, a third of the pixel footprint d / f = 0.03
+    fitted = pinhole(f, W, H, dtype=torch.float64)
+
+    def floor_of(cams, w, h):
+        return zoom_in_floor(g, fitted, W, H, cams, w, h)
+
+    assert floor_of(fitted, W, H) is g  # the fitted zoom
+    assert floor_of(fitted.scaled(1.3), round(1.3 * W), round(1.3 * H)) is g  # below 1.5: as asked
+    assert floor_of(fitted.scaled(1 / 2), W // 2, H // 2) is g  # zoomed out: supersampled instead
+    for z in (2.0, 4.0):
+        expected = (d / f) * (1 - 1 / z**2) ** 0.5 / 2**0.5
+        closer = pinhole(f, W, H, c2w=moved_back(-(1 - 1 / z) * d), dtype=torch.float64)  # at depth d / z
+        for cams, w, h in ((fitted.scaled(z), int(z * W), int(z * H)), (closer, W, H)):
+            out = floor_of(cams, w, h)
+            assert torch.allclose(out.scales, torch.full_like(g.scales, expected), rtol=1e-9, atol=0)
+            assert out.means is g.means and out.opacities is g.opacities and out.sh is g.sh
+    wide = Gaussians(g.means, g.quats, torch.full_like(g.scales, 0.05), g.opacities, g.sh)
+    assert torch.equal(zoom_in_floor(wide, fitted, W, H, fitted.scaled(4), 4 * W, 4 * H).scales, wide.scales)
+
+
+def test_zoom_in_floor_keeps_a_surface_of_thin_surfels_whole():
+    """A wall of surfels a tenth of a pixel wide, one a pixel apart: at x1 the low-pass draws it whole; at x4
+    drawn as asked it is dots on black, with the floor it is the x1 render, finer."""
+    d, f, W, H = 3.0, 40.0, 32, 24
+    step = d / f  # one pixel on the wall
+    ys, xs = torch.meshgrid(torch.arange(-16, 16), torch.arange(-20, 20), indexing="ij")
+    xy = torch.stack((xs.flatten() + 0.5, ys.flatten() + 0.5), -1).double() * step
+    n = len(xy)
+    colours = torch.rand(n, 3, 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    g = Gaussians(
+        torch.cat((xy, torch.full((n, 1), d, dtype=torch.float64)), 1),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(n, 4),
+        torch.full((n, 2), step / 10, dtype=torch.float64),
+        torch.full((n,), 0.9, dtype=torch.float64),
+        (colours - 0.5) / 0.28209479177387814,  # SH DC of the colour
+    )
+    fitted = pinhole(f, W, H, dtype=torch.float64)
+    x1 = render(g, fitted, W, H, backend="torch")
+    big = fitted.scaled(4)
+    plain = render(g, big, 4 * W, 4 * H, backend="torch")
+    floored = render(zoom_in_floor(g, fitted, W, H, big, 4 * W, 4 * H), big, 4 * W, 4 * H, backend="torch")
+    assert float(x1.alpha.mean()) > 0.9
+    assert float(plain.alpha.mean()) < 0.5 * float(x1.alpha.mean())  # broken into dots
+    assert float(floored.alpha.mean()) > 0.97 * float(x1.alpha.mean())
+    pooled = F.avg_pool2d(floored.color, 4)
+    error = float((pooled - x1.color).abs().mean())
+    assert error < 0.02 < float((F.avg_pool2d(plain.color, 4) - x1.color).abs().mean())

@@ -52,6 +52,9 @@ def zoom_line(zoom: dict, antialiased: bool) -> str:
         drawn = ", ".join(f"x1/{s} at {factors[f'x1/{s}']}x" for s in (2, 4) if f"x1/{s}" in factors)
         plain = ", ".join(f"x1/{s} {asked[f'x1/{s}']:.2f}" for s in (2, 4) if f"x1/{s}" in asked)
         line += f"; zoomed out drawn finer and averaged down ({drawn}; drawn at the size asked: {plain} dB)"
+    plain_up = ", ".join(f"x{s} {asked[f'x{s}']:.2f}" for s in (2, 4) if f"x{s}" in asked)
+    if plain_up:
+        line += f"; zoomed in with the surfels as wide as the fit saw them (without: {plain_up} dB)"
     return line
 
 

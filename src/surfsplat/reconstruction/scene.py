@@ -288,12 +288,14 @@ class Scene:
 
     def _draw(self, cams: Cameras, width: int, height: int, supersample: bool = True):
         """RenderOutput from `cams` (on the surfels' device) at width x height, as the scene renders: its mode,
-        forced-alpha threshold, antialiasing, and zoomed-out views supersampled (`supersampling`)."""
+        forced-alpha threshold, antialiasing, zoomed-out views supersampled (`supersampling`) and zoomed-in
+        views with each surfel at least as wide as the fit saw it (`zoom_in_floor`); `supersample=False`:
+        drawn as asked."""
         from ..render import render
 
         with torch.inference_mode():
             return render(
-                self.gaussians,
+                self.zoomed_in(cams, width, height) if supersample else self.gaussians,
                 cams,
                 width,
                 height,
@@ -302,6 +304,16 @@ class Scene:
                 antialiased=self.antialiased,
                 supersample=self.supersampling(cams, width, height) if supersample else 1,
             )
+
+    def zoomed_in(self, cameras: Cameras, width: int, height: int) -> Gaussians:
+        """The surfels as a render from `cameras` at width x height draws them: where the view is zoomed in
+        1.5 x or more from the fitted views, each surfel's tangent scales at least the fitted low-pass width
+        (`surfsplat.render.supersample.zoom_in_floor`); else the scene's own surfels."""
+        from ..render.supersample import zoom_in_floor
+
+        if self.cameras is None or not self.width or not self.height:
+            return self.gaussians
+        return zoom_in_floor(self.gaussians, self.cameras, self.width, self.height, cameras, width, height)
 
     def supersampling(self, cameras: Cameras, width: int, height: int) -> int:
         """How many times finer than width x height a render from `cameras` is drawn and averaged down

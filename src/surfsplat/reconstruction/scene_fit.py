@@ -101,15 +101,16 @@ def optimize_scene(
             held.protocol = "exposure"
         scene.score_holdout()
         # smaller and larger renders of the held-out views
-        # (zoomed-out views drawn at the fitted zoom and averaged down; beside them, the renders drawn at the
-        # sizes asked, what the antialiasing filter alone gives)
+        # (zoomed-out views drawn at the fitted zoom and averaged down, zoomed-in views with the surfels at least
+        # as wide as the fit saw them; beside them, the renders drawn as asked, what the antialiasing filter alone
+        # gives)
         held.zoom = {**scene.zoom_scores().to_dict(), "antialiased": scene.antialiased}
         cams = scene.holdout.cameras.to(scene.gaussians.means)
         held.zoom["supersample"] = {
             f"x1/{s}": scene.supersampling(cams.scaled(1 / s), scene.width // s, scene.height // s) for s in (2, 4)
         }
-        asked = scene.zoom_scores(supersample=False, up=()).to_dict()
-        held.zoom["drawn_at_size"] = {k: asked[k] for k in ("x1/2", "x1/4") if k in asked}
+        asked = scene.zoom_scores(supersample=False).to_dict()
+        held.zoom["drawn_at_size"] = {k: asked[k] for k in ("x1/2", "x1/4", "x2", "x4") if k in asked}
     return scene
 
 

@@ -19,6 +19,20 @@ surface facing it, in world units), divided by the same median of the fitted cam
 smaller image, a shorter focal length and a camera moved back alike. The factor is that ratio
 rounded, 1 (no supersampling) below 1.5, at most `MAX_SUPERSAMPLE`; one factor serves a batch of
 cameras (the largest). Nothing here is in a library: gsplat and nerfstudio render at the size asked.
+
+Zoomed in, the other way round (`zoom_in_floor`). At the fitted zoom the surfel renderer's screen-space
+low-pass (2DGS's, a Gaussian of variance 1/2 px^2 where it exceeds the surfel) draws every surfel smaller
+than a pixel as that pixel's blob, and the fit made the picture from those blobs: on LLFF fern a quarter of
+the fitted surfels are thinner than their pixel's low-pass. Zoomed in, the low-pass shrinks with the pixel,
+those surfels shrink to the slivers they are, and the surface they drew breaks into lines (fern x4: 0.67 dB
+below x1 against the bicubic-upsampled photos). Mip-Splatting's 3D filter bounds each Gaussian below by the
+finest sampling of the views it was fitted from; here, for a view zoomed in by z (the ratio above,
+inverted, from 1.5 on), each surfel's tangent scales are raised to at least the fitted low-pass width at
+its finest fitted footprint (`geometry.pixels.pixel_footprints`: depth / f of the finest fitted camera that
+sees it) times sqrt(1 - 1 / z^2): with the view's own low-pass, whose variance is 1 / z^2 of the fitted
+one in world units, that is the fitted filter's variance, so each surfel is drawn at least as wide as the
+fit saw it. The floor is the one the bake for standard viewers applies (`export.bake`) at every zoom; a
+surfel already wider is unchanged, and renders below 1.5 x the fitted zoom are untouched, bit for bit.
 """
 
 from __future__ import annotations
@@ -28,8 +42,10 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
+from .types import LOWPASS_RHO_SCALE
 
 MAX_SUPERSAMPLE = 4  # a render is drawn at most 4 x 4 times its pixels (x1/4 of the fitted size: the fitted size)
+MIN_ZOOM = 1.5  # renders closer to the fitted zoom than this, either way, are drawn as asked
 
 
 def pixel_footprints(means: Tensor, cameras: Cameras, width: int, height: int) -> Tensor:
@@ -66,6 +82,37 @@ def supersampling(
         reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
         asked = pixel_footprints(means, cameras, width, height)
         ratio = float((asked / reference).nan_to_num(1.0).max())
-    if not ratio >= 1.5:  # NaN (nothing seen) too
+    if not ratio >= MIN_ZOOM:  # NaN (nothing seen) too
         return 1
     return min(MAX_SUPERSAMPLE, round(ratio))
+
+
+def zoom_in_floor(
+    gaussians: Gaussians,
+    fitted: Cameras,
+    fitted_width: int,
+    fitted_height: int,
+    cameras: Cameras,
+    width: int,
+    height: int,
+) -> Gaussians:
+    """`gaussians` as a zoomed-in render from `cameras` at width x height draws them: each surfel's tangent
+    scales at least its fitted low-pass width times sqrt(1 - 1 / z^2), z the least zoom-in of the batch
+    (module docstring). The same object where no camera is zoomed in 1.5 x or more, or where the surfels carry
+    explicit covariances (the release's EWA surfels, whose scales the renderer does not read)."""
+    from dataclasses import replace
+
+    from ..geometry.pixels import pixel_footprints as surfel_footprints
+
+    if len(gaussians.means) == 0 or gaussians.explicit_covariances is not None:
+        return gaussians
+    with torch.no_grad():
+        means = gaussians.means.detach()
+        reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
+        asked = pixel_footprints(means, cameras, width, height)
+        zoom = float((reference / asked).nan_to_num(1.0).min())
+        if not zoom >= MIN_ZOOM:
+            return gaussians
+        share = (1.0 - 1.0 / zoom**2) ** 0.5
+        floor = surfel_footprints(gaussians, fitted, fitted_width, fitted_height) * (share / LOWPASS_RHO_SCALE**0.5)
+    return replace(gaussians, scales=torch.maximum(gaussians.scales, floor[:, None].to(gaussians.scales)))

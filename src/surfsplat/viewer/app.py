@@ -306,15 +306,15 @@ class SurfelViewer:
         cams, width, height = view_cameras(view, self.render_height())
         cams = cams.scaled(scale).to(self.scene.gaussians.means.dtype)
         scene = self.scene
-        supersample = 1
-        if scene.cameras is not None and scene.width and scene.height:  # zoomed out: drawn at the fitted zoom
-            from ..render.supersample import supersampling
+        supersample, gaussians = 1, scene.gaussians
+        if scene.cameras is not None and scene.width and scene.height:
+            from ..render.supersample import supersampling, zoom_in_floor
 
-            supersample = supersampling(
-                scene.gaussians, scene.cameras, scene.width, scene.height, cams, width * scale, height * scale
-            )
+            fitted = (scene.cameras, scene.width, scene.height, cams, width * scale, height * scale)
+            supersample = supersampling(scene.gaussians, *fitted)  # zoomed out: drawn at the fitted zoom
+            gaussians = zoom_in_floor(scene.gaussians, *fitted)  # zoomed in: surfels as wide as the fit saw them
         out = render(
-            scene.gaussians,
+            gaussians,
             cams,
             width * scale,
             height * scale,
