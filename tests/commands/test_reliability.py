@@ -787,17 +787,6 @@ def test_viewer_serves_only_its_page(world, tmp_path, caplog):
     assert any("reachable from other machines" in r.getMessage() for r in caplog.records)
 
 
-def _has_lens_functions() -> bool:
-    import importlib.util
-
-    import surfsplat.geometry.lens as lens
-
-    return hasattr(lens, "undistorted_pinhole") and importlib.util.find_spec("surfsplat.data.undistort") is not None
-
-
-@pytest.mark.skipif(
-    not _has_lens_functions(), reason="needs surfsplat.geometry.lens.undistorted_pinhole (the lens math)"
-)
 def test_absurd_distortion_is_one_line_exit_2(world, tmp_path, capsys, monkeypatch):
     """A lens whose distortion leaves no valid region (k1 50, k2 -80 folds the image): one line naming the
     model, before anything is read or written."""
