@@ -350,7 +350,7 @@ def test_optimizing_a_saved_reconstruction_scores_its_held_out_views_again(five_
     assert main([*argv, "--out", str(tmp_path / "first"), "--images", *map(str, paths)]) == 0
     first = json.loads((tmp_path / "first" / "reconstruction.json").read_text())["capture"]["held_out"]
     assert first["names"] == ["v0.png", "v4.png"] and len(first["sources"]) == 2
-    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "30", "--optimize-start", "network"]
+    command = ["optimize", str(tmp_path / "first"), "--optimize-steps", "60", "--optimize-start", "network"]
     assert main([*command, "--raw-3dgs", "--no-progress", "--formats", "ply"]) == 0
     again = json.loads((tmp_path / "first_optimized" / "reconstruction.json").read_text())["capture"]["held_out"]
     assert again["names"] == first["names"]

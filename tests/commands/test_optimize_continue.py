@@ -75,7 +75,8 @@ def test_an_optimized_folder_is_continued_from_its_saved_surfels(views, fits, tm
     assert torch.equal(start.sh[..., :have], saved.sh) and not start.sh[..., have:].any()
     # where the fit's schedule ends: full size, the final position rate throughout, no growth
     assert plan.levels == () and plan.densify is None and plan.means_final_rate is None
-    assert plan.rates["means"] == pytest.approx(optimize_module.OptimizeConfig().means_lr_final * plan.extent)
+    default = optimize_module.OptimizeConfig()
+    assert plan.rates["means"] == pytest.approx(default.means_lr_final * plan.extent * default.lr_scale)
     summary = json.loads((tmp_path / "fit_optimized" / "reconstruction.json").read_text())
     versus = summary["optimize"]["versus_input"]
     held = summary["capture"]["held_out"]
