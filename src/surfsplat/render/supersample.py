@@ -64,6 +64,23 @@ def pixel_footprints(means: Tensor, cameras: Cameras, width: int, height: int) -
     return sizes.nanmedian(dim=1).values
 
 
+def _footprints(
+    gaussians: Gaussians,
+    fitted: Cameras,
+    fitted_width: int,
+    fitted_height: int,
+    cameras: Cameras,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    """The fitted cameras' median pixel footprint (a scalar) and each asked camera's ([C]), over the surfels'
+    centres: what a view's zoom against the fitted ones is read from, either way."""
+    with torch.no_grad():
+        means = gaussians.means.detach()
+        reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
+        return reference, pixel_footprints(means, cameras, width, height)
+
+
 def supersampling(
     gaussians: Gaussians,
     fitted: Cameras,
@@ -75,13 +92,10 @@ def supersampling(
 ) -> int:
     """The supersampling factor (1 to MAX_SUPERSAMPLE) of a render of `gaussians` from `cameras` at width x height,
     for a scene fitted from `fitted` at fitted_width x fitted_height (module docstring)."""
-    with torch.no_grad():
-        means = gaussians.means.detach()
-        if len(means) == 0:
-            return 1
-        reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
-        asked = pixel_footprints(means, cameras, width, height)
-        ratio = float((asked / reference).nan_to_num(1.0).max())
+    if len(gaussians.means) == 0:
+        return 1
+    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    ratio = float((asked / reference).nan_to_num(1.0).max())
     if not ratio >= MIN_ZOOM:  # NaN (nothing seen) too
         return 1
     return min(MAX_SUPERSAMPLE, round(ratio))
@@ -106,13 +120,11 @@ def zoom_in_floor(
 
     if len(gaussians.means) == 0 or gaussians.explicit_covariances is not None:
         return gaussians
+    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    zoom = float((reference / asked).nan_to_num(1.0).min())
+    if not zoom >= MIN_ZOOM:
+        return gaussians
+    share = (1.0 - 1.0 / zoom**2) ** 0.5
     with torch.no_grad():
-        means = gaussians.means.detach()
-        reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
-        asked = pixel_footprints(means, cameras, width, height)
-        zoom = float((reference / asked).nan_to_num(1.0).min())
-        if not zoom >= MIN_ZOOM:
-            return gaussians
-        share = (1.0 - 1.0 / zoom**2) ** 0.5
         floor = surfel_footprints(gaussians, fitted, fitted_width, fitted_height) * (share / LOWPASS_RHO_SCALE**0.5)
     return replace(gaussians, scales=torch.maximum(gaussians.scales, floor[:, None].to(gaussians.scales)))
