@@ -21,6 +21,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from . import _openmp  # noqa: F401  (first of the package: before torch loads)
 from .utils import log
 from .utils.atomic import OutputError, output_error
 from .utils.checks import SurfSplatInputError

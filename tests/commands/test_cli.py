@@ -292,3 +292,42 @@ def test_render_export_view_demo_errors(tmp_path, capture, capsys):
     (tmp_path / "d" / "train").mkdir(parents=True)
     (tmp_path / "d" / "train" / "x").write_text("")
     _fails(["demo", "--out", str(tmp_path / "d")], capsys, "already holds a demo run")
+
+
+def _python(code: str, **env: str) -> list[str]:
+    import os
+    import subprocess
+    import sys
+
+    environment = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | env
+    run = subprocess.run([sys.executable, "-c", code], env=environment, capture_output=True, text=True, check=True)
+    return run.stdout.split()
+
+
+def test_the_command_line_lets_openmp_threads_sleep_unless_told_otherwise():
+    import ast
+    from pathlib import Path
+
+    import surfsplat.cli
+
+    show = "import os, sys, surfsplat.cli; print(os.environ['OMP_WAIT_POLICY'])"
+    assert _python(show) == ["PASSIVE"]
+    assert _python(show, OMP_WAIT_POLICY="ACTIVE") == ["ACTIVE"]  # the user's value wins
+    # It is set before torch (and its OpenMP runtime) loads: the package's import loads no torch, and the
+    # command line's first import from the package is `_openmp`.
+    assert _python("import sys, surfsplat; print('torch' in sys.modules)") == ["False"]
+    tree = ast.parse(Path(surfsplat.cli.__file__).read_text())
+    first = next(n for n in tree.body if isinstance(n, ast.ImportFrom) and n.level)
+    assert [a.name for a in first.names] == ["_openmp"]
+
+
+def test_the_package_names_load_on_first_use():
+    code = "import sys, surfsplat; n = surfsplat.Scene; print(n.__name__, 'torch' in sys.modules, len(dir(surfsplat)))"
+    name, torch_loaded, _ = _python(code)
+    assert (name, torch_loaded) == ("Scene", "True")
+    import surfsplat
+
+    for public in surfsplat.__all__:
+        assert getattr(surfsplat, public) is not None
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        surfsplat.nothing  # noqa: B018
