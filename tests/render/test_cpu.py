@@ -14,6 +14,7 @@ from surfsplat import Cameras, Gaussians
 from surfsplat.data.synthetic.surfel_scene import frame_from_normal
 from surfsplat.geometry.rotations import matrix_to_quat
 from surfsplat.render import CpuRenderSettings, TorchRenderSettings, normalize_by_alpha, render, resolve_backend
+from surfsplat.render.types import LOWPASS_RHO_SCALE
 from surfsplat.utils.checks import SurfSplatInputError
 from tests.helpers.reference_render import reference_render
 
@@ -259,7 +260,7 @@ def test_float32_kernels_compute_in_float32():
     params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
     render(Gaussians(**params), camera(20.0, 16, 16, dtype=torch.float32), 16, 16, backend="cpu").color.sum().backward()
     for kernel in (kernels.composite_forward, kernels.composite_backward):
-        assert any(sig[1] == numba.float32[:, ::1] for sig in kernel.signatures), kernel
+        assert any(sig[2] == numba.float32[:, ::1] for sig in kernel.signatures), kernel  # (surfel, lowpass, geom
     f32 = np.float32
     lanes = kernels.LANES
     rows, g, f = np.ones(16, dtype=np.int64), np.zeros(kernels.GEOM_SIZE, f32), np.ones(kernels.FEATURES, f32)
@@ -274,7 +275,7 @@ def test_float32_kernels_compute_in_float32():
         (
             kernels._blend,
             [
-                (surfel, g, f, np.zeros((16, runs * lanes), f32), last, *box, np.int32(1), d)
+                (surfel, f32(LOWPASS_RHO_SCALE), g, f, np.zeros((16, runs * lanes), f32), last, *box, np.int32(1), d)
                 for runs, d in zip(fwd_runs, dist)
                 for surfel in (True, False)
             ],
@@ -284,6 +285,7 @@ def test_float32_kernels_compute_in_float32():
             [
                 (
                     surfel,
+                    f32(LOWPASS_RHO_SCALE),
                     g,
                     f,
                     np.zeros((16, runs * lanes), f32),

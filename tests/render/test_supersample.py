@@ -6,7 +6,11 @@
   the image s times smaller, moved back to depth s d, or with a focal s times shorter needs s; zoomed in, at the
   fitted zoom, or seeing nothing: 1; capped at 4.
 - A scene's x1/2 and x1/4 zoom scores then equal those of its x1 render averaged down.
-- Zoomed in (`zoom_in_floor`): the tangent scales' floor against its closed form (the fitted footprint d / f
+- Zoomed in (`render(..., filter_zoom=z)`): a surfel far below a pixel drawn as the filter of a camera z times
+  coarser, o exp(-|p - c|^2 / z^2) (EWA: the dilation 0.3 z^2), on both backends, whose gradients agree;
+  `zoom_plan` picks it for views zoomed in 1.5 x or more with z the zoom, and the surface of thin surfels below
+  drawn with it at x4 is the x1 render, finer.
+- On gsplat (`zoom_in_floor`): the tangent scales' floor against its closed form (the fitted footprint d / f
   times sqrt(1 - 1 / z^2) / sqrt(2) for the zoom z, however the view zooms in), surfels wider than it and views
   below 1.5 x untouched; on a surface of surfels a tenth of a pixel wide it keeps the x4 render covered and equal
   to the x1 render where, drawn as asked, the surface breaks into dots.
@@ -19,8 +23,15 @@ import torch
 import torch.nn.functional as F
 
 from surfsplat import Cameras, Gaussians
-from surfsplat.render import render
-from surfsplat.render.supersample import MAX_SUPERSAMPLE, pixel_footprints, supersampling, zoom_in_floor
+from surfsplat.render import CpuRenderSettings, TorchRenderSettings, render
+from surfsplat.render.supersample import (
+    MAX_SUPERSAMPLE,
+    ZoomPlan,
+    pixel_footprints,
+    supersampling,
+    zoom_in_floor,
+    zoom_plan,
+)
 from surfsplat.utils.checks import SurfSplatInputError
 
 from .test_render import pinhole, random_scene
@@ -72,6 +83,12 @@ def test_supersample_refuses_bad_values():
             render(g, cam, 8, 8, supersample=bad)
     with pytest.raises(SurfSplatInputError, match="supersample"):
         render(g, cam, 8, 8, backend="torch", supersample=2, absgrad=True)
+    for bad in (0.5, 0, float("nan"), float("inf"), True, "2"):
+        with pytest.raises(SurfSplatInputError, match="filter_zoom"):
+            render(g, cam, 8, 8, filter_zoom=bad)
+    for other in ({"supersample": 2}, {"absgrad": True}):
+        with pytest.raises(SurfSplatInputError, match="filter_zoom"):
+            render(g, cam, 8, 8, backend="torch", filter_zoom=2, **other)
 
 
 def plane(depth: float, n: int = 400) -> Gaussians:
@@ -185,9 +202,103 @@ def test_zoom_in_floor_keeps_a_surface_of_thin_surfels_whole():
     big = fitted.scaled(4)
     plain = render(g, big, 4 * W, 4 * H, backend="torch")
     floored = render(zoom_in_floor(g, fitted, W, H, big, 4 * W, 4 * H), big, 4 * W, 4 * H, backend="torch")
+    filtered = render(g, big, 4 * W, 4 * H, backend="torch", filter_zoom=4)
     assert float(x1.alpha.mean()) > 0.9
     assert float(plain.alpha.mean()) < 0.5 * float(x1.alpha.mean())  # broken into dots
     assert float(floored.alpha.mean()) > 0.97 * float(x1.alpha.mean())
-    pooled = F.avg_pool2d(floored.color, 4)
-    error = float((pooled - x1.color).abs().mean())
+    assert float(filtered.alpha.mean()) > 0.97 * float(x1.alpha.mean())
+    error = float((F.avg_pool2d(floored.color, 4) - x1.color).abs().mean())
     assert error < 0.02 < float((F.avg_pool2d(plain.color, 4) - x1.color).abs().mean())
+    # With the fitted pixels' filter it is the x1 picture itself sampled 4 x finer: x4 pixel (4 j + k, 4 i + l)
+    # is the x1 render's pixel (j, i) with its principal point moved by 1/2 - (k + 1/2) / 4, (l + 1/2) / 4.
+    for k, l in ((0, 0), (3, 1), (2, 3)):
+        K = fitted.K.clone()
+        K[:, 0, 2] += 0.5 - (k + 0.5) / 4
+        K[:, 1, 2] += 0.5 - (l + 0.5) / 4
+        shifted = render(g, Cameras(fitted.c2w, K), W, H, backend="torch")
+        torch.testing.assert_close(filtered.color[..., l::4, k::4], shifted.color, rtol=0, atol=1e-9)
+
+
+def tiny_surfel(x: float, y: float, d: float, f: float, opacity: float = 0.8) -> Gaussians:
+    """One surfel a ten-thousandth of a pixel wide at pixel (x, y), depth d, facing the identity camera."""
+    p = torch.tensor([[x * d / f, y * d / f, d]], dtype=torch.float64)
+    return Gaussians(
+        p,
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        torch.full((1, 2), 1e-4 * d / f, dtype=torch.float64),
+        torch.full((1,), opacity, dtype=torch.float64),
+        torch.zeros(1, 3, 1, dtype=torch.float64),
+    )
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+def test_filter_zoom_draws_the_coarser_cameras_filter(backend, mode):
+    f, W, H, o = 50.0, 24, 20, 0.8
+    # centred on a pixel corner: no pixel centre falls on the surfel itself
+    g = tiny_surfel(2.0, 1.0, 3.0, f, o)
+    cam = pinhole(f, W, H, dtype=torch.float64)
+    from .test_render import pixel_centres
+
+    xx, yy = pixel_centres(W, H)
+    r2 = (xx - (W / 2 + 2.0)) ** 2 + (yy - (H / 2 + 1.0)) ** 2
+    # EWA: every pixel its alpha reaches (not the release's tile squares, which cut the wider footprints)
+    settings = (TorchRenderSettings if backend == "torch" else CpuRenderSettings)(ewa_support="alpha")
+    for z in (1.0, 2.0, 3.5):
+        out = render(g, cam, W, H, mode=mode, backend=backend, alpha_threshold=None, filter_zoom=z, settings=settings)
+        if mode == "surfel":  # 2DGS's low-pass 0.5 * 2 |d|^2, over z^2
+            expected = o * torch.exp(-r2 / z**2)
+        else:  # 3DGS's dilation 0.3 px^2, times z^2 (the surfel's own covariance is ~1e-8 px^2)
+            expected = o * torch.exp(-0.5 * r2 / (0.3 * z**2))
+        expected = torch.where(expected >= 1 / 255, expected, torch.zeros_like(expected))
+        torch.testing.assert_close(out.alpha[0, 0], expected.to(out.alpha), rtol=0, atol=2e-6)
+    plain = render(g, cam, W, H, mode=mode, backend=backend)
+    torch.testing.assert_close(render(g, cam, W, H, mode=mode, backend=backend, filter_zoom=1).color, plain.color)
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+@pytest.mark.parametrize("mode", ["surfel", "ewa"])
+def test_filter_zoom_gradients_agree_between_backends(mode, antialiased):
+    g = random_scene(40, seed=7, dtype=torch.float64, edge_on=4)  # surfels up to 1.6 px: most below the filter
+    cam = pinhole(30.0, 16, 12, dtype=torch.float64)
+    target = torch.rand(1, 3, 12, 16, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+
+    def grads(backend: str):
+        leaves = [t.clone().requires_grad_(True) for t in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+        h = Gaussians(*leaves)
+        out = render(h, cam, 16, 12, mode=mode, backend=backend, filter_zoom=2.5, antialiased=antialiased)
+        ((out.color - target).square().sum() + out.alpha.sum()).backward()
+        return out.color.detach(), [t.grad for t in leaves]
+
+    (a, ga), (b, gb) = grads("torch"), grads("cpu")
+    torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    for x, y in zip(ga, gb):
+        assert float(x.abs().max()) > 0
+        torch.testing.assert_close(x, y, rtol=1e-7, atol=1e-9)
+
+
+def test_zoom_plan_picks_the_fitted_zoom():
+    d, f, W, H = 3.0, 100.0, 64, 48
+    g = plane(d)
+    fitted = pinhole(f, W, H, dtype=torch.float64)
+    assert zoom_plan(g, fitted, W, H, fitted, W, H) == ZoomPlan(g)
+    assert zoom_plan(g, None, None, None, fitted.scaled(4), 4 * W, 4 * H) == ZoomPlan(g)  # no fitted views
+    assert zoom_plan(g, fitted, W, H, fitted.scaled(1.3), 83, 62) == ZoomPlan(g)  # below 1.5 x: as asked
+    assert zoom_plan(g, fitted, W, H, fitted.scaled(1 / 2), W // 2, H // 2) == ZoomPlan(g, supersample=2)
+    for z in (2.0, 4.0):
+        plan = zoom_plan(g, fitted, W, H, fitted.scaled(z), int(z * W), int(z * H))
+        assert plan.gaussians is g and plan.supersample == 1 and plan.filter_zoom == pytest.approx(z, rel=1e-12)
+        closer = pinhole(f, W, H, c2w=moved_back(-(1 - 1 / z) * d), dtype=torch.float64)  # at depth d / z
+        assert zoom_plan(g, fitted, W, H, closer, W, H).filter_zoom == pytest.approx(z, rel=1e-9)
+
+
+def test_zoom_plan_widens_the_surfels_on_gsplat(monkeypatch):
+    import surfsplat.render as render_module
+
+    d, f, W, H = 3.0, 100.0, 64, 48
+    g = plane(d)
+    fitted = pinhole(f, W, H, dtype=torch.float64)
+    monkeypatch.setattr(render_module, "resolve_backend", lambda *args: "gsplat")
+    plan = zoom_plan(g, fitted, W, H, fitted.scaled(4), 4 * W, 4 * H)
+    assert plan.filter_zoom == 1 and plan.supersample == 1
+    assert torch.equal(plan.gaussians.scales, zoom_in_floor(g, fitted, W, H, fitted.scaled(4), 4 * W, 4 * H).scales)

@@ -24,6 +24,7 @@ from surfsplat.export.mesh import Mesh, save_mesh
 from surfsplat.export.paths import interpolate_cameras
 from surfsplat.export.ply import save_ply
 from surfsplat.render import render
+from surfsplat.render.supersample import zoom_plan
 from surfsplat.utils.checks import SurfSplatInputError
 from surfsplat.viewer import BrowserView, SurfelViewer, camera_view, load_viewer_scene, splat_arrays, view_cameras
 from surfsplat.viewer.app import set_client_view
@@ -188,15 +189,24 @@ def test_exact_render_is_the_renderer_at_the_browser_view(viewer, scene):
     browser, _, _ = view_cameras(view, RES)
     for factor in (1, 2):
         image = viewer.render_view(view, factor, "image")
-        # Exactly the renderer at the browser's camera, of the surfels the viewer read ...
+        # Exactly the renderer at the browser's camera, of the surfels the viewer read, at the zoom the
+        # scene was made at (x2: with the filter of its own pixels) ...
         shown = viewer.scene.gaussians
         cams = browser.scaled(factor).to(shown.means.dtype)
-        truth = render(shown, cams, RES * factor, RES * factor, alpha_threshold=0.001)
+        fitted = (viewer.scene.cameras, viewer.scene.width, viewer.scene.height)
+        plan = zoom_plan(shown, *fitted, cams, RES * factor, RES * factor)
+        assert plan.supersample == 1 and plan.filter_zoom == pytest.approx(factor, rel=1e-2)
+        truth = render(shown, cams, RES * factor, RES * factor, alpha_threshold=0.001, filter_zoom=plan.filter_zoom)
         np.testing.assert_array_equal(image, to_uint8(truth.color[0]))
         # ... which is the source scene and camera up to the PLY's and the view's float rounding
         # (1e-7): float32 compositing may move a colour across a uint8 step at a few pixels, no further.
         source = render(
-            scene.gaussians, scene.sources[0].scaled(factor), RES * factor, RES * factor, alpha_threshold=0.001
+            scene.gaussians,
+            scene.sources[0].scaled(factor),
+            RES * factor,
+            RES * factor,
+            alpha_threshold=0.001,
+            filter_zoom=plan.filter_zoom,
         )
         step = np.abs(image.astype(int) - to_uint8(source.color[0]).astype(int))
         assert step.max() <= 1 and (step > 0).mean() < 1e-3

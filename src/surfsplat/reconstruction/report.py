@@ -54,7 +54,7 @@ def zoom_line(zoom: dict, antialiased: bool) -> str:
         line += f"; zoomed out drawn finer and averaged down ({drawn}; drawn at the size asked: {plain} dB)"
     plain_up = ", ".join(f"x{s} {asked[f'x{s}']:.2f}" for s in (2, 4) if f"x{s}" in asked)
     if plain_up:
-        line += f"; zoomed in with the surfels as wide as the fit saw them (without: {plain_up} dB)"
+        line += f"; zoomed in with the fitted pixels' filter (without: {plain_up} dB)"
     return line
 
 

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..geometry.cameras import Cameras
 from ..geometry.gaussians import Gaussians
+from ..render.supersample import ZoomPlan, zoom_plan
 from ..utils.checks import SurfSplatInputError
 
 
@@ -288,32 +289,30 @@ class Scene:
 
     def _draw(self, cams: Cameras, width: int, height: int, supersample: bool = True):
         """RenderOutput from `cams` (on the surfels' device) at width x height, as the scene renders: its mode,
-        forced-alpha threshold, antialiasing, zoomed-out views supersampled (`supersampling`) and zoomed-in
-        views with each surfel at least as wide as the fit saw it (`zoom_in_floor`); `supersample=False`:
+        forced-alpha threshold, antialiasing, at the fitted zoom whichever way the view is zoomed
+        (`zoom_plan`: zoomed out supersampled, zoomed in with the fitted pixels' filter); `supersample=False`:
         drawn as asked."""
         from ..render import render
 
+        plan = self.zoom_plan(cams, width, height) if supersample else ZoomPlan(self.gaussians)
         with torch.inference_mode():
             return render(
-                self.zoomed_in(cams, width, height) if supersample else self.gaussians,
+                plan.gaussians,
                 cams,
                 width,
                 height,
                 mode=self.mode,
                 alpha_threshold=self.alpha_threshold,
                 antialiased=self.antialiased,
-                supersample=self.supersampling(cams, width, height) if supersample else 1,
+                supersample=plan.supersample,
+                filter_zoom=plan.filter_zoom,
             )
 
-    def zoomed_in(self, cameras: Cameras, width: int, height: int) -> Gaussians:
-        """The surfels as a render from `cameras` at width x height draws them: where the view is zoomed in
-        1.5 x or more from the fitted views, each surfel's tangent scales at least the fitted low-pass width
-        (`surfsplat.render.supersample.zoom_in_floor`); else the scene's own surfels."""
-        from ..render.supersample import zoom_in_floor
-
-        if self.cameras is None or not self.width or not self.height:
-            return self.gaussians
-        return zoom_in_floor(self.gaussians, self.cameras, self.width, self.height, cameras, width, height)
+    def zoom_plan(self, cameras: Cameras, width: int, height: int) -> ZoomPlan:
+        """How a render from `cameras` at width x height is drawn at the zoom the scene was fitted at
+        (`surfsplat.render.supersample.zoom_plan`): zoomed out 1.5 x or more supersampled, zoomed in 1.5 x or
+        more with the fitted pixels' filter; as asked otherwise, or where the scene records no fitted views."""
+        return zoom_plan(self.gaussians, self.cameras, self.width, self.height, cameras, width, height)
 
     def supersampling(self, cameras: Cameras, width: int, height: int) -> int:
         """How many times finer than width x height a render from `cameras` is drawn and averaged down

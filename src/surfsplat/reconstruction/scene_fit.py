@@ -101,9 +101,8 @@ def optimize_scene(
             held.protocol = "exposure"
         scene.score_holdout()
         # smaller and larger renders of the held-out views
-        # (zoomed-out views drawn at the fitted zoom and averaged down, zoomed-in views with the surfels at least
-        # as wide as the fit saw them; beside them, the renders drawn as asked, what the antialiasing filter alone
-        # gives)
+        # (zoomed-out views drawn at the fitted zoom and averaged down, zoomed-in views with the fitted pixels'
+        # filter; beside them, the renders drawn as asked, what the antialiasing filter alone gives)
         held.zoom = {**scene.zoom_scores().to_dict(), "antialiased": scene.antialiased}
         cams = scene.holdout.cameras.to(scene.gaussians.means)
         held.zoom["supersample"] = {

@@ -103,10 +103,10 @@ def max_of_gaussians_area(l1: Tensor, l2: Tensor, det_root: Tensor, s: float) ->
     return torch.where(mixed, area_mixed, area)
 
 
-def surfel_compensation(T: Tensor) -> Tensor:
+def surfel_compensation(T: Tensor, s: float = SURFEL_FILTER_VARIANCE) -> Tensor:
     """[..., N] the opacity factor that keeps each surfel's integrated opacity under 2DGS's low-pass
-    fallback, from T [..., N, 3, 3] (float64 recommended). 1 for surfels at least as large as the filter."""
-    s = SURFEL_FILTER_VARIANCE
+    fallback of variance s (px^2), from T [..., N, 3, 3] (float64 recommended). 1 for surfels at least as
+    large as the filter."""
     J = surfel_screen_jacobian(T)
     det_root = (J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]).abs()  # sqrt(det J J^T)
     trace = J.square().sum((-1, -2))  # l1 + l2
@@ -123,10 +123,10 @@ def surfel_compensation(T: Tensor) -> Tensor:
     return torch.where(big, torch.ones_like(det_root), torch.where(small, det_root / s, ratio))
 
 
-def ewa_compensation(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+def ewa_compensation(a: Tensor, b: Tensor, c: Tensor, eps: float = EWA_DILATION) -> Tensor:
     """[..., N] gsplat's compensation sqrt(max(0, det(Sigma) / max(det(Sigma + eps I), 1e-10))) from the
-    dilated 2D covariance [[a, b], [b, c]] = Sigma + eps I (eps = EWA_DILATION)."""
-    det_orig = (a - EWA_DILATION) * (c - EWA_DILATION) - b * b
+    dilated 2D covariance [[a, b], [b, c]] = Sigma + eps I (eps: EWA_DILATION, 3DGS's)."""
+    det_orig = (a - eps) * (c - eps) - b * b
     ratio = det_orig / (a * c - b * b).clamp_min(1e-10)
     positive = (ratio > 0).detach()
     return torch.where(positive, torch.where(positive, ratio, torch.ones_like(ratio)).sqrt(), torch.zeros_like(ratio))
@@ -139,9 +139,11 @@ def compensations(
     height: int,
     mode: RenderMode,
     jacobian_clamp: float | None,
+    filter_zoom: float = 1.0,
 ) -> Tensor:
     """[C, N] each Gaussian's compensation in each camera (float64), from the projection every backend
-    shares; `jacobian_clamp` is `RenderConventions.ewa_jacobian_clamp` (the EWA covariance's)."""
+    shares; `jacobian_clamp` is `RenderConventions.ewa_jacobian_clamp` (the EWA covariance's), `filter_zoom`
+    `render`'s (the filter's variance times its square)."""
     from .torch_backend import ewa_conics, surfel_transforms
 
     g = gaussians
@@ -149,6 +151,7 @@ def compensations(
     K = cameras.K.to(g.means.device, torch.float64)
     if mode == "surfel":
         T, _ = surfel_transforms(g.means, g.rotations, g.scales, w2c, K, torch.float64)
-        return surfel_compensation(T)
-    _, _, _, cov2d = ewa_conics(g.means, g.covariances, w2c, K, width, height, jacobian_clamp, torch.float64)
-    return ewa_compensation(*cov2d)
+        return surfel_compensation(T, SURFEL_FILTER_VARIANCE * filter_zoom**2)
+    eps = EWA_DILATION * filter_zoom**2
+    _, _, _, cov2d = ewa_conics(g.means, g.covariances, w2c, K, width, height, jacobian_clamp, torch.float64, eps)
+    return ewa_compensation(*cov2d, eps)

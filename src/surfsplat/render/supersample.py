@@ -1,7 +1,8 @@
-"""How much finer than asked a zoomed-out render of a fitted scene is drawn (`render(..., supersample=k)`).
+"""How a render of a fitted scene at another zoom is drawn: zoomed out, finer than asked and averaged down
+(`render(..., supersample=k)`); zoomed in, with the fitted pixels' filter (`render(..., filter_zoom=z)`).
 
-    k = supersampling(gaussians, scene_cameras, cameras)     # 1 at the fitted zoom, up to 4 zoomed out
-    out = render(gaussians, cameras, w, h, antialiased=True, supersample=k)
+    plan = zoom_plan(gaussians, scene_cameras, scene_width, scene_height, cameras, w, h)
+    out = render(plan.gaussians, cameras, w, h, supersample=plan.supersample, filter_zoom=plan.filter_zoom)
 
 Why. A scene fitted to photos of one size holds detail at that size's pixels: fern's leaves are
 surfels a pixel or two wide, in front of one another. Rendered at a quarter of the size, each small
@@ -20,22 +21,30 @@ smaller image, a shorter focal length and a camera moved back alike. The factor 
 rounded, 1 (no supersampling) below 1.5, at most `MAX_SUPERSAMPLE`; one factor serves a batch of
 cameras (the largest). Nothing here is in a library: gsplat and nerfstudio render at the size asked.
 
-Zoomed in, the other way round (`zoom_in_floor`). At the fitted zoom the surfel renderer's screen-space
+Zoomed in, the other way round (`filter_zoom`). At the fitted zoom the surfel renderer's screen-space
 low-pass (2DGS's, a Gaussian of variance 1/2 px^2 where it exceeds the surfel) draws every surfel smaller
 than a pixel as that pixel's blob, and the fit made the picture from those blobs: on LLFF fern a quarter of
-the fitted surfels are thinner than their pixel's low-pass. Zoomed in, the low-pass shrinks with the pixel,
-those surfels shrink to the slivers they are, and the surface they drew breaks into lines (fern x4: 0.67 dB
-below x1 against the bicubic-upsampled photos). Mip-Splatting's 3D filter bounds each Gaussian below by the
-finest sampling of the views it was fitted from; here, for a view zoomed in by z (the ratio above,
-inverted, from 1.5 on), each surfel's tangent scales are raised to at least the fitted low-pass width at
-its finest fitted footprint (`geometry.pixels.pixel_footprints`: depth / f of the finest fitted camera that
-sees it) times sqrt(1 - 1 / z^2): with the view's own low-pass, whose variance is 1 / z^2 of the fitted
-one in world units, that is the fitted filter's variance, so each surfel is drawn at least as wide as the
-fit saw it. The floor is the one the bake for standard viewers applies (`export.bake`) at every zoom; a
-surfel already wider is unchanged, and renders below 1.5 x the fitted zoom are untouched, bit for bit.
+the fitted surfels are thinner than their pixel's low-pass, and many are seen edge on, as lines. Zoomed in,
+the low-pass shrinks with the pixel, those surfels shrink to the slivers they are, and the surface they drew
+breaks into lines and seams (fern's held-out views: x1 25.45 dB; x2 24.16 and x4 23.60 against the
+bicubic-upsampled photos). Mip-Splatting's 3D filter bounds each Gaussian below by the finest sampling of
+the views it was fitted from. Here a view zoomed in by z (the ratio above, inverted, from 1.5 on) is drawn
+with the filter of the fitted pixels, `render(..., filter_zoom=z)`: the low-pass of a camera z times
+coarser, the same width on the surfaces as at the fitted zoom, so each surfel keeps the footprint the fit
+made its picture from, edge-on ones too (x2 25.80, x4 25.79 dB; the x1 render bicubic-upsampled scores
+25.99 and 25.97). Surfels wider than the filter are drawn as they are, sharp; renders below 1.5 x the fitted
+zoom are untouched, bit for bit.
+
+gsplat's 2DGS kernels fix the filter when compiled, so on the gsplat backend a zoomed-in view widens the
+surfels instead (`zoom_in_floor`): each surfel's tangent scales at least the fitted low-pass width at its
+finest fitted footprint (`geometry.pixels.pixel_footprints`) times sqrt(1 - 1 / z^2), with the view's own
+low-pass the fitted filter's variance. It is the floor the bake for standard viewers applies
+(`export.bake`), and falls short where surfels are seen edge on (fern x2 24.81, x4 24.62 dB).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -118,13 +127,68 @@ def zoom_in_floor(
 
     from ..geometry.pixels import pixel_footprints as surfel_footprints
 
-    if len(gaussians.means) == 0 or gaussians.explicit_covariances is not None:
+    if gaussians.explicit_covariances is not None:
         return gaussians
-    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
-    zoom = float((reference / asked).nan_to_num(1.0).min())
-    if not zoom >= MIN_ZOOM:
+    zoom = filter_zoom(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    if zoom == 1.0:
         return gaussians
     share = (1.0 - 1.0 / zoom**2) ** 0.5
     with torch.no_grad():
         floor = surfel_footprints(gaussians, fitted, fitted_width, fitted_height) * (share / LOWPASS_RHO_SCALE**0.5)
     return replace(gaussians, scales=torch.maximum(gaussians.scales, floor[:, None].to(gaussians.scales)))
+
+
+def filter_zoom(
+    gaussians: Gaussians,
+    fitted: Cameras,
+    fitted_width: int,
+    fitted_height: int,
+    cameras: Cameras,
+    width: int,
+    height: int,
+) -> float:
+    """`render`'s filter_zoom for a render of `gaussians` from `cameras` at width x height, for a scene fitted
+    from `fitted` at fitted_width x fitted_height (module docstring): the least zoom-in of the batch where
+    every camera is zoomed in 1.5 x or more, else 1."""
+    if len(gaussians.means) == 0:
+        return 1.0
+    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    zoom = float((reference / asked).nan_to_num(1.0).min())
+    return zoom if zoom >= MIN_ZOOM else 1.0
+
+
+@dataclass(frozen=True)
+class ZoomPlan:
+    """How one render of a fitted scene is drawn (`zoom_plan`): `render(gaussians, ..., supersample=...,
+    filter_zoom=...)`."""
+
+    gaussians: Gaussians
+    supersample: int = 1
+    filter_zoom: float = 1.0
+
+
+def zoom_plan(
+    gaussians: Gaussians,
+    fitted: Cameras | None,
+    fitted_width: int | None,
+    fitted_height: int | None,
+    cameras: Cameras,
+    width: int,
+    height: int,
+    backend: str = "auto",
+) -> ZoomPlan:
+    """A render of a scene fitted from `fitted` at fitted_width x fitted_height, from `cameras` at width x
+    height, at the fitted zoom whichever way it is asked: zoomed out supersampled, zoomed in with the fitted
+    pixels' filter (on gsplat, whose kernels cannot, with the surfels widened: `zoom_in_floor`). As asked
+    where the scene records no fitted views."""
+    if fitted is None or not fitted_width or not fitted_height:
+        return ZoomPlan(gaussians)
+    from . import resolve_backend
+
+    views = (gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    supersample = supersampling(*views)
+    if supersample > 1:
+        return ZoomPlan(gaussians, supersample=supersample)
+    if resolve_backend(backend, gaussians.means.device, None, cameras) == "gsplat":
+        return ZoomPlan(zoom_in_floor(*views))
+    return ZoomPlan(gaussians, filter_zoom=filter_zoom(*views))

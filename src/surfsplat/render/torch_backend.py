@@ -73,6 +73,7 @@ class Projected:
     # surfel, for the absolute screen gradient (`absgrad`): [M, 5] constants, detached: (c_x T_w - T_x)[:2],
     # (c_y T_w - T_y)[:2] and d c_lp / d T_x[2] (= d c_lp,y / d T_y[2]), see `_abs_centre_gradients`
     abs_coef: Tensor | None = None
+    lowpass: float = LOWPASS_RHO_SCALE  # surfel: rho2d = lowpass |p - c_lp|^2 (`render`'s filter_zoom)
 
 
 def _take(x: Tensor, index: Tensor) -> Tensor:
@@ -192,7 +193,7 @@ def surfel_transforms(
 
 
 def surfel_footprint(
-    T: Tensor, z: Tensor, opacities: Tensor, lowpass_sigma: float | None
+    T: Tensor, z: Tensor, opacities: Tensor, lowpass_sigma: float | None, rho_scale: float = LOWPASS_RHO_SCALE
 ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
     """Projected centre [..., N, 2], low-pass centre [..., N, 2] and the continuous pixel box
     (xmin, xmax, ymin, ymax, each [..., N]) where the surfel's alpha can reach ALPHA_MIN, in T's dtype.
@@ -200,7 +201,8 @@ def surfel_footprint(
     The k-sigma ellipse u^2 + v^2 = k^2 is the conic diag(1, 1, -k^2); its image under T has the dual
     conic T diag(1, 1, -1/k^2) T^T, whose vertical and horizontal tangent lines give the exact
     axis-aligned box (valid while the conic is an ellipse, C22 < 0; unbounded otherwise, the surfel
-    crossing the camera plane). The screen-space low-pass filter widens it by its own reach.
+    crossing the camera plane). The screen-space low-pass filter (rho2d = rho_scale |p - c_lp|^2) widens it
+    by its own reach.
     """
     Tx, Ty, Tw = T[..., 0, :], T[..., 1, :], T[..., 2, :]
     k2 = _opacity_extent(opacities, T.dtype)
@@ -219,7 +221,7 @@ def surfel_footprint(
     # tile offsets stay small); the low-pass term has its own centre (see `RenderConventions`).
     center = projected_center(Tx, Ty, z)
     lowpass = lowpass_center(Tx, Ty, Tw, center, lowpass_sigma)
-    r_lp = (k2 / LOWPASS_RHO_SCALE).sqrt()  # the screen-space filter's own reach
+    r_lp = (k2 / rho_scale).sqrt()  # the screen-space filter's own reach
     inf = torch.full_like(hx, math.inf)
     xmin = torch.minimum(torch.where(bounded, cx_e - hx, -inf), lowpass[..., 0] - r_lp)
     xmax = torch.maximum(torch.where(bounded, cx_e + hx, inf), lowpass[..., 0] + r_lp)
@@ -240,8 +242,10 @@ def project_surfels(
     width: int,
     height: int,
     settings: TorchRenderSettings,
+    filter_zoom: float = 1.0,
 ) -> Projected:
     """2DGS projection (Huang et al. 2024): T = K [R S e1, R S e2, mu_cam] maps surfel (u, v, 1) to pixels.
+    filter_zoom: `render`'s (the low-pass rho2d = 2 |p - c_lp|^2 / filter_zoom^2).
 
     For pixel p, with T's rows T_x, T_y, T_w, the ray-splat intersection is (u, v) = (h_u x h_v).xy /
     (h_u x h_v).z with h_u = p_x T_w - T_x, h_v = p_y T_w - T_y. The cross product is affine in p:
@@ -250,7 +254,8 @@ def project_surfels(
     """
     T, mu = surfel_transforms(means, rotations, scales, w2c, K, torch.float64)
     z = mu[:, 2]
-    center, lowpass, bounds = surfel_footprint(T, z, opacities, settings.lowpass_center_sigma)
+    rho_scale = LOWPASS_RHO_SCALE / filter_zoom**2
+    center, lowpass, bounds = surfel_footprint(T, z, opacities, settings.lowpass_center_sigma, rho_scale)
     box = _pixel_box(*(b.detach() for b in bounds), width, height)
 
     idx = _cull_and_sort(z.detach(), box, opacities.detach(), settings)
@@ -270,7 +275,7 @@ def project_surfels(
     transform = torch.stack((Tx, Ty, Tw), dim=1)
     with torch.no_grad():
         abs_coef = _abs_coefficients(Tx, Ty, Tw, center, settings.lowpass_center_sigma)
-    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform, abs_coef)
+    return Projected(idx, center, geometry, _take(opacities, idx), features, box[idx], transform, abs_coef, rho_scale)
 
 
 def _abs_coefficients(Tx: Tensor, Ty: Tensor, Tw: Tensor, center: Tensor, sigma: float | None) -> Tensor:
@@ -301,12 +306,13 @@ def ewa_conics(
     height: int,
     jacobian_clamp: float | None,
     dtype: torch.dtype,
+    dilation: float = EWA_DILATION,
 ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor, Tensor]]:
     """3DGS's projection: camera-frame means [..., N, 3], centre [..., N, 2], conic [..., N, 3] (the inverse 2D
     covariance's a, b, c) and the dilated 2D covariance (a, b, c), in `dtype`.
 
-    Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean; the leading
-    dimensions are the cameras' (w2c [..., 4, 4], K [..., 3, 3]).
+    Sigma' = J W Sigma W^T J^T + 0.3 I (`dilation`) with the affine (local) Jacobian J at the mean; the
+    leading dimensions are the cameras' (w2c [..., 4, 4], K [..., 3, 3]).
     """
     R_cw, t_cw = w2c[..., :3, :3].to(dtype), w2c[..., :3, 3].to(dtype)
     mu = means.to(dtype) @ R_cw.mT + t_cw[..., None, :]
@@ -331,9 +337,9 @@ def ewa_conics(
     )  # [..., N, 2, 3]
     JW = J @ R_cw[..., None, :, :]
     cov2d = JW @ covariances.to(dtype) @ JW.transpose(-1, -2)
-    a = cov2d[..., 0, 0] + EWA_DILATION
+    a = cov2d[..., 0, 0] + dilation
     b = cov2d[..., 0, 1]
-    c = cov2d[..., 1, 1] + EWA_DILATION
+    c = cov2d[..., 1, 1] + dilation
     det = (a * c - b * b).clamp_min(1e-20)
     conic = torch.stack((c / det, -b / det, a / det), dim=-1)  # inverse of [[a, b], [b, c]]
     return mu, center, conic, (a, b, c)
@@ -365,10 +371,20 @@ def project_ewa(
     width: int,
     height: int,
     settings: TorchRenderSettings,
+    filter_zoom: float = 1.0,
 ) -> Projected:
-    """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean."""
+    """3DGS projection: Sigma' = J W Sigma W^T J^T + 0.3 I with the affine (local) Jacobian J at the mean
+    (0.3 filter_zoom^2: `render`'s filter_zoom)."""
     mu, center, conic, cov2d = ewa_conics(
-        means, covariances, w2c, K, width, height, settings.ewa_jacobian_clamp, torch.float64
+        means,
+        covariances,
+        w2c,
+        K,
+        width,
+        height,
+        settings.ewa_jacobian_clamp,
+        torch.float64,
+        EWA_DILATION * filter_zoom**2,
     )
     z = mu[:, 2]
     box = ewa_pixel_box(center, cov2d, opacities, width, height, settings.ewa_support)
@@ -428,12 +444,14 @@ def _tile_basis(mode: RenderMode, tile: int, dtype: torch.dtype, device: torch.d
     return torch.stack((one, dx, dy, dx * dx, dx * dy, dy * dy))
 
 
-def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tuple[Tensor, Tensor | None]:
+def _pair_coefficients(
+    mode: RenderMode, geometry: Tensor, offset: Tensor, lowpass: float = LOWPASS_RHO_SCALE
+) -> tuple[Tensor, Tensor | None]:
     """Per-pair polynomial coefficients in the tile-local pixel offsets (autograd-tracked, [n, k]-sized).
 
     geometry: [n, k, G]; offset: [n, k, 2] = tile origin - projected centre.
     surfel: [4, n, k, 5] coefficients of the planes hx, hy, hz (h = A + dx B + dy C, the cross
-            product at the tile origin expanded over the pixel offsets) and rho2d = 2 |p - c_lp|^2
+            product at the tile origin expanded over the pixel offsets) and rho2d = lowpass |p - c_lp|^2
             (c_lp = projected centre + the geometry's low-pass shift), plus depth parameters
             [n, k, 2] = (det T, centre depth).
     ewa:    [n, k, 6] coefficients of rho = d^T conic d with d = offset + (dx, dy).
@@ -449,7 +467,7 @@ def _pair_coefficients(mode: RenderMode, geometry: Tensor, offset: Tensor) -> tu
                 torch.stack((A[..., 0], B[..., 0], C[..., 0], zero, zero), -1),
                 torch.stack((A[..., 1], B[..., 1], C[..., 1], zero, zero), -1),
                 torch.stack((A[..., 2], B[..., 2], C[..., 2], zero, zero), -1),
-                LOWPASS_RHO_SCALE * torch.stack((lx * lx + ly * ly, 2 * lx, 2 * ly, zero + 1, zero), -1),
+                lowpass * torch.stack((lx * lx + ly * ly, 2 * lx, 2 * ly, zero + 1, zero), -1),
             )
         )
         return coef, geometry[..., 9:11]
@@ -712,7 +730,7 @@ def composite(
             rows = _take(table, gi)  # [n, kb, G + F + 5]
             offset = (origin[:, None, :] - rows[..., -4:-2]) - rows[..., -2:]
             log_opac = torch.where(valid, rows[..., G + F_], -math.inf)
-            coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset)
+            coef, depth_params = _pair_coefficients(mode, rows[..., :G], offset, proj.lowpass)
             if distortion:
                 d_trans, d_moment, dist_blk = torch.utils.checkpoint.checkpoint(
                     _distortion_block, coef, depth_params, log_opac, d_trans, d_moment, done, basis, use_reentrant=False
@@ -764,13 +782,16 @@ def project(
     height: int,
     mode: RenderMode,
     settings: TorchRenderSettings,
+    filter_zoom: float = 1.0,
 ) -> Projected:
     """One camera's projection in either mode (covariances: the EWA mode's, None for surfels)."""
     if mode == "surfel":
-        return project_surfels(means, rotations, scales, opacities, sh, w2c, K, cam_center, width, height, settings)
+        return project_surfels(
+            means, rotations, scales, opacities, sh, w2c, K, cam_center, width, height, settings, filter_zoom
+        )
     assert covariances is not None
     return project_ewa(
-        means, covariances, rotations[:, :, 2], opacities, sh, w2c, K, cam_center, width, height, settings
+        means, covariances, rotations[:, :, 2], opacities, sh, w2c, K, cam_center, width, height, settings, filter_zoom
     )
 
 
@@ -790,12 +811,15 @@ def render_torch(
     settings: TorchRenderSettings,
     distortion: bool = False,
     abs_probe: Tensor | None = None,
+    filter_zoom: float = 1.0,
 ) -> tuple[Tensor, ...]:
     """Render one camera. Returns un-normalized (color [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3])
-    and, with `distortion` (surfel mode), 2DGS's depth distortion [H, W]. `abs_probe`: see `composite`."""
+    and, with `distortion` (surfel mode), 2DGS's depth distortion [H, W]. `abs_probe`: see `composite`;
+    `filter_zoom`: `render`'s."""
     proj = project(
-        means, rotations, scales, covariances, opacities, sh, w2c, K, cam_center, width, height, mode, settings
-    )
+        means, rotations, scales, covariances, opacities, sh, w2c, K, cam_center, width, height, mode, settings,
+        filter_zoom,
+    )  # fmt: skip
     bins = bin_tiles(proj.pixel_box, width, height, settings.tile_size)
     feats, alpha, depth_sum, *dist = composite(mode, proj, bins, width, height, settings, distortion, abs_probe)
     color, normal = feats[..., 0:3], feats[..., 3:6]

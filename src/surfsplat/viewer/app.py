@@ -298,6 +298,7 @@ class SurfelViewer:
         """The exact render of a browser view at `scale` times the x1 size: [H, W, 3] uint8."""
         from ..export.images import colorize_depth, normal_to_rgb, to_uint8
         from ..render import render
+        from ..render.supersample import zoom_plan
 
         if self.scene is None:
             raise SurfSplatInputError("viewer: no scene shown yet")
@@ -306,22 +307,17 @@ class SurfelViewer:
         cams, width, height = view_cameras(view, self.render_height())
         cams = cams.scaled(scale).to(self.scene.gaussians.means.dtype)
         scene = self.scene
-        supersample, gaussians = 1, scene.gaussians
-        if scene.cameras is not None and scene.width and scene.height:
-            from ..render.supersample import supersampling, zoom_in_floor
-
-            fitted = (scene.cameras, scene.width, scene.height, cams, width * scale, height * scale)
-            supersample = supersampling(scene.gaussians, *fitted)  # zoomed out: drawn at the fitted zoom
-            gaussians = zoom_in_floor(scene.gaussians, *fitted)  # zoomed in: surfels as wide as the fit saw them
+        plan = zoom_plan(scene.gaussians, scene.cameras, scene.width, scene.height, cams, width * scale, height * scale)
         out = render(
-            gaussians,
+            plan.gaussians,
             cams,
             width * scale,
             height * scale,
             mode=scene.mode,
             alpha_threshold=scene.alpha_threshold,
             antialiased=scene.antialiased,
-            supersample=supersample,
+            supersample=plan.supersample,  # zoomed out: drawn at the fitted zoom and averaged down
+            filter_zoom=plan.filter_zoom,  # zoomed in: the fitted pixels' filter
         )
         if output == "image":
             return to_uint8(out.color[0])

@@ -32,7 +32,7 @@ from torch import Tensor
 from ...geometry.cameras import Cameras
 from ...geometry.gaussians import Gaussians
 from ...utils.checks import SurfSplatInputError
-from ..types import RenderMode
+from ..types import EWA_DILATION, LOWPASS_RHO_SCALE, RenderMode
 from . import kernels
 from .settings import CpuRenderSettings
 
@@ -68,6 +68,10 @@ class _Camera:
     K: np.ndarray  # [3, 3]
     width: int
     height: int
+    # the screen-space filter (`kernels.project`): surfels' rho2d coefficient and EWA's dilation,
+    # 2DGS's and 3DGS's, or those of a camera `filter_zoom` times coarser (`render`)
+    lowpass: float = LOWPASS_RHO_SCALE
+    dilation: float = EWA_DILATION
 
 
 @dataclass
@@ -165,13 +169,21 @@ def _inputs(means, quats, scales, opacities, sh, covariances):
     )
 
 
-def _cameras(cameras: Cameras, width: int, height: int) -> list[_Camera]:
+def _cameras(cameras: Cameras, width: int, height: int, filter_zoom: float = 1.0) -> list[_Camera]:
     w2c = _np64(cameras.w2c)
     K = _np64(cameras.K)
     centers = _np64(cameras.centers)
+    lowpass, dilation = LOWPASS_RHO_SCALE / filter_zoom**2, EWA_DILATION * filter_zoom**2
     return [
         _Camera(
-            np.ascontiguousarray(w2c[c, :3, :3]), np.ascontiguousarray(w2c[c, :3, 3]), centers[c], K[c], width, height
+            np.ascontiguousarray(w2c[c, :3, :3]),
+            np.ascontiguousarray(w2c[c, :3, 3]),
+            centers[c],
+            K[c],
+            width,
+            height,
+            lowpass,
+            dilation,
         )
         for c in range(len(cameras))
     ]
@@ -232,6 +244,8 @@ def _prepare(
             settings.near_plane,
             settings.far_plane,
             *_convention_args(settings),
+            camera.lowpass,
+            camera.dilation,
             geom,
             box,
             bin_box,
@@ -315,6 +329,7 @@ class _Rasterize(torch.autograd.Function):
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_forward(
                     surfel,
+                    camera.lowpass,
                     plan.geom,
                     plan.features,
                     plan.box,
@@ -393,6 +408,7 @@ class _Rasterize(torch.autograd.Function):
             with numba.parallel_chunksize(settings.parallel_chunk):
                 kernels.composite_backward(
                     ctx.surfel,
+                    camera.lowpass,
                     plan.geom,
                     plan.features,
                     plan.box,
@@ -436,6 +452,7 @@ class _Rasterize(torch.autograd.Function):
                     camera.width,
                     camera.height,
                     *_convention_args(settings)[:2],
+                    camera.dilation,
                     plan.geom,
                     plan.flip,
                     plan.lit,
@@ -484,10 +501,11 @@ def render_cpu(
     settings: CpuRenderSettings | None = None,
     distortion: bool = False,
     probe: Tensor | None = None,
+    filter_zoom: float = 1.0,
 ) -> tuple[Tensor, ...]:
     """Un-normalized colour [C, 3, H, W], alpha [C, 1, H, W], depth [C, 1, H, W], normal [C, 3, H, W],
     and with `distortion` (surfels) 2DGS's depth distortion [C, 1, H, W] (see `render`). `probe`
-    [C, N, 2]: `render`'s absgrad tensor, or None.
+    [C, N, 2]: `render`'s absgrad tensor, or None. `filter_zoom`: `render`'s.
 
     The function of `render_torch` (float rounding aside), differentiable with respect to the
     Gaussians; camera parameters get no gradient (the dispatcher sends such requests to torch).
@@ -504,7 +522,7 @@ def render_cpu(
         g.sh,
         covariances,
         mode == "surfel",
-        _cameras(cameras, width, height),
+        _cameras(cameras, width, height, filter_zoom),
         settings,
         distortion,
         probe,
@@ -518,6 +536,7 @@ def contributing_pairs(
     height: int,
     mode: RenderMode,
     settings: CpuRenderSettings | None = None,
+    filter_zoom: float = 1.0,
 ) -> list[int]:
     """Per camera, the number of (pixel, Gaussian) pairs with alpha >= 1/255 (termination ignored).
 
@@ -530,12 +549,13 @@ def contributing_pairs(
     rot = np.empty((g.means.shape[0], 3, 3))
     counts = []
     ft = compositing_dtype(settings, g.means.dtype)
-    for c, cam in enumerate(_cameras(cameras, width, height)):
+    for c, cam in enumerate(_cameras(cameras, width, height, filter_zoom)):
         plan = _prepare(mode == "surfel", inputs, rot, cam, settings, ft, fill_rotations=c == 0)
         counts.append(
             int(
                 kernels.count_contributing_pairs(
                     mode == "surfel",
+                    cam.lowpass,
                     plan.geom,
                     plan.box,
                     plan.tile_start,

@@ -67,12 +67,10 @@ from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..types import (
     ALPHA_MAX,
     ALPHA_MIN,
-    EWA_DILATION,
     EWA_LAMBDA_GAP_MIN,
     EWA_RADIUS_SIGMAS,
     EWA_TILE,
     LOG_ALPHA_MIN,
-    LOWPASS_RHO_SCALE,
     TRANSMITTANCE_MIN,
 )
 from .simd import (
@@ -473,6 +471,8 @@ def project(
     lowpass_sigma,
     jacobian_clamp,
     release_support,
+    lowpass,
+    dilation,
     geom,
     box,
     bin_box,
@@ -487,7 +487,10 @@ def project(
     """Per-Gaussian coefficients, pixel boxes, culling, colour and oriented normal (parallel over N).
 
     lowpass_sigma (<= 0: none), jacobian_clamp (inf: none) and release_support are the
-    `RenderConventions` of the call.
+    `RenderConventions` of the call; lowpass (surfels' rho2d = lowpass |p - c|^2, `_alpha`) and dilation
+    (EWA's, added to the 2D covariance's diagonal) the screen-space filter's: LOWPASS_RHO_SCALE and
+    EWA_DILATION for 2DGS's and 3DGS's, LOWPASS_RHO_SCALE / zoom^2 and EWA_DILATION zoom^2 for the
+    filter of a camera zoom times coarser.
 
     means [N, 3], quats [N, 4], rotations [N, 3, 3] (written here from quats when fill_rotations,
     read otherwise: a call's later cameras reuse the first one's), scales [N, 2], opacities [N],
@@ -522,7 +525,7 @@ def project(
         culled = not (z > near and z < far and opacities[i] >= ALPHA_MIN)
         if surfel and not culled:
             reach = max(math.sqrt(k2), lowpass_sigma) * max(scales[i, 0], scales[i, 1])
-            culled = _surfel_off_image(mu, reach, math.sqrt(k2 / LOWPASS_RHO_SCALE) + 1.0, K, width, height)
+            culled = _surfel_off_image(mu, reach, math.sqrt(k2 / lowpass) + 1.0, K, width, height)
         if culled:
             keep[i] = False
             flip[i] = 1.0
@@ -547,7 +550,7 @@ def project(
             c02 = tx0 * tw0 + tx1 * tw1 + d2 * tx2 * tw2
             c12 = ty0 * tw0 + ty1 * tw1 + d2 * ty2 * tw2
             c22 = tw0 * tw0 + tw1 * tw1 + d2 * tw2 * tw2
-            r_lp = math.sqrt(k2 / LOWPASS_RHO_SCALE)  # the screen-space filter's own reach
+            r_lp = math.sqrt(k2 / lowpass)  # the screen-space filter's own reach
             if c22 < -1e-12:
                 ex, ey = c02 / c22, c12 / c22
                 hx = math.sqrt(max(c02 * c02 - c00 * c22, 0.0)) / abs(c22)
@@ -575,8 +578,8 @@ def project(
                 cov = cov_scratch[tid, 0]
                 _thin_covariance(rotations[i], scales[i, 0], scales[i, 1], cov)
             a, b, c, _, _, _, _, _, _, _ = _ewa_cov2d(mu, cov, R_cw, K, lim_x, lim_y)
-            a += EWA_DILATION
-            c += EWA_DILATION
+            a += dilation
+            c += dilation
             det = max(a * c - b * b, _CONIC_DET_MIN)
             cx = K[0, 0] * (mu[0] / safe_z) + K[0, 1] * (mu[1] / safe_z) + K[0, 2]
             cy = K[1, 1] * (mu[1] / safe_z) + K[1, 2]
@@ -914,13 +917,14 @@ def _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed):
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _alpha(surfel, g, px, py, inside):
+def _alpha(surfel, lowpass, g, px, py, inside):
     """alpha, depth, 1 / hz and the mask of pixels with alpha > 0 of Gaussian g (its geom row) at
     the pixel centres (px, py) of the lanes; only lanes inside (its box) can have alpha > 0.
 
-    surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = 2 |p - c|^2
+    surfel: rho = (hx^2 + hy^2) / hz^2 where that is strictly below the low-pass rho2d = lowpass |p - c|^2
             (which implies hz != 0: no division at grazing rays), else rho2d; depth is det T / hz
-            (the z of the ray-splat intersection) or the centre depth (2DGS).
+            (the z of the ray-splat intersection) or the centre depth (2DGS). lowpass (in g's dtype) is
+            2DGS's 2 (LOWPASS_RHO_SCALE), or that over zoom^2 for the filter of a camera zoom times coarser.
     ewa:    rho = d^T conic d with d = p - c; depth is the centre depth.
     alpha = min(o exp(-rho / 2), ALPHA_MAX) where o exp(-rho / 2) >= ALPHA_MIN, else exactly 0.
     1 / hz is kept on the ray-splat branch and 0 on the filter branch (and for ewa), so the backward
@@ -940,7 +944,7 @@ def _alpha(surfel, g, px, py, inside):
         hy = fma(dy, g[GEOM_C + 1], fma(dx, g[GEOM_B + 1], g[GEOM_A + 1]))
         hz = fma(dy, g[GEOM_C + 2], fma(dx, g[GEOM_B + 2], g[GEOM_A + 2]))
         ex = px - g[GEOM_LP]
-        rho2d = fma(ey * ft(LOWPASS_RHO_SCALE), ey, (ex * ft(LOWPASS_RHO_SCALE)) * ex)
+        rho2d = fma(ey * lowpass, ey, (ex * lowpass) * ex)
         inv = one / hz  # first, as it is the slowest step (where hz = 0 it is not used)
         q = fma(hx, hx, hy * hy)
         ray = q < rho2d * (hz * hz)
@@ -963,7 +967,7 @@ def _alpha(surfel, g, px, py, inside):
 
 
 @njit(cache=True, boundscheck=False, error_model="numpy")
-def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
+def _blend(surfel, lowpass, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, distortion):
     """Front-to-back blending of one Gaussian (geom row g, features f) into the chunks of its box,
     columns c0..c1 and rows r0..r1 of the tile at (x0, y0): state [(tile + 1) chunks,
     FORWARD_RUNS * LANES], last [(tile + 1) chunks, LANES] (1 + the tile-list position of each
@@ -986,7 +990,7 @@ def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, 
     if ch0 == ch1 and c1 - c0 < LANES // 2:  # packed: two half rows a step
         for r in range(r0, r1 + 1, 2):
             b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch0, True)
-            a, d, _, ok = _alpha(surfel, g, px, py, inside)
+            a, d, _, ok = _alpha(surfel, lowpass, g, px, py, inside)
             if any_lane(ok):
                 total += _take(state, last, (b, lo, b2, hi), a, d, ok, f, g[GEOM_DEPTH], position, distortion)
     else:
@@ -996,7 +1000,7 @@ def _blend(surfel, g, f, state, last, x0, y0, chunks, c0, c1, r0, r1, position, 
         for ch in range(ch0, ch1 + 1):
             for r in range(r0, r1 + 1):
                 b, _, _, _, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, False)
-                a, d, _, ok = _alpha(surfel, g, px, py, inside)
+                a, d, _, ok = _alpha(surfel, lowpass, g, px, py, inside)
                 if any_lane(ok):
                     total += _take(state, last, (b,), a, d, ok, f, g[GEOM_DEPTH], position, distortion)
     return total
@@ -1038,6 +1042,7 @@ def _take(state, last, at, a, d, ok, f, z, position, distortion):
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _composite_tile(
     surfel,
+    lowpass,
     geom,
     features,
     box,
@@ -1080,6 +1085,7 @@ def _composite_tile(
         if c0 <= c1 and r0 <= r1:
             active -= _blend(
                 surfel,
+                lowpass,
                 geom[i],
                 features[i],
                 state,
@@ -1117,6 +1123,7 @@ def _composite_tile(
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def composite_forward(
     surfel,
+    lowpass,
     geom,
     features,
     box,
@@ -1146,6 +1153,7 @@ def composite_forward(
     (kept for the backward); None compiles the kernel without it (see `_blend`).
     """
     ft = geom.dtype.type
+    lp = ft(lowpass)  # in the pixels' dtype once, so the pixel loop has no float64 arithmetic
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
     runs = FORWARD_RUNS if out_distortion is None else FORWARD_RUNS + DISTORTION_RUNS
@@ -1153,6 +1161,7 @@ def composite_forward(
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
         _composite_tile(
             surfel,
+            lp,
             geom,
             features,
             box,
@@ -1240,6 +1249,7 @@ def _unblend(state, last, at, a, d, position, f, z, distortion):
 @njit(cache=True, boundscheck=False, error_model="numpy")
 def _unblend_box(
     surfel,
+    lowpass,
     g,
     f,
     state,
@@ -1272,7 +1282,7 @@ def _unblend_box(
     The sums are kept per lane in registers and summed over the lanes at the end in a fixed order
     (`simd.lane_sums`). Surfel, ray-splat branch (1 / hz != 0): rho = (hx^2 + hy^2) / hz^2 and
     depth = det / hz give dL/dh, kept as sums of g_h, dx g_h, dy g_h (h = A_c + dx B + dy C), and
-    dL/ddet. Filter branch: rho = 2 |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre
+    dL/ddet. Filter branch: rho = lowpass |p - c_lp|^2 gives dL/dc_lp (GRAD_CX, GRAD_CY), and the centre
     depth takes dL/ddepth (and, with `distortion`, the depth distortion's dL/dz). EWA:
     rho = d^T conic d gives dL/dconic and dL/dc, and the centre depth takes dL/ddepth.
     """
@@ -1298,7 +1308,7 @@ def _unblend_box(
             continue
         for ch in range(ch0, ch1 + 1):
             b, lo, b2, hi, px, py, inside = _pixels(ft, x0, y0, chunks, c0, c1, r1, r, ch, packed)
-            a, d, inv, ok = _alpha(surfel, g, px, py, inside)
+            a, d, inv, ok = _alpha(surfel, lowpass, g, px, py, inside)
             if not any_lane(ok):
                 continue
             on, w, g_d, g_log_alpha, u0, u1, u2, u3, u4, u5, g_z = _unblend(
@@ -1320,11 +1330,11 @@ def _unblend_box(
                 s3, s4, s5 = fma(dx, g_hx, s3), fma(dx, g_hy, s4), fma(dx, g_hz, s5)
                 s6, s7, s8 = fma(g_hx, dy, s6), fma(g_hy, dy, s7), fma(g_hz, dy, s8)
                 s11 = fma(g_dpair, inv, s11)
-                lowpass = on & (inv == zero)
-                sc2 = select(lowpass, g_rho * ft(2.0 * LOWPASS_RHO_SCALE), splat(zero))
+                filtered = on & (inv == zero)
+                sc2 = select(filtered, g_rho * (two * lowpass), splat(zero))
                 s9 = s9 - sc2 * (px - lx)
                 s10 = s10 - sc2 * (py - ly)
-                s12 = s12 + select(lowpass, g_dpair, splat(zero)) + g_z
+                s12 = s12 + select(filtered, g_dpair, splat(zero)) + g_z
                 if abs_pairs is not None:
                     # this pixel's dL/dT_x[2] and dL/dT_y[2] alone: through h = h_u x h_v (h_u = U + dx T_w,
                     # h_v = V + dy T_w), det T and the low-pass centre (`_abs_centre_gradients`)
@@ -1355,6 +1365,7 @@ def _unblend_box(
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
 def composite_backward(
     surfel,
+    lowpass,
     geom,
     features,
     box,
@@ -1392,6 +1403,7 @@ def composite_backward(
     """
     ft = geom.dtype.type
     zero, one = ft(0.0), ft(1.0)
+    lp = ft(lowpass)  # in the pixels' dtype once (`composite_forward`)
     n_tiles = tile_start.shape[0] - 1
     chunks = -(-tile // LANES)
     runs = BACKWARD_RUNS if distortion is None else BACKWARD_RUNS + DISTORTION_BACKWARD_RUNS
@@ -1441,6 +1453,7 @@ def composite_backward(
             position = np.int32(k - start)
             _unblend_box(
                 surfel,
+                lp,
                 geom[i],
                 features[i],
                 state,
@@ -1543,15 +1556,15 @@ def _surfel_backward(mu, R, s0, s1, R_cw, K, gr, cx, cy, lx, ly, lowpass_sigma, 
 
 
 @njit(cache=True, error_model="numpy")
-def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov):
+def _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, dilation, gr, g_cov):
     """Chain rule of the EWA projection: adds dL/dSigma (world) to g_cov, returns dL/dmu.
 
     As in the torch backend, the 2D covariance's off-diagonal is its (0, 1) entry, so dL/dSigma =
     X^T [[g_a, g_b], [0, g_c]] X with X = J W; its antisymmetric part is harmless for a symmetric Sigma.
     """
     a, b, c, p0, p1, p2, q0, q1, q2, z = _ewa_cov2d(mu, cov, R_cw, K, lim_x, lim_y)
-    a += EWA_DILATION
-    c += EWA_DILATION
+    a += dilation
+    c += dilation
     det_raw = a * c - b * b
     det = max(det_raw, _CONIC_DET_MIN)
     G0, G1, G2 = gr[GRAD_CONIC], gr[GRAD_CONIC + 1], gr[GRAD_CONIC + 2]
@@ -1710,6 +1723,7 @@ def project_backward(
     height,
     lowpass_sigma,
     jacobian_clamp,
+    dilation,
     geom,
     flip,
     lit,
@@ -1774,12 +1788,12 @@ def project_backward(
             )
         else:
             if explicit:
-                gm0, gm1, gm2 = _ewa_backward(mu, covariances[i], R_cw, K, lim_x, lim_y, gr, g_covariances[i])
+                gm0, gm1, gm2 = _ewa_backward(mu, covariances[i], R_cw, K, lim_x, lim_y, dilation, gr, g_covariances[i])
             else:
                 cov, g_cov = cov_scratch[tid, 0], cov_scratch[tid, 1]
                 _thin_covariance(R, scales[i, 0], scales[i, 1], cov)
                 g_cov[:] = 0.0
-                gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, gr, g_cov)
+                gm0, gm1, gm2 = _ewa_backward(mu, cov, R_cw, K, lim_x, lim_y, dilation, gr, g_cov)
                 # Sigma = R D R^T, D = diag(s0^2, s1^2, thin^2): dL/dR = (G + G^T) R D,
                 # dL/ds_j = 2 s_j (R^T G R)_jj.
                 var = (scales[i, 0] * scales[i, 0], scales[i, 1] * scales[i, 1], THIN_SCALE * THIN_SCALE)
@@ -1843,13 +1857,14 @@ def project_backward(
 
 
 @njit(parallel=True, cache=True, boundscheck=False, error_model="numpy")
-def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, height, tile, tiles_x):
+def count_contributing_pairs(surfel, lowpass, geom, box, tile_start, tile_ids, width, height, tile, tiles_x):
     """Number of (pixel, Gaussian) pairs with alpha >= 1/255, ignoring early termination.
 
     A property of the scene and the view (the benchmark's measure of work), not of a backend.
     """
     n_tiles = tile_start.shape[0] - 1
     ft = geom.dtype.type
+    lp = ft(lowpass)
     per_tile = np.zeros(n_tiles, dtype=np.int64)
     for t in prange(n_tiles):
         x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
@@ -1862,7 +1877,7 @@ def count_contributing_pairs(surfel, geom, box, tile_start, tile_ids, width, hei
             for r in range(r0, r1 + 1):
                 for ch in range((c0 - x0) // LANES, (c1 - x0) // LANES + 1):
                     px, py, inside = _pixels(ft, x0, y0, 1, c0, c1, r1, r, ch, False)[4:7]
-                    total += count(_alpha(surfel, geom[i], px, py, inside)[3])
+                    total += count(_alpha(surfel, lp, geom[i], px, py, inside)[3])
         per_tile[t] = total
     return per_tile.sum()
 
