@@ -56,7 +56,7 @@ class MCMCConfig:
     start: float = 500 / 30_000  # relocation begins (gsplat: refine_start_iter 500 of 30,000)
     stop: float = 25_000 / 30_000  # ... and ends (gsplat: refine_stop_iter 25,000)
     every: int = 100  # steps between relocations (gsplat: refine_every)
-    cap_max: int = 50_000  # surfels at most (gsplat: cap_max; here the 3DGS strategy's budget)
+    cap_max: int = 50_000  # surfels at most (gsplat: cap_max; the figures of docs/optimize.md were measured at it)
     growth: float = 0.05  # each relocation adds this share of the count, up to cap_max (gsplat: 1.05x)
     min_opacity: float = 0.005  # dead at or below this opacity (gsplat: min_opacity)
     noise_lr: float = 5e5  # the position noise's factor on the position rate (gsplat: noise_lr)
