@@ -754,3 +754,22 @@ def test_the_tile_size_changes_no_pixel(mode):
     for out in outs[1:]:
         for name in ("color", "alpha", "depth", "normal"):
             torch.testing.assert_close(getattr(out, name), getattr(outs[0], name), rtol=0, atol=0)
+
+
+def test_plain_compositing_over_black_skips_the_normalization_to_the_same_bits():
+    # alpha_threshold None and the default (black) background: the maps are returned as blended, where an
+    # explicit black background runs the normalization pass, which then divides nothing and adds zero.
+    g = scene(40, 21, sh_degree=1)
+    cams = camera(30.0, 32, 24)
+    outs, grads = [], []
+    for background in (None, (0.0, 0.0, 0.0)):
+        params = {k: getattr(g, k).detach().clone().requires_grad_(True) for k in PARAMS}
+        out = render(Gaussians(**params), cams, 32, 24, backend="cpu", alpha_threshold=None, background=background)
+        (out.color.square().sum() + out.depth.sum() + out.normal.sum() + out.alpha.sum()).backward()
+        outs.append(out)
+        grads.append({k: p.grad for k, p in params.items()})
+    for name in ("color", "alpha", "depth", "normal"):
+        assert torch.equal(getattr(outs[0], name), getattr(outs[1], name)), name
+    for k in PARAMS:
+        assert float(grads[0][k].abs().max()) > 0
+        assert torch.equal(grads[0][k], grads[1][k]), k

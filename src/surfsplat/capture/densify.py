@@ -74,10 +74,10 @@ class DensifyConfig:
     max_world_size: float = 0.1  # after the first reset, surfels larger than this share of the extent go (3DGS)
     reset_opacity: float = 0.01  # opacities capped at this by a reset (3DGS)
     split_factor: float = 1.6  # a split's two surfels have the scales / this (3DGS: 0.8 * N with N = 2)
-    # surfels at most: growth past it keeps the highest gradients (a bound on a step's cost). 35,000 from the
+    # surfels at most: growth past it keeps the highest gradients (a bound on a step's cost). 30,000 from the
     # fern curve (docs/optimize.md, "The budget"): 50,000 / 40,000 / 35,000 / 30,000 surfels held out 25.45 /
     # 25.38 / 25.28 / 25.24 dB in 344 / 318 / 292 / 279 CPU s for the whole fit
-    budget: int = 35_000
+    budget: int = 30_000
     absgrad: bool = False  # AbsGS: the screen gradient sums each pixel's |dL_p/dc| (module docstring)
     abs_grad_threshold: float = 0.0008  # ... and its threshold (gsplat's grow_grad2d advice with absgrad)
 

