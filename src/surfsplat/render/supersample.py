@@ -73,7 +73,7 @@ def pixel_footprints(means: Tensor, cameras: Cameras, width: int, height: int) -
     return sizes.nanmedian(dim=1).values
 
 
-def _footprints(
+def _zooms(
     gaussians: Gaussians,
     fitted: Cameras,
     fitted_width: int,
@@ -81,13 +81,19 @@ def _footprints(
     cameras: Cameras,
     width: int,
     height: int,
-) -> tuple[Tensor, Tensor]:
-    """The fitted cameras' median pixel footprint (a scalar) and each asked camera's ([C]), over the surfels'
-    centres: what a view's zoom against the fitted ones is read from, either way."""
+) -> tuple[int, float]:
+    """(`supersampling`, `filter_zoom`) from one reading of the fitted cameras' median pixel footprint and
+    each asked camera's, over the surfels' centres: a view's zoom against the fitted ones, either way."""
+    if len(gaussians.means) == 0:
+        return 1, 1.0
     with torch.no_grad():
         means = gaussians.means.detach()
         reference = pixel_footprints(means, fitted, fitted_width, fitted_height).nanmedian()
-        return reference, pixel_footprints(means, cameras, width, height)
+        asked = pixel_footprints(means, cameras, width, height)
+    out = float((asked / reference).nan_to_num(1.0).max())  # the most zoomed-out camera of the batch
+    inward = float((reference / asked).nan_to_num(1.0).min())  # the least zoomed-in one
+    supersample = min(MAX_SUPERSAMPLE, round(out)) if out >= MIN_ZOOM else 1  # NaN (nothing seen): 1 too
+    return supersample, inward if inward >= MIN_ZOOM else 1.0
 
 
 def supersampling(
@@ -101,13 +107,7 @@ def supersampling(
 ) -> int:
     """The supersampling factor (1 to MAX_SUPERSAMPLE) of a render of `gaussians` from `cameras` at width x height,
     for a scene fitted from `fitted` at fitted_width x fitted_height (module docstring)."""
-    if len(gaussians.means) == 0:
-        return 1
-    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
-    ratio = float((asked / reference).nan_to_num(1.0).max())
-    if not ratio >= MIN_ZOOM:  # NaN (nothing seen) too
-        return 1
-    return min(MAX_SUPERSAMPLE, round(ratio))
+    return _zooms(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)[0]
 
 
 def zoom_in_floor(
@@ -123,14 +123,19 @@ def zoom_in_floor(
     scales at least its fitted low-pass width times sqrt(1 - 1 / z^2), z the least zoom-in of the batch
     (module docstring). The same object where no camera is zoomed in 1.5 x or more, or where the surfels carry
     explicit covariances (the release's EWA surfels, whose scales the renderer does not read)."""
+    if gaussians.explicit_covariances is not None:
+        return gaussians
+    zoom = filter_zoom(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
+    return _widened(gaussians, fitted, fitted_width, fitted_height, zoom)
+
+
+def _widened(gaussians: Gaussians, fitted: Cameras, fitted_width: int, fitted_height: int, zoom: float) -> Gaussians:
+    """`zoom_in_floor` for a zoom-in already read (`filter_zoom`; 1: the same object)."""
     from dataclasses import replace
 
     from ..geometry.pixels import pixel_footprints as surfel_footprints
 
-    if gaussians.explicit_covariances is not None:
-        return gaussians
-    zoom = filter_zoom(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
-    if zoom == 1.0:
+    if zoom == 1.0 or gaussians.explicit_covariances is not None:
         return gaussians
     share = (1.0 - 1.0 / zoom**2) ** 0.5
     with torch.no_grad():
@@ -150,11 +155,7 @@ def filter_zoom(
     """`render`'s filter_zoom for a render of `gaussians` from `cameras` at width x height, for a scene fitted
     from `fitted` at fitted_width x fitted_height (module docstring): the least zoom-in of the batch where
     every camera is zoomed in 1.5 x or more, else 1."""
-    if len(gaussians.means) == 0:
-        return 1.0
-    reference, asked = _footprints(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
-    zoom = float((reference / asked).nan_to_num(1.0).min())
-    return zoom if zoom >= MIN_ZOOM else 1.0
+    return _zooms(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)[1]
 
 
 @dataclass(frozen=True)
@@ -185,10 +186,9 @@ def zoom_plan(
         return ZoomPlan(gaussians)
     from . import resolve_backend
 
-    views = (gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
-    supersample = supersampling(*views)
+    supersample, zoom = _zooms(gaussians, fitted, fitted_width, fitted_height, cameras, width, height)
     if supersample > 1:
         return ZoomPlan(gaussians, supersample=supersample)
     if resolve_backend(backend, gaussians.means.device, None, cameras) == "gsplat":
-        return ZoomPlan(zoom_in_floor(*views))
-    return ZoomPlan(gaussians, filter_zoom=filter_zoom(*views))
+        return ZoomPlan(_widened(gaussians, fitted, fitted_width, fitted_height, zoom))
+    return ZoomPlan(gaussians, filter_zoom=zoom)
