@@ -66,7 +66,7 @@ import math
 import torch
 from torch import Tensor
 
-from .types import EWA_DILATION, LOWPASS_RHO_SCALE, RenderMode
+from .types import EWA_DILATION, LOWPASS_RHO_SCALE, RenderMode, screen_filter
 
 SURFEL_FILTER_VARIANCE = 1.0 / LOWPASS_RHO_SCALE  # s: 2DGS's low-pass 0.5 * 2 |d|^2 = |d|^2 / (2 s)
 _EDGE_ON = 1e-12  # l2 below this share of s: the l2 -> 0 limit |det J| / s (no 1 / sqrt(l2) in a gradient)
@@ -152,6 +152,6 @@ def compensations(
     if mode == "surfel":
         T, _ = surfel_transforms(g.means, g.rotations, g.scales, w2c, K, torch.float64)
         return surfel_compensation(T, SURFEL_FILTER_VARIANCE * filter_zoom**2)
-    eps = EWA_DILATION * filter_zoom**2
+    eps = screen_filter(filter_zoom)[1]
     _, _, _, cov2d = ewa_conics(g.means, g.covariances, w2c, K, width, height, jacobian_clamp, torch.float64, eps)
     return ewa_compensation(*cov2d, eps)

@@ -42,6 +42,7 @@ from .types import (
     TRANSMITTANCE_MIN,
     RenderConventions,
     RenderMode,
+    screen_filter,
 )
 
 
@@ -254,7 +255,7 @@ def project_surfels(
     """
     T, mu = surfel_transforms(means, rotations, scales, w2c, K, torch.float64)
     z = mu[:, 2]
-    rho_scale = LOWPASS_RHO_SCALE / filter_zoom**2
+    rho_scale = screen_filter(filter_zoom)[0]
     center, lowpass, bounds = surfel_footprint(T, z, opacities, settings.lowpass_center_sigma, rho_scale)
     box = _pixel_box(*(b.detach() for b in bounds), width, height)
 
@@ -384,7 +385,7 @@ def project_ewa(
         height,
         settings.ewa_jacobian_clamp,
         torch.float64,
-        EWA_DILATION * filter_zoom**2,
+        screen_filter(filter_zoom)[1],
     )
     z = mu[:, 2]
     box = ewa_pixel_box(center, cov2d, opacities, width, height, settings.ewa_support)

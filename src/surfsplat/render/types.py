@@ -27,6 +27,13 @@ EWA_LAMBDA_GAP_MIN = 0.1  # and lambda_max = mid + sqrt(max(0.1, mid^2 - det)) t
 EwaSupport = Literal["release", "alpha"]
 
 
+def screen_filter(zoom: float = 1.0) -> tuple[float, float]:
+    """The screen-space filter of a camera `zoom` times coarser (`render`'s filter_zoom), as every backend
+    takes it: the surfels' low-pass coefficient LOWPASS_RHO_SCALE / zoom^2 (rho2d = that |p - c|^2) and EWA's
+    dilation EWA_DILATION zoom^2 (px^2). zoom 1: 2DGS's and 3DGS's own."""
+    return LOWPASS_RHO_SCALE / zoom**2, EWA_DILATION * zoom**2
+
+
 @dataclass
 class RenderConventions:
     """The rules where the field's reference rasterizers differ; every backend follows the same ones.

@@ -32,7 +32,7 @@ from torch import Tensor
 from ...geometry.cameras import Cameras
 from ...geometry.gaussians import Gaussians
 from ...utils.checks import SurfSplatInputError
-from ..types import EWA_DILATION, LOWPASS_RHO_SCALE, RenderMode
+from ..types import EWA_DILATION, LOWPASS_RHO_SCALE, RenderMode, screen_filter
 from . import kernels
 from .settings import CpuRenderSettings
 
@@ -173,7 +173,7 @@ def _cameras(cameras: Cameras, width: int, height: int, filter_zoom: float = 1.0
     w2c = _np64(cameras.w2c)
     K = _np64(cameras.K)
     centers = _np64(cameras.centers)
-    lowpass, dilation = LOWPASS_RHO_SCALE / filter_zoom**2, EWA_DILATION * filter_zoom**2
+    lowpass, dilation = screen_filter(filter_zoom)
     return [
         _Camera(
             np.ascontiguousarray(w2c[c, :3, :3]),
